@@ -1,0 +1,143 @@
+"""Stationary segments: where the gyro and accelerometer show only noise (pure functions on streams).
+
+The noise level is the chi-square-corrected low quantile of moving-window standard deviations (the
+quietest windows are still); each window is then tested against chi-square bounds at that level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from .config import StillConfig
+from .errors import StreamError
+from .models.accel import G
+from .streams import Stream
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class Segment:
+    """One still interval: IMU samples [i0, i1), times in s, mean specific force and angular rate."""
+
+    i0: int
+    i1: int
+    start: float
+    end: float
+    acc: FloatArray
+    gyr: FloatArray
+
+    @property
+    def n(self) -> int:
+        """Number of IMU samples."""
+        return self.i1 - self.i0
+
+    @property
+    def vertical(self) -> FloatArray:
+        """Unit vector along the mean specific force (up, in the body frame)."""
+        return self.acc / np.linalg.norm(self.acc)
+
+
+@dataclass(frozen=True, eq=False)
+class StillResult:
+    """Segments found, the per-sample noise std (per axis) they were judged by, and the still mask."""
+
+    segments: tuple[Segment, ...]
+    acc_noise: FloatArray
+    gyr_noise: FloatArray
+    gyr_bias: FloatArray
+    mask: npt.NDArray[np.bool_]
+
+
+def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
+    """Mean and variance (ddof=1) over windows of n samples; entry k covers x[k:k+n]."""
+    x = x - np.median(x, axis=0)                       # keeps E[x^2] - E[x]^2 well conditioned
+    c1 = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+    c2 = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
+    s1, s2 = c1[n:] - c1[:-n], c2[n:] - c2[:-n]
+    mean = s1 / n
+    var = np.maximum(s2 - s1 * mean, 0.0) / (n - 1)
+    return mean, var
+
+
+def noise_std(x: FloatArray, n: int, quantile: float) -> FloatArray:
+    """Per-axis noise std from the `quantile` of window variances, corrected by the chi-square quantile."""
+    _, var = _moving(x, n)
+    q = np.quantile(var, quantile, axis=0)
+    return np.sqrt(q * (n - 1) / stats.chi2.ppf(quantile, n - 1))
+
+
+def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """[start, stop) index pairs of the True runs of a boolean array."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig) -> StillResult:
+    """Still segments of an IMU whose accelerometer and gyro share timestamps."""
+    if len(acc) != len(gyr) or not np.allclose(acc.t, gyr.t):
+        msg = f"{acc.source}: accelerometer and gyro timestamps differ; stillness needs one IMU time base"
+        raise StreamError(msg)
+    rate = acc.rate_hz
+    n = max(5, int(round(cfg.window_s * rate)))
+    if len(acc) < 2 * n:
+        msg = f"{acc.source}: only {len(acc)} IMU samples; a still-segment search needs at least {2 * n}"
+        raise StreamError(msg)
+    a, w = acc.xyz, gyr.xyz
+    a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), 1e-12)
+    w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), 1e-12)
+    var_bound = stats.chi2.ppf(1.0 - cfg.false_alarm, n - 1) / (n - 1)
+    a_mean, a_var = _moving(a, n)
+    w_mean_c, w_var = _moving(w, n)
+    w_mean = w_mean_c + np.median(w, axis=0)
+    a_mean = a_mean + np.median(a, axis=0)
+    quiet = np.all(a_var <= var_bound * a_sd**2, axis=1) & np.all(w_var <= var_bound * w_sd**2, axis=1)
+    at_rest = np.abs(np.linalg.norm(a_mean, axis=1) / G - 1.0) <= cfg.gravity_tolerance
+    candidates = quiet & at_rest
+    bias = np.median(w_mean[candidates], axis=0) if candidates.any() else np.zeros(3)
+    # a still window's mean rate differs from the bias by noise/sqrt(n) plus the allowed bias drift
+    allow = np.deg2rad(cfg.rate_allowance_dps)
+    rate_bound = np.mean(w_sd**2) / n * stats.chi2.ppf(1.0 - cfg.false_alarm, 3) + 3.0 * allow**2
+    still_win = candidates & (np.sum((w_mean - bias) ** 2, axis=1) <= rate_bound)
+    # window k covers samples k..k+n-1: a sample is still when some still window contains it
+    mask = np.convolve(still_win.astype(np.int64), np.ones(n, dtype=np.int64))[: len(acc)] > 0
+    trim = int(round(cfg.edge_trim_s * rate))
+    segments = []
+    for i0, i1 in _runs(mask):
+        j0, j1 = i0 + trim, i1 - trim
+        if j1 <= j0 or acc.t[j1 - 1] - acc.t[j0] < cfg.min_duration_s:
+            continue
+        segments.append(Segment(j0, j1, float(acc.t[j0]), float(acc.t[j1 - 1]),
+                                a[j0:j1].mean(axis=0), w[j0:j1].mean(axis=0)))
+    if segments:
+        idx = np.concatenate([np.arange(s.i0, s.i1) for s in segments])
+        bias = w[idx].mean(axis=0)
+    return StillResult(tuple(segments), a_sd, w_sd, bias, mask)
+
+
+def window_means(stream: Stream, segments: tuple[Segment, ...] | list[Segment]) -> tuple[FloatArray, FloatArray]:
+    """Mean (K, width) and sample count (K,) of `stream` inside each segment's [start, end]."""
+    t = stream.t
+    lo = np.searchsorted(t, [s.start for s in segments], side="left")
+    hi = np.searchsorted(t, [s.end for s in segments], side="right")
+    c = np.concatenate([np.zeros((1, stream.values.shape[1])), np.cumsum(stream.values, axis=0)])
+    counts = (hi - lo).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means = (c[hi] - c[lo]) / counts[:, None]
+    return means, counts
+
+
+def pooled_std(stream: Stream, segments: tuple[Segment, ...] | list[Segment]) -> FloatArray:
+    """Per-axis std of `stream` about each segment's own mean, pooled over segments (ddof per segment)."""
+    t = stream.t
+    ss, dof = np.zeros(stream.values.shape[1]), 0
+    for s in segments:                                  # one vectorised reduction per segment, not per sample
+        x = stream.values[np.searchsorted(t, s.start):np.searchsorted(t, s.end, side="right")]
+        if len(x) > 1:
+            ss += np.sum((x - x.mean(axis=0)) ** 2, axis=0)
+            dof += len(x) - 1
+    return np.sqrt(ss / dof) if dof else np.full(stream.values.shape[1], np.nan)

@@ -1,0 +1,43 @@
+"""The error tree: everything the CLI reports as one `Error: <where>: <what>. <how to fix>` line."""
+
+from __future__ import annotations
+
+
+class MagcalError(Exception):
+    """Anything the CLI reports as 'Error: ...' with exit code 1."""
+
+
+class LogReadError(MagcalError):
+    """File unreadable, truncated or corrupt."""
+
+
+class UnsupportedFormatError(LogReadError):
+    """No reader recognises the file."""
+
+
+class MissingDependencyError(MagcalError):
+    """An optional package needed for this input is not installed."""
+
+
+class StreamError(MagcalError):
+    """Stream absent, empty, wrong shape or wrong unit."""
+
+
+class InsufficientDataError(MagcalError):
+    """Too few stationary segments or too little orientation coverage to determine the calibration."""
+
+
+class ConvergenceError(MagcalError):
+    """The solver did not converge; carries the iteration log."""
+
+    def __init__(self, message: str, log: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.log = log
+
+
+class OutputError(MagcalError):
+    """An output cannot be written (exists without --force, unwritable directory)."""
+
+
+class CalibrationFileError(MagcalError):
+    """A calibration document is malformed or of an unknown schema."""

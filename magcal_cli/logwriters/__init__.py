@@ -1,0 +1,27 @@
+"""Writers of synthetic logs, one per format, chosen by the output path (used by `magcal simulate`)."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from pathlib import Path
+
+from ..errors import MagcalError
+from ..synth import Simulation
+
+#: file extension -> "module:function(sim, path)"; a directory path (no extension) is a ROS 2 bag
+LOG_WRITERS: dict[str, str] = {
+    ".mcap": "magcal_cli.logwriters.mcap:write_mcap",
+}
+
+
+def write_log(sim: Simulation, path: Path) -> None:
+    """Write `sim` in the format named by `path`'s extension."""
+    target = LOG_WRITERS.get(path.suffix.lower())
+    if target is None:
+        msg = (f"{path}: cannot write a log with extension {path.suffix or '(none)'!r}; "
+               f"use one of {', '.join(sorted(LOG_WRITERS))}")
+        raise MagcalError(msg)
+    module, func = target.split(":")
+    writer: Callable[[Simulation, Path], None] = getattr(importlib.import_module(module), func)
+    writer(sim, path)

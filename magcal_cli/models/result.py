@@ -1,0 +1,48 @@
+"""What every estimator returns, in SI units; the pipeline turns it into a Calibration document."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, eq=False)
+class MagFit:
+    """One magnetometer: D (3, 3) and o (3,) in tesla, dip in rad, covariance of (vec D, o, dip) in SI."""
+
+    id: str
+    D: FloatArray
+    o: FloatArray
+    dip: float
+    cov: FloatArray
+    residual_rms: float
+    samples: int
+    iterations: int
+    converged: bool
+    log: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class ImuFit:
+    """IMU biases (m/s^2, rad/s) and their standard deviations; None where not estimated."""
+
+    id: str
+    accel_bias: FloatArray | None = None
+    gyro_bias: FloatArray | None = None
+    accel_bias_std: FloatArray | None = None
+    gyro_bias_std: FloatArray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class MethodResult:
+    """An estimator's output: magnetometers, IMU, the noise levels it used, remarks for the report."""
+
+    method: str
+    mags: tuple[MagFit, ...]
+    imu: ImuFit
+    noise: dict[str, list[float]] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()

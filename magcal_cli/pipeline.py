@@ -1,0 +1,183 @@
+"""calibrate(path, config) -> RunResult: read, select, detect, estimate, assemble the document. No printing."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from . import __version__, units
+from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
+from .config import Config
+from .detect import StillResult, detect_still, pooled_std
+from .errors import MagcalError, StreamError
+from .findings import Finding, Severity
+from .models.problem import Problem
+from .models.result import MagFit, MethodResult
+from .readers import ReadOptions, open_recording
+from .streams import Kind, Recording, Stream
+
+FloatArray = npt.NDArray[np.float64]
+Progress = Callable[[str], None]
+
+#: method name -> "module:function(problem, config) -> MethodResult"
+METHODS: dict[str, str] = {
+    "kok2012": "magcal_cli.models.kok2012:run",
+}
+
+
+@dataclass(frozen=True, eq=False)
+class MagSeries:
+    """A magnetometer's readings and calibrated unit field over time, for reports and plots."""
+
+    t: FloatArray
+    raw: FloatArray
+    calibrated: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class RunResult:
+    """Everything one `fit` produced: the document, what it was computed from and what was noticed."""
+
+    calibration: Calibration
+    recording: Recording
+    still: StillResult
+    findings: tuple[Finding, ...]
+    series: dict[str, MagSeries]
+
+
+def _noop(_: str) -> None:
+    """Default progress sink."""
+
+
+def sha256(path: Path) -> str:
+    """Hex SHA-256 of a file, or of a bag directory's files in name order."""
+    digest = hashlib.sha256()
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    for f in files:
+        with f.open("rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+def utc_now() -> str:
+    """ISO-8601 UTC timestamp; SOURCE_DATE_EPOCH makes it reproducible (as reproducible builds do)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    stamp = float(epoch) if epoch and epoch.isdigit() else time.time()
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(stamp))
+
+
+def select_problem(rec: Recording, cfg: Config) -> Problem:
+    """Pick the IMU and magnetometers named by the config and cut them to [start, end]."""
+    where = rec.path.name
+    gyro_ids = set(rec.ids(Kind.GYROSCOPE))
+    if cfg.imu is None:
+        candidates = [i for i in rec.ids(Kind.ACCELEROMETER) if i in gyro_ids]
+        imu_id = candidates[0] if candidates else None
+    else:
+        imu_id = cfg.imu
+    acc = rec.select(Kind.ACCELEROMETER, imu_id, "--imu")
+    gyr = rec.select(Kind.GYROSCOPE, acc.id, "--imu")
+    mag_ids = rec.ids(Kind.MAGNETOMETER) if cfg.mag == "all" else [m.strip() for m in cfg.mag.split(",")]
+    mags = tuple(rec.select(Kind.MAGNETOMETER, m or None, "--mag").between(cfg.start_s, cfg.end_s)
+                 for m in (mag_ids or [None]))
+    acc, gyr = acc.between(cfg.start_s, cfg.end_s), gyr.between(cfg.start_s, cfg.end_s)
+    for s in (acc, *mags):
+        if len(s) < 10:
+            msg = (f"{where}: {s.kind.value} {s.id} has only {len(s)} samples between --start and --end; "
+                   "widen the time window")
+            raise StreamError(msg)
+    return Problem(where, acc.id, acc, gyr, mags, detect_still(acc, gyr, cfg.still))
+
+
+def coverage_pct(m_b: FloatArray, cells: int = 100) -> float:
+    """Share of `cells` near-equal-area sphere cells (Fibonacci lattice) that the unit field directions visit."""
+    k = np.arange(cells) + 0.5
+    z = 1.0 - 2.0 * k / cells
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * k
+    centres = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    u = m_b / np.linalg.norm(m_b, axis=1, keepdims=True)
+    hit = np.unique(np.argmax(u[:: max(1, len(u) // 20000)] @ centres.T, axis=1))
+    return 100.0 * hit.size / cells
+
+
+def _mag_calibration(fit: MagFit, stream: Stream) -> tuple[MagCalibration, MagSeries]:
+    """Convert an SI fit to the stream's native unit and measure its quality on every reading."""
+    f = units.from_si(stream.native_unit)
+    scale = np.concatenate([np.full(12, f), [np.rad2deg(1.0)]])
+    d, o = fit.D * f, fit.o * f
+    raw = stream.xyz * f
+    m_b = (raw - o) @ np.linalg.inv(d).T
+    norm_err = np.linalg.norm(m_b, axis=1) - 1.0
+    quality = Quality(len(stream), fit.residual_rms * f, float(100.0 * np.sqrt(np.mean(norm_err**2))),
+                      coverage_pct(m_b), bool(fit.converged), int(fit.iterations))
+    cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
+                         fit.cov * np.outer(scale, scale), float(np.cbrt(np.linalg.det(d))), "data", quality)
+    return cal, MagSeries(stream.t, raw, m_b)
+
+
+def _findings(rec: Recording, problem: Problem, result: MethodResult, mags: list[MagCalibration]) -> list[Finding]:
+    """What the report should tell the user beyond the numbers."""
+    out = [Finding(Severity.INFO, "reader_note", note) for note in rec.notes]
+    out += [Finding(Severity.INFO, "method_note", note) for note in result.notes]
+    if result.method == "kok2012":
+        out.append(Finding(Severity.INFO, "accel_bias_not_modelled",
+                           "Kok 2012 takes the accelerometer as an unbiased vertical; an accelerometer bias b "
+                           "tilts every vertical by up to |b|/g rad and shows up in the misalignment and dip."))
+    for m in mags:
+        q = m.quality
+        if q is not None and q.coverage_pct < 30.0:
+            out.append(Finding(Severity.WARNING, "low_coverage",
+                               f"{m.id}: the field directions cover only {q.coverage_pct:.0f} % of the sphere; "
+                               "rotate the vehicle about all three axes (roll it over, pitch it up and down).",
+                               {"coverage_pct": q.coverage_pct}))
+        if q is not None and not q.converged:
+            out.append(Finding(Severity.WARNING, "not_converged",
+                               f"{m.id}: the solver stopped before its convergence test passed.",
+                               {"iterations": q.iterations}))
+    return out
+
+
+def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress = _noop) -> RunResult:
+    """Calibrate every selected magnetometer of one log against its IMU."""
+    path = Path(path)
+    progress(f"reading {path.name}")
+    rec = open_recording(path, fmt, ReadOptions(allow_truncated=cfg.allow_truncated))
+    problem = select_problem(rec, cfg)
+    method = "kok2012" if cfg.method == "auto" else cfg.method
+    target = METHODS.get(method)
+    if target is None:
+        msg = (f"{path.name}: --method {method} is not available in magcal {__version__}; "
+               f"use one of: auto, {', '.join(METHODS)}")
+        raise MagcalError(msg)
+    progress(f"{len(problem.still.segments)} still segments; fitting {method} "
+             f"for {', '.join(m.id for m in problem.mags)}")
+    module, func = target.split(":")
+    result: MethodResult = getattr(importlib.import_module(module), func)(problem, cfg)
+    mags, series = [], {}
+    for fit, stream in zip(result.mags, problem.mags):
+        cal, ser = _mag_calibration(fit, stream)
+        mags.append(cal)
+        series[stream.id] = ser
+    imu = ImuCalibration(result.imu.id, result.imu.accel_bias, result.imu.gyro_bias,
+                         result.imu.accel_bias_std, result.imu.gyro_bias_std)
+    segs = problem.still.segments
+    noise = {"accelerometer_std": problem.still.acc_noise.tolist(), "gyroscope_std": problem.still.gyr_noise.tolist(),
+             "source": "quietest windows of the IMU (detect.noise_std)"}
+    for m, stream in zip(mags, problem.mags):
+        if segs:
+            noise[f"magnetometer_std[{m.id}]"] = (pooled_std(stream, segs) * units.from_si(stream.native_unit)).tolist()
+    t_used = np.concatenate([problem.acc.t, *[m.t for m in problem.mags]])
+    source = Source(str(path), rec.format, sha256(path), float(t_used.min()), float(t_used.max()))
+    findings = _findings(rec, problem, result, mags)
+    cal = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
+                      notes=tuple(f.message for f in findings))
+    return RunResult(cal, rec, problem.still, tuple(findings), series)

@@ -1,0 +1,101 @@
+"""Reader registry, format sniffing and `open_recording` (the only entry point for logs)."""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar, Protocol
+
+from ..errors import LogReadError, MissingDependencyError, UnsupportedFormatError
+from ..streams import Recording
+
+
+@dataclass(frozen=True)
+class ReadOptions:
+    """What a reader should do beyond the defaults."""
+
+    allow_truncated: bool = False
+    receive_time: bool = False
+
+
+class Reader(Protocol):
+    """A log reader: turns one file (or bag directory) into a Recording in SI units."""
+
+    name: ClassVar[str]
+
+    def read(self, path: Path, options: ReadOptions) -> Recording:
+        """Read every stream magcal can use."""
+        ...
+
+
+#: format name -> "module:Class" (imported on use, so `magcal --help` stays fast)
+READERS: dict[str, str | type[Reader]] = {
+    "mcap": "magcal_cli.readers.mcap:McapReader",
+}
+
+#: leading bytes -> format name (mcap read_magic; rosbags; pyulog HEADER_BYTES; DataFlash HEAD1/HEAD2)
+MAGIC: dict[bytes, str] = {
+    b"\x89MCAP0\r\n": "mcap",
+    b"#ROSBAG V2.0\n": "rosbag",
+    b"ULog\x01\x12\x35": "ulog",
+    b"\xa3\x95": "dataflash",
+}
+
+#: extensions tried when the magic bytes say nothing (text formats)
+EXTENSIONS: dict[str, str] = {".mcap": "mcap", ".bag": "rosbag", ".ulg": "ulog", ".bin": "dataflash",
+                              ".log": "dataflash", ".csv": "csv", ".px4log": "dataflash"}
+
+
+def sniff(path: Path) -> str:
+    """The format of `path`: a ROS 2 bag directory, else magic bytes, else the extension."""
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return "rosbag"
+        msg = f"{path}: a directory that is not a ROS 2 bag (no metadata.yaml). Pass a log file or a bag directory"
+        raise UnsupportedFormatError(msg)
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(16)
+    except OSError as exc:
+        msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
+        raise LogReadError(msg) from None
+    if not head:
+        msg = f"{path}: the file is empty. Re-copy the log from the vehicle"
+        raise LogReadError(msg)
+    for magic, name in MAGIC.items():
+        if head.startswith(magic):
+            return name
+    by_ext = EXTENSIONS.get(path.suffix.lower())
+    if by_ext is not None and by_ext not in ("mcap", "rosbag", "ulog"):
+        return by_ext
+    msg = (f"{path}: unrecognised log format (no known magic bytes at the start). "
+           f"Supported: {', '.join(sorted(READERS))}; use --format to force one")
+    raise UnsupportedFormatError(msg)
+
+
+def get_reader(name: str) -> Reader:
+    """Instantiate the registered reader `name`, importing its module on demand."""
+    target = READERS.get(name)
+    if target is None:
+        msg = f"format {name!r} has no reader in this version; supported: {', '.join(sorted(READERS))}"
+        raise UnsupportedFormatError(msg)
+    if isinstance(target, str):
+        module, cls = target.split(":")
+        try:
+            target = getattr(importlib.import_module(module), cls)
+        except ImportError as exc:
+            msg = (f"reading {name} logs needs the package {exc.name!r}; "
+                   f"run: pip install --upgrade magcal-cli")
+            raise MissingDependencyError(msg) from None
+    return target()  # type: ignore[operator,return-value,no-any-return]
+
+
+def open_recording(path: Path, fmt: str | None = None, options: ReadOptions | None = None) -> Recording:
+    """Read `path` with the reader for `fmt` (sniffed when None)."""
+    path = Path(path)
+    if not path.exists():
+        msg = f"{path}: no such file or directory. Check the path"
+        raise LogReadError(msg)
+    name = fmt or sniff(path)
+    return get_reader(name).read(path, options or ReadOptions())

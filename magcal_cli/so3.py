@@ -1,0 +1,169 @@
+"""SO(3): hat/vee, Exp/Log, right Jacobians, quaternions, Wahba and polar factors — the only copy.
+
+Conventions (stated once): rotation matrices act on column vectors; `R` maps body to nav (v_n = R v_b);
+perturbations are on the right, R <- R Exp(phi), phi in the body frame; quaternions are scalar first
+(w, x, y, z). Every function accepts leading batch dimensions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial.transform import Rotation
+
+FloatArray = npt.NDArray[np.float64]
+
+#: below this angle (rad) the closed forms lose precision and the Taylor series (to theta^4) is exact
+#: to double precision: the first neglected term is ~theta^6/5040 < 1e-22.
+_SMALL = 1e-4
+
+
+def hat(v: npt.ArrayLike) -> FloatArray:
+    """Skew matrix [v]x of (..., 3) vectors, so that hat(a) @ b == cross(a, b)."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def vee(m: npt.ArrayLike) -> FloatArray:
+    """Inverse of hat: the (..., 3) vector of (the skew part of) (..., 3, 3) matrices."""
+    m = np.asarray(m, dtype=np.float64)
+    return 0.5 * np.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1
+    )
+
+
+def _coefficients(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """theta, sin(t)/t, (1-cos t)/t^2, (t-sin t)/t^3 with Taylor branches near zero."""
+    theta = np.linalg.norm(phi, axis=-1)
+    small = theta < _SMALL
+    t = np.where(small, 1.0, theta)
+    t2 = theta * theta
+    a = np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, np.sin(t) / t)
+    b = np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - np.cos(t)) / (t * t))
+    c = np.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (t - np.sin(t)) / (t * t * t))
+    return theta, a, b, c
+
+
+def exp(phi: npt.ArrayLike) -> FloatArray:
+    """Exp: rotation vectors (..., 3) -> rotation matrices (..., 3, 3) (Rodrigues)."""
+    phi = np.asarray(phi, dtype=np.float64)
+    _, a, b, _ = _coefficients(phi)
+    k = hat(phi)
+    return np.eye(3) + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def log(rot: npt.ArrayLike) -> FloatArray:
+    """Log: rotation matrices (..., 3, 3) -> rotation vectors (..., 3) with norm in [0, pi].
+
+    Goes through the quaternion (Shepperd's method in scipy), which stays accurate near 0 and near pi.
+    """
+    rot = np.asarray(rot, dtype=np.float64)
+    flat = rot.reshape(-1, 3, 3)
+    out = Rotation.from_matrix(flat).as_rotvec()
+    return out.reshape(rot.shape[:-2] + (3,))
+
+
+def right_jacobian(phi: npt.ArrayLike) -> FloatArray:
+    """J_r(phi): Exp(phi + d) ~= Exp(phi) Exp(J_r(phi) d) (Chirikjian 2011, eq. 10.86; Forster 2017 eq. 8)."""
+    phi = np.asarray(phi, dtype=np.float64)
+    _, _, b, c = _coefficients(phi)
+    k = hat(phi)
+    return np.eye(3) - b[..., None, None] * k + c[..., None, None] * (k @ k)
+
+
+def right_jacobian_inv(phi: npt.ArrayLike) -> FloatArray:
+    """J_r(phi)^-1 = I + k/2 + (1/t^2 - cot(t/2)/(2t)) k^2 (Forster 2017 eq. 9), finite up to |phi| < 2 pi."""
+    phi = np.asarray(phi, dtype=np.float64)
+    theta = np.linalg.norm(phi, axis=-1)
+    small = theta < _SMALL
+    t = np.where(small, 1.0, theta)
+    t2 = theta * theta
+    d = np.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
+                 1.0 / (t * t) - 1.0 / (2.0 * t * np.tan(t / 2.0)))
+    k = hat(phi)
+    return np.eye(3) + 0.5 * k + d[..., None, None] * (k @ k)
+
+
+def left_jacobian(phi: npt.ArrayLike) -> FloatArray:
+    """J_l(phi) = J_r(-phi): Exp(phi + d) ~= Exp(J_l(phi) d) Exp(phi)."""
+    return right_jacobian(-np.asarray(phi, dtype=np.float64))
+
+
+def from_quat(q: npt.ArrayLike) -> FloatArray:
+    """Rotation matrices from (..., 4) quaternions (w, x, y, z); they need not be normalised."""
+    q = np.asarray(q, dtype=np.float64)
+    flat = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix()
+    return flat.reshape(q.shape[:-1] + (3, 3))
+
+
+def as_quat(rot: npt.ArrayLike) -> FloatArray:
+    """(..., 4) quaternions (w, x, y, z) with w >= 0 of rotation matrices."""
+    rot = np.asarray(rot, dtype=np.float64)
+    flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat(canonical=True, scalar_first=True)
+    return flat.reshape(rot.shape[:-2] + (4,))
+
+
+def from_rpy(rpy: npt.ArrayLike) -> FloatArray:
+    """Rz(yaw) Ry(pitch) Rx(roll) from (..., 3) roll, pitch, yaw in radians (roll applied first)."""
+    rpy = np.asarray(rpy, dtype=np.float64)
+    flat = Rotation.from_euler("ZYX", rpy.reshape(-1, 3)[:, ::-1]).as_matrix()
+    return flat.reshape(rpy.shape[:-1] + (3, 3))
+
+
+def as_rpy(rot: npt.ArrayLike) -> FloatArray:
+    """(..., 3) roll, pitch, yaw in radians with rot = Rz(yaw) Ry(pitch) Rx(roll)."""
+    rot = np.asarray(rot, dtype=np.float64)
+    flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_euler("ZYX")[:, ::-1]
+    return flat.reshape(rot.shape[:-2] + (3,))
+
+
+def project(m: npt.ArrayLike) -> FloatArray:
+    """The nearest rotation matrices (Frobenius norm) to (..., 3, 3) matrices."""
+    u, _, vt = np.linalg.svd(np.asarray(m, dtype=np.float64))
+    sign = np.sign(np.linalg.det(u @ vt))
+    u[..., :, 2] *= sign[..., None]
+    return u @ vt
+
+
+def wahba(body: npt.ArrayLike, nav: npt.ArrayLike, weights: npt.ArrayLike | None = None) -> FloatArray:
+    """R minimising sum_i w_i |nav_i - R body_i|^2, batched: body (..., M, 3), nav (M, 3) or (..., M, 3).
+
+    The SVD solution of Wahba's problem (Markley 1988), equivalent to Davenport's q-method.
+    """
+    body = np.asarray(body, dtype=np.float64)
+    nav = np.broadcast_to(np.asarray(nav, dtype=np.float64), body.shape)
+    w = np.ones(body.shape[-2]) if weights is None else np.asarray(weights, dtype=np.float64)
+    b = np.einsum("...mi,...mj,m->...ij", nav, body, w)
+    return project(b)
+
+
+def polar(m: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Polar factors m = U P with U a rotation (det +1) and P symmetric; P is positive definite iff det m > 0."""
+    u_, s, vt = np.linalg.svd(np.asarray(m, dtype=np.float64))
+    sign = np.sign(np.linalg.det(u_ @ vt))
+    u_[..., :, 2] *= sign[..., None]
+    s = s.copy()
+    s[..., 2] *= sign
+    return u_ @ vt, vt.swapaxes(-1, -2) @ (s[..., :, None] * vt)
+
+
+def angle(rot: npt.ArrayLike) -> FloatArray:
+    """Rotation angle(s) in radians, in [0, pi]."""
+    return np.linalg.norm(log(rot), axis=-1)
+
+
+def cumulative_product(rots: npt.ArrayLike) -> FloatArray:
+    """Prefix products P_k = R_0 R_1 ... R_k of (N, 3, 3) rotations, by a log-depth scan (Hillis-Steele).
+
+    ceil(log2 N) batched matmuls instead of N sequential ones; the result is re-projected onto SO(3).
+    """
+    out = np.array(rots, dtype=np.float64)
+    shift = 1
+    while shift < out.shape[0]:
+        out[shift:] = out[:-shift] @ out[shift:]
+        shift *= 2
+    return project(out)

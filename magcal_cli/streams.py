@@ -1,0 +1,153 @@
+"""The data model: typed, frozen streams in SI units with provenance, and the recording that holds them."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import StreamError
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class Kind(Enum):
+    """What a stream measures; the value is the name `magcal inspect` prints."""
+
+    MAGNETOMETER = "magnetometer"
+    ACCELEROMETER = "accelerometer"
+    GYROSCOPE = "gyroscope"
+    ATTITUDE = "attitude"
+    BATTERY_CURRENT = "battery_current"
+    BATTERY_VOLTAGE = "battery_voltage"
+    THROTTLE = "throttle"
+    TEMPERATURE = "temperature"
+    POSITION = "position"
+
+    @property
+    def width(self) -> int:
+        """Number of columns of `Stream.values` for this kind."""
+        return _WIDTH.get(self, 1)
+
+    @property
+    def si_unit(self) -> str:
+        """The SI unit the values are stored in."""
+        return _SI_UNIT[self]
+
+
+_WIDTH = {Kind.MAGNETOMETER: 3, Kind.ACCELEROMETER: 3, Kind.GYROSCOPE: 3, Kind.ATTITUDE: 4, Kind.POSITION: 3}
+_SI_UNIT = {
+    Kind.MAGNETOMETER: "tesla", Kind.ACCELEROMETER: "m/s^2", Kind.GYROSCOPE: "rad/s",
+    Kind.ATTITUDE: "quaternion wxyz, body to nav", Kind.BATTERY_CURRENT: "A", Kind.BATTERY_VOLTAGE: "V",
+    Kind.THROTTLE: "1", Kind.TEMPERATURE: "degC", Kind.POSITION: "deg, deg, m (lat, lon, alt)",
+}
+
+
+@dataclass(frozen=True, eq=False)
+class Stream:
+    """Samples of one sensor channel: SI units, sensor frame, non-decreasing time in seconds.
+
+    `t` is relative to the recording's `t0`; `values` has `kind.width` columns; `native_unit` is the
+    unit the log used (the calibration document reports magnetometer quantities in it).
+    """
+
+    kind: Kind
+    id: str
+    t: FloatArray
+    values: FloatArray
+    source: str
+    native_unit: str
+
+    def __post_init__(self) -> None:
+        t = np.array(self.t, dtype=np.float64)
+        values = np.array(self.values, dtype=np.float64)
+        if values.ndim == 1 and self.kind.width == 1:
+            values = values[:, None]
+        if t.ndim != 1 or values.shape != (t.size, self.kind.width):
+            msg = (f"{self.source}: expected t (N,) and values (N, {self.kind.width}) for a {self.kind.value} "
+                   f"stream, got {t.shape} and {values.shape}")
+            raise StreamError(msg)
+        if t.size > 1 and np.any(np.diff(t) < 0):
+            msg = f"{self.source}: timestamps go backwards; sort the samples before building the stream"
+            raise StreamError(msg)
+        t.flags.writeable = False
+        values.flags.writeable = False
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "values", values)
+
+    @property
+    def xyz(self) -> FloatArray:
+        """The (N, 3) samples of a three-axis stream."""
+        if self.kind.width != 3:
+            msg = f"{self.source}: a {self.kind.value} stream has no xyz columns"
+            raise StreamError(msg)
+        return self.values
+
+    @property
+    def rate_hz(self) -> float:
+        """Median sample rate in Hz (0 for fewer than two samples)."""
+        if self.t.size < 2:
+            return 0.0
+        dt = float(np.median(np.diff(self.t)))
+        return 1.0 / dt if dt > 0 else 0.0
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+    def between(self, start: float | None, end: float | None) -> Stream:
+        """The samples with start <= t <= end (either bound may be None)."""
+        lo = 0 if start is None else int(np.searchsorted(self.t, start, side="left"))
+        hi = self.t.size if end is None else int(np.searchsorted(self.t, end, side="right"))
+        return Stream(self.kind, self.id, self.t[lo:hi], self.values[lo:hi], self.source, self.native_unit)
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """Everything a reader found in one log; nothing downstream knows the file format.
+
+    `t0` is the absolute time (s, the log's clock) that stream times are relative to; `params` are
+    firmware parameters (name -> value, last value in the log); `notes` are the reader's remarks
+    (dropped samples, truncation) that the report repeats.
+    """
+
+    path: Path
+    format: str
+    streams: tuple[Stream, ...]
+    t0: float = 0.0
+    params: Mapping[str, float] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "streams", tuple(self.streams))
+        object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
+        object.__setattr__(self, "notes", tuple(self.notes))
+
+    def of_kind(self, kind: Kind) -> list[Stream]:
+        """All streams of one kind, in reader order."""
+        return [s for s in self.streams if s.kind is kind]
+
+    def ids(self, kind: Kind) -> list[str]:
+        """The ids of the streams of one kind."""
+        return [s.id for s in self.of_kind(kind)]
+
+    def select(self, kind: Kind, stream_id: str | None = None, flag: str = "") -> Stream:
+        """The stream of `kind` with `stream_id` (the first one when None), or a StreamError that lists the others."""
+        found = self.of_kind(kind)
+        if not found:
+            have = ", ".join(sorted({f"{s.id} ({s.kind.value})" for s in self.streams})) or "none"
+            msg = f"{self.path.name}: no {kind.value} stream; available: {have}"
+            raise StreamError(msg)
+        if stream_id is None:
+            return found[0]
+        for s in found:
+            if s.id == stream_id:
+                return s
+        hint = f" Use {flag} with one of them." if flag else ""
+        msg = (f"{self.path.name}: no {kind.value} stream {stream_id!r}; "
+               f"available: {', '.join(s.id for s in found)}.{hint}")
+        raise StreamError(msg)

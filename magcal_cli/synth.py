@@ -1,0 +1,195 @@
+"""Synthetic recordings with known truth: the `paper` (Huang et al. 2025) and `handheld` scenarios.
+
+Truth and noise are drawn as in methods.md section 5 (the authors' simulate/simulate.m), in NED.
+Gyro samples are exact constant-rate increments, y_g,k = Log(R_k^T R_k+1)/dt + b_g + noise, so they agree
+with preintegration; accelerometers see gravity only (pure rotation): y_a = -R^T g_n + b_a + noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from . import so3
+from .calibration import Calibration, ImuCalibration, MagCalibration, Source
+from .errors import MagcalError
+from .models.accel import G
+from .streams import Kind, Recording, Stream
+
+FloatArray = npt.NDArray[np.float64]
+
+SCENARIOS = ("paper", "handheld")
+#: default IMU and magnetometer rates (Hz) per scenario
+DEFAULT_RATES = {"paper": (80.0, 80.0), "handheld": (100.0, 50.0)}
+#: noise densities of methods.md section 5: accelerometer m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), field T/sqrt(Hz)
+NOISE_DENSITY = {"accelerometer": 0.02, "gyroscope": 8.7e-4, "magnetometer": 0.003e-6}
+#: ROS time of the first sample, so that simulated logs carry realistic absolute stamps
+T0_ROS = 1_763_700_000.0
+#: a level ROS (FLU) body in NED: x north, y west, z up
+FLU_LEVEL = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass(frozen=True, eq=False)
+class Truth:
+    """The calibration the simulator used: D, o in tesla, dip in rad, biases in SI, per-sample noise std."""
+
+    D: FloatArray
+    o: FloatArray
+    dip: float
+    accel_bias: FloatArray
+    gyro_bias: FloatArray
+    noise_std: dict[str, float]
+
+    @property
+    def field_strength(self) -> float:
+        """det(D)^(1/3), the convention magcal reports when no reference field is known."""
+        return float(np.cbrt(np.linalg.det(self.D)))
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """A simulated recording, its truth, the true trajectory at the IMU epochs and the still intervals (s)."""
+
+    recording: Recording
+    truth: Truth
+    rotations: FloatArray
+    still: tuple[tuple[float, float], ...]
+    scenario: str
+    seed: int
+
+
+def truth_calibration(sim: Simulation, log_path: Path, version: str, created_utc: str) -> Calibration:
+    """The truth as a calibration document (method "truth", zero uncertainty) plus the simulation settings."""
+    tr = sim.truth
+    rec = sim.recording
+    mag = rec.select(Kind.MAGNETOMETER)
+    acc = rec.select(Kind.ACCELEROMETER)
+    cal = MagCalibration(mag.id, "tesla", tr.D, tr.o, float(np.rad2deg(tr.dip)), np.zeros((13, 13)),
+                         tr.field_strength, "data")
+    imu = ImuCalibration(acc.id, tr.accel_bias, tr.gyro_bias, np.zeros(3), np.zeros(3))
+    source = Source(str(log_path), log_path.suffix.lstrip(".") or "rosbag", "", 0.0, float(acc.t[-1]))
+    sim_info = {"scenario": sim.scenario, "seed": sim.seed, "rate_hz": acc.rate_hz, "mag_rate_hz": mag.rate_hz,
+                "still_intervals_s": [list(s) for s in sim.still]}
+    noise = {f"{k}_std": [v] * 3 for k, v in tr.noise_std.items()} | {"source": "simulation (per-sample std, SI)"}
+    return Calibration(source, "truth", imu, (cal,), version, created_utc, noise, extra={"simulation": sim_info})
+
+
+def draw_truth(rng: np.random.Generator, rate: float, mag_rate: float) -> Truth:
+    """Calibration drawn as in methods.md section 5 (field magnitude 27 uT)."""
+    u = lambda lim, n=3: rng.uniform(-lim, lim, n)  # noqa: E731
+    acc_bias, mag_bias = u(0.5), u(2.0) * 1e-6
+    scale = np.diag(1.0 + u(0.1))
+    s1, s2, s3 = u(np.deg2rad(10.0))
+    skew = np.array([[1.0, 0.0, 0.0], [np.sin(s1), np.cos(s1), 0.0],
+                     [-np.sin(s2), np.cos(s2) * np.sin(s3), np.cos(s2) * np.cos(s3)]])
+    a1, a2, a3 = u(np.deg2rad(5.0))
+    rot = so3.exp([a1, 0, 0]) @ so3.exp([0, a2, 0]) @ so3.exp([0, 0, a3])
+    d = 27e-6 * scale @ skew @ rot
+    dip = np.deg2rad(72.0) + float(u(np.deg2rad(5.0), 1)[0])
+    gyro_bias = 0.01 + u(np.deg2rad(0.1))
+    noise = {"accelerometer": NOISE_DENSITY["accelerometer"] * np.sqrt(rate),
+             "gyroscope": NOISE_DENSITY["gyroscope"] * np.sqrt(rate),
+             "magnetometer": NOISE_DENSITY["magnetometer"] * np.sqrt(mag_rate)}
+    return Truth(d, mag_bias, dip, acc_bias, gyro_bias, noise)
+
+
+def paper_trajectory(rng: np.random.Generator, rate: float, duration: float | None) -> FloatArray:
+    """Rotations at v + 0.05 randn(3) rad/s for 2 pi/|v| s each, v in 0.1 {x, y, z, x+y, x+z, y+z}, from I."""
+    axes = 0.1 * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1]], dtype=float)
+    spans = 2.0 * np.pi / np.linalg.norm(axes, axis=1)
+    if duration is not None:
+        spans = np.full(6, duration / 6.0)
+    counts = np.ceil(spans * rate).astype(int)
+    omega = np.repeat(axes, counts, axis=0) + 0.05 * rng.standard_normal((counts.sum(), 3))
+    steps = so3.exp(omega / rate)
+    return np.concatenate([np.eye(3)[None], so3.cumulative_product(steps)])
+
+
+def _min_jerk(s: FloatArray) -> FloatArray:
+    """Smooth 0 -> 1 profile with zero velocity and acceleration at both ends."""
+    return s**3 * (10.0 - 15.0 * s + 6.0 * s * s)
+
+
+def _pose_with_up(up_body: FloatArray, yaw: float) -> FloatArray:
+    """A body->NED rotation that maps the body vector `up_body` to up, then turned by `yaw` about down."""
+    up = up_body / np.linalg.norm(up_body)
+    axis = np.cross(up, [0.0, 0.0, -1.0])
+    s, c = float(np.linalg.norm(axis)), float(-up[2])
+    if s < 1e-9:
+        align = np.eye(3) if c > 0 else so3.exp([np.pi, 0.0, 0.0])
+    else:
+        align = so3.exp(axis / s * np.arctan2(s, c))
+    return so3.exp([0.0, 0.0, yaw]) @ align
+
+
+def handheld_trajectory(rng: np.random.Generator, rate: float,
+                        duration: float | None) -> tuple[FloatArray, tuple[tuple[float, float], ...]]:
+    """10 s still, then moves about varying axes between >= 12 still poses of 2-4 s, then 10 s still.
+
+    The poses point the body's up direction at the 6 faces and 8 corners of a cube (plus random ones),
+    each with a random heading, in random order.
+    """
+    n_poses = 16 if duration is None else max(12, int((duration - 20.0) / 6.0))
+    ups = np.concatenate([np.eye(3), -np.eye(3), np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T])
+    extra = rng.standard_normal((max(0, n_poses - len(ups)), 3))
+    ups = np.concatenate([ups, extra])[rng.permutation(max(n_poses, len(ups)))][:n_poses]
+    start = FLU_LEVEL @ so3.exp([0.0, 0.0, rng.uniform(-np.pi, np.pi)])
+    poses = [start] + [_pose_with_up(u_, rng.uniform(-np.pi, np.pi)) for u_ in ups] + [start]
+    holds = [10.0] + list(rng.uniform(2.0, 4.0, n_poses)) + [10.0]
+    pieces, still, t = [], [], 0.0
+    for k, (pose, hold) in enumerate(zip(poses, holds)):
+        n = int(round(hold * rate))
+        pieces.append(np.broadcast_to(pose, (n, 3, 3)))
+        still.append((t, t + (n - 1) / rate))
+        t += n / rate
+        if k + 1 < len(poses):
+            n_move = int(round(rng.uniform(2.0, 3.5) * rate))
+            s = (np.arange(1, n_move + 1) / (n_move + 1))[:, None]
+            phi = so3.log(pose.T @ poses[k + 1])
+            wobble = rng.standard_normal(3) * 0.4
+            pieces.append(pose @ so3.exp(_min_jerk(s) * phi) @ so3.exp(np.sin(np.pi * _min_jerk(s)) * wobble))
+            t += n_move / rate
+    return np.concatenate(pieces), tuple(still)
+
+
+def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
+             duration: float | None = None) -> Simulation:
+    """Simulate one recording (IMU stream `/imu/data`, magnetometer `/imu/mag`) with seeded truth."""
+    if scenario not in SCENARIOS:
+        msg = f"simulate: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}"
+        raise MagcalError(msg)
+    rate = rate or DEFAULT_RATES[scenario][0]
+    mag_rate = mag_rate or min(DEFAULT_RATES[scenario][1], rate)
+    ratio = rate / mag_rate
+    if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
+        msg = f"simulate: --rate {rate:g} must be a whole multiple of --mag-rate {mag_rate:g}"
+        raise MagcalError(msg)
+    rng = np.random.default_rng(seed)
+    truth = draw_truth(rng, rate, mag_rate)
+    if scenario == "paper":
+        rot, still = paper_trajectory(rng, rate, duration), ()
+    else:
+        rot, still = handheld_trajectory(rng, rate, duration)
+    n = rot.shape[0] - 1                    # gyro k covers [t_k, t_k+1], so keep N+1 rotations
+    t = np.arange(n) / rate
+    sd = truth.noise_std
+    gyro = so3.log(rot[:-1].transpose(0, 2, 1) @ rot[1:]) * rate + truth.gyro_bias
+    gyro += sd["gyroscope"] * rng.standard_normal((n, 3))
+    rot = rot[:-1]
+    acc = -np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, G])) + truth.accel_bias
+    acc += sd["accelerometer"] * rng.standard_normal((n, 3))
+    step = int(round(ratio))
+    m_n = np.array([np.cos(truth.dip), 0.0, np.sin(truth.dip)])
+    mb = np.einsum("nji,j->ni", rot[::step], m_n)
+    mag = mb @ truth.D.T + truth.o + sd["magnetometer"] * rng.standard_normal(mb.shape)
+    src = f"simulate:{scenario}:seed={seed}"
+    streams = (
+        Stream(Kind.ACCELEROMETER, "/imu/data", t, acc, f"{src}#/imu/data", "m/s^2"),
+        Stream(Kind.GYROSCOPE, "/imu/data", t, gyro, f"{src}#/imu/data", "rad/s"),
+        Stream(Kind.MAGNETOMETER, "/imu/mag", t[::step], mag, f"{src}#/imu/mag", "tesla"),
+    )
+    rec = Recording(Path(f"{scenario}-{seed}.sim"), "simulation", streams, t0=T0_ROS)
+    return Simulation(rec, truth, rot, still, scenario, seed)

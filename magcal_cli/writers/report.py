@@ -1,0 +1,126 @@
+"""report.txt: what was found, how good it is, what to do next — for people."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from .. import so3, units
+from ..atomic import write_text
+from ..calibration import MagCalibration
+from ..findings import Severity
+
+if TYPE_CHECKING:
+    from ..pipeline import RunResult
+
+METHOD_NAMES = {
+    "kok2012": "Kok et al. 2012 (ellipsoid fit, alignment with the accelerometer's vertical, maximum likelihood)",
+}
+#: the unit a report shows a native unit in (tesla is unreadable at Earth-field scale)
+DISPLAY = {"tesla": ("microtesla", "uT"), "millitesla": ("microtesla", "uT"), "microtesla": ("microtesla", "uT"),
+           "nanotesla": ("microtesla", "uT"), "gauss": ("milligauss", "mG"), "milligauss": ("milligauss", "mG")}
+
+
+def _vec(v: npt.ArrayLike, fmt: str = "{:+.3f}") -> str:
+    return "[" + ", ".join(fmt.format(x) for x in np.ravel(v)) + "]"
+
+
+def _mat(m: npt.ArrayLike, indent: int, fmt: str = "{:+.4f}") -> str:
+    rows = [_vec(r, fmt) for r in np.asarray(m)]
+    return ("\n" + " " * indent).join(rows)
+
+
+def _advice(mag: MagCalibration, misalign_deg: float, norm_before: float) -> list[str]:
+    """Next steps for one magnetometer, from its quality numbers."""
+    q, out = mag.quality, []
+    if q is not None and q.coverage_pct < 30.0:
+        out.append("Coverage is low: record again, rolling and pitching the vehicle through all orientations.")
+    if q is not None and q.field_norm_rms_pct > 1.0:
+        out.append("The calibrated field strength still varies by more than 1 %: something the model leaves out "
+                   "(motor current, a nearby moving magnet, a time offset) disturbs this magnetometer.")
+    if misalign_deg > 10.0:
+        out.append(f"The magnetometer is rotated {misalign_deg:.0f} deg from the IMU: check the mounting and the "
+                   "orientation parameter of an external compass.")
+    if norm_before > 5.0:
+        out.append("The raw readings deviate strongly from a sphere; use this calibration (A, b) rather than "
+                   "offsets only.")
+    out.append("Apply m_b = A (y - b) to raw readings (calibration.json: magnetometers[].A, .b); the result is a "
+               "unit vector in the IMU body frame.")
+    return out
+
+
+def render(result: RunResult) -> str:
+    """The whole text report."""
+    cal, rec = result.calibration, result.recording
+    src = cal.source
+    lines = [f"magcal {cal.magcal_version} calibration report ({cal.created_utc})", "",
+             f"Log:     {src.path} ({src.format}, {src.end_s - src.start_s:.1f} s used, sha256 {src.sha256[:12]})",
+             f"Method:  {METHOD_NAMES.get(cal.method, cal.method)}"]
+    still = result.still
+    still_s = sum(s.end - s.start for s in still.segments)
+    imu = cal.imu
+    lines += [f"IMU:     {imu.id}: {len(still.segments)} still segments ({still_s:.1f} s); noise per sample "
+              f"accel {_vec(still.acc_noise, '{:.3g}')} m/s^2, gyro {_vec(still.gyr_noise, '{:.3g}')} rad/s"]
+    if imu.gyroscope_bias is not None:
+        std = imu.gyroscope_bias_std if imu.gyroscope_bias_std is not None else np.full(3, np.nan)
+        lines.append(f"         gyroscope bias {_vec(imu.gyroscope_bias, '{:+.5f}')} +- {_vec(std, '{:.5f}')} rad/s")
+    if imu.accelerometer_bias is not None:
+        std = imu.accelerometer_bias_std if imu.accelerometer_bias_std is not None else np.full(3, np.nan)
+        lines.append(f"         accelerometer bias {_vec(imu.accelerometer_bias)} +- {_vec(std)} m/s^2")
+    else:
+        lines.append(f"         accelerometer bias: not estimated by {cal.method}")
+    for mag in cal.magnetometers:
+        lines += [""] + _render_mag(mag, result)
+    notes = [f for f in result.findings if f.severity is Severity.WARNING] + \
+            [f for f in result.findings if f.severity is Severity.INFO]
+    if notes:
+        lines += ["", "Notes"] + [f"  - [{f.severity.value}] {f.message}" for f in notes]
+    return "\n".join(lines) + "\n"
+
+
+def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
+    """The section of one magnetometer."""
+    unit, sym = DISPLAY.get(mag.unit, (mag.unit, mag.unit))
+    f = units.to_si(mag.unit) * units.from_si(unit)
+    std = mag.std
+    u = mag.misalignment
+    misalign = float(np.rad2deg(so3.angle(u)))
+    w_sd = float(np.rad2deg(np.sqrt(max(np.trace(mag.misalignment_cov()), 0.0))))
+    series = result.series.get(mag.id)
+    before = float("nan")
+    if series is not None:
+        r = np.linalg.norm(series.raw - np.median(series.raw, axis=0), axis=1)
+        before = float(100.0 * np.std(r) / np.mean(r))
+    q = mag.quality
+    lines = [f"Magnetometer {mag.id} (log unit: {mag.unit})", "  What was found",
+             f"    hard iron b        {_vec(mag.o * f)} +- {_vec(std[9:12] * f, '{:.3f}')} {sym}",
+             f"    field strength     {mag.field_strength * f:.3f} {sym} (source: {mag.field_strength_source})",
+             f"    dip                {mag.dip_deg:.2f} +- {std[12]:.2f} deg",
+             f"    misalignment       {misalign:.2f} +- {w_sd:.2f} deg to the IMU axes "
+             f"(roll, pitch, yaw {_vec(np.rad2deg(so3.as_rpy(u)), '{:+.2f}')} deg)",
+             f"    soft iron P/|F|    {_mat(mag.soft_iron, 23)}",
+             f"    A = D^-1 [1/{sym}]".ljust(23) + _mat(mag.A / f, 23, "{:+.6f}")]
+    if q is not None:
+        lines += ["  How good",
+                  f"    field-norm spread  raw {before:.2f} % (about the median centre) -> calibrated "
+                  f"{q.field_norm_rms_pct:.3f} % RMS over {q.samples} readings",
+                  f"    model residual     {q.residual_rms * units.to_si(mag.unit) * units.from_si(unit):.4f} {sym} RMS",
+                  f"    coverage           {q.coverage_pct:.0f} % of the sphere of field directions",
+                  f"    solver             {'converged' if q.converged else 'NOT converged'} "
+                  f"after {q.iterations} iterations"]
+    lines += ["  What to do next"] + [f"    - {a}" for a in _advice(mag, misalign, before)]
+    return lines
+
+
+class TextReport:
+    """report.txt."""
+
+    name: ClassVar[str] = "report"
+    files: ClassVar[tuple[str, ...]] = ("report.txt",)
+
+    def write(self, result: RunResult, outdir: Path) -> list[Path]:
+        """Write the text report."""
+        return [write_text(outdir / self.files[0], render(result))]
