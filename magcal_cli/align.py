@@ -37,3 +37,28 @@ def common_window(*streams: Stream) -> tuple[float, float]:
         msg = f"{names}: the streams do not overlap in time; check the log's clocks or --start/--end"
         raise StreamError(msg)
     return start, end
+
+
+def clean_time(t: npt.ArrayLike, values: npt.ArrayLike, where: str) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Sort samples by time, drop exact duplicate stamps (keeping the first) and non-finite rows; say what was done.
+
+    Returns (t, values, notes); readers pass the notes on to `Recording.notes` so the report repeats them.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    values2 = values.reshape(len(t), -1)
+    notes: list[str] = []
+    finite = np.isfinite(t) & np.all(np.isfinite(values2), axis=1)
+    if not finite.all():
+        notes.append(f"{where}: dropped {int((~finite).sum())} samples with NaN or inf")
+        t, values2 = t[finite], values2[finite]
+    if t.size > 1 and np.any(np.diff(t) < 0):
+        notes.append(f"{where}: {int(np.sum(np.diff(t) < 0))} timestamps went backwards; samples were sorted by time")
+        order = np.argsort(t, kind="stable")
+        t, values2 = t[order], values2[order]
+    if t.size > 1:
+        dup = np.concatenate([[False], np.diff(t) == 0])
+        if dup.any():
+            notes.append(f"{where}: dropped {int(dup.sum())} samples with duplicated timestamps")
+            t, values2 = t[~dup], values2[~dup]
+    return t, values2.reshape((len(t),) + values.shape[1:]), notes
