@@ -32,6 +32,8 @@ class Reader(Protocol):
 #: format name -> "module:Class" (imported on use, so `magcal --help` stays fast)
 READERS: dict[str, str | type[Reader]] = {
     "mcap": "magcal_cli.readers.mcap:McapReader",
+    "rosbag": "magcal_cli.readers.rosbag:RosbagReader",
+    "csv": "magcal_cli.readers.csvfile:CsvReader",
 }
 
 #: leading bytes -> format name (mcap read_magic; rosbags; pyulog HEADER_BYTES; DataFlash HEAD1/HEAD2)
@@ -40,6 +42,7 @@ MAGIC: dict[bytes, str] = {
     b"#ROSBAG V2.0\n": "rosbag",
     b"ULog\x01\x12\x35": "ulog",
     b"\xa3\x95": "dataflash",
+    b"SQLite format 3\x00": "rosbag",   # the .db3 inside a ROS 2 bag directory
 }
 
 #: extensions tried when the magic bytes say nothing (text formats)

@@ -1,94 +1,127 @@
-"""MCAP reader for ROS 2 (CDR) sensor messages; header stamps are the sample times."""
+"""MCAP reader: ROS 2 (CDR), ROS 1 and JSON channels of the ROS sensor types; zstd or lz4 chunks.
+
+Decoding uses rosbags' typestore built from each channel's own schema, so ROS 1 and ROS 2 messages share
+one code path with the bag reader (rosmsg.py). JSON channels follow docs/readers-ros-csv.md: the schema
+name is the ROS type, the message object has the ROS field names.
+"""
 
 from __future__ import annotations
 
+import json
 import struct
-from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, ClassVar
 
-import numpy as np
-
 from ..errors import LogReadError
-from ..streams import Kind, Recording, Stream
+from ..streams import Recording
 from . import ReadOptions
+from .rosbag import ignored_note
+from .rosmsg import Collector, normalise_type, wanted
 
-IMU_TYPES = {"sensor_msgs/msg/Imu", "sensor_msgs/Imu"}
-MAG_TYPES = {"sensor_msgs/msg/MagneticField", "sensor_msgs/MagneticField"}
+Decode = Callable[[bytes], Any]
+_SEP = "=" * 80 + "\n"
 
 
-def _stamp_ns(msg: Any) -> int:
-    """Header stamp in integer nanoseconds (exact; a float of 1.7e9 s only resolves 0.24 us)."""
-    st = msg.header.stamp
-    return int(st.sec) * 1_000_000_000 + int(st.nanosec)
+def _namespace(obj: dict[str, Any]) -> SimpleNamespace:
+    return SimpleNamespace(**obj)
+
+
+def decode_json(data: bytes) -> Any:
+    """A JSON message as nested namespaces, so the ROS field accessors apply unchanged."""
+    return json.loads(data, object_hook=_namespace)
+
+
+def ros_decoder(schema: Any, encoding: str) -> Decode:
+    """Deserializer of `schema` (ros2msg/ros2idl with cdr, ros1msg with ros1) from its own definition."""
+    from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+    text = schema.data.decode()
+    name = normalise_type(schema.name)
+    if schema.encoding == "ros2idl":
+        types: dict[str, Any] = {}
+        parts = text.split(_SEP)[1:] if text.startswith(_SEP + "IDL: ") else ["\n" + text]
+        for part in parts:
+            types.update(get_types_from_idl(part.split("\n", 1)[1]))
+    else:
+        types = get_types_from_msg(text, name)
+    store = get_typestore(Stores.EMPTY)          # one store per schema: two schemas may define a type differently
+    store.register(types)
+    if encoding == "ros1":
+        return lambda data: store.deserialize_ros1(data, name)
+    return lambda data: store.deserialize_cdr(data, name)
+
+
+def decoder(schema: Any, channel: Any) -> tuple[Decode | None, str]:
+    """How to decode a channel magcal reads, or None and why it is skipped."""
+    if schema is None:
+        return None, f"{channel.topic} (no schema)"
+    enc, sch = channel.message_encoding, schema.encoding
+    if not wanted(channel.topic, schema.name):
+        return None, f"{channel.topic} ({schema.name})"
+    if enc == "json":
+        return decode_json, ""
+    if (enc, sch) in {("cdr", "ros2msg"), ("cdr", "ros2idl"), ("ros1", "ros1msg")}:
+        from rosbags.typesys import TypesysError
+
+        try:
+            return ros_decoder(schema, enc), ""
+        except (TypesysError, ValueError, IndexError, UnicodeDecodeError) as exc:
+            return None, f"{channel.topic} ({schema.name}: its schema does not parse: {str(exc)[:80]})"
+    return None, f"{channel.topic} ({schema.name} in {enc or 'no'} encoding)"
 
 
 class McapReader:
-    """Reads sensor_msgs Imu (accelerometer + gyroscope) and MagneticField (tesla) channels."""
+    """Reads Imu, MagneticField, Vector3Stamped (field), BatteryState, Temperature and NavSatFix channels."""
 
     name: ClassVar[str] = "mcap"
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
-        """Decode every IMU and magnetometer message; a truncated file is an error unless allowed."""
+        """Decode every channel magcal reads; a truncated file is an error unless allowed."""
         from mcap.exceptions import McapError
         from mcap.reader import NonSeekingReader
-        from mcap_ros2.decoder import DecoderFactory
+        from rosbags.serde import SerdeError
 
-        rows: dict[tuple[str, str], list[tuple[int, tuple[float, ...]]]] = defaultdict(list)
-        notes: list[str] = []
-        count = 0
+        collector, notes = Collector(), []
+        decoders: dict[int, Decode | None] = {}
+        skipped: list[str] = []
         try:
             with path.open("rb") as fh:
-                reader = NonSeekingReader(fh, decoder_factories=[DecoderFactory()])
                 try:
-                    for schema, channel, message, decoded in reader.iter_decoded_messages(
-                            topics=None, log_time_order=False):
-                        count += 1
-                        self._collect(rows, schema.name, channel.topic, message.log_time, decoded, options)
-                except (McapError, EOFError, ValueError, KeyError, struct.error) as exc:
-                    where = f"after {count} complete messages"
+                    for schema, channel, message in NonSeekingReader(fh).iter_messages(log_time_order=False):
+                        if channel.id not in decoders:
+                            decoders[channel.id], why = decoder(schema, channel)
+                            skipped += [why] if why else []
+                        decode = decoders[channel.id]
+                        if decode is not None:
+                            self._add(path, collector, schema.name, channel, message, decode)
+                except (McapError, SerdeError, EOFError, KeyError, struct.error, UnicodeDecodeError,
+                        IndexError, ValueError) as exc:
+                    where = f"after {len(collector)} complete messages"
                     if not options.allow_truncated:
                         msg = (f"{path}: the MCAP file is truncated or corrupt ({type(exc).__name__}) {where}. "
                                "Re-copy the log, or pass --allow-truncated to use the complete part")
                         raise LogReadError(msg) from None
-                    notes.append(f"truncated or corrupt: read {count} complete messages")
+                    notes.append(f"truncated or corrupt: read {len(collector)} complete messages")
         except OSError as exc:
             msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
             raise LogReadError(msg) from None
-        return self._recording(path, rows, notes)
+        if skipped:
+            notes.append(ignored_note(sorted(set(skipped))))
+        return collector.recording(path, "mcap", options, notes)
 
     @staticmethod
-    def _collect(rows: dict[tuple[str, str], list[Any]], schema: str, topic: str, log_time: int, msg: Any,
-                 options: ReadOptions) -> None:
-        """Append one decoded message's sample(s) to the per-(kind, topic) row lists."""
-        t_ns = log_time if options.receive_time else _stamp_ns(msg)
-        if schema in IMU_TYPES:
-            a, w = msg.linear_acceleration, msg.angular_velocity
-            rows[("imu", topic)].append((t_ns, (a.x, a.y, a.z, w.x, w.y, w.z)))
-        elif schema in MAG_TYPES:
-            m = msg.magnetic_field
-            rows[("mag", topic)].append((t_ns, (m.x, m.y, m.z)))
-
-    @staticmethod
-    def _recording(path: Path, rows: dict[tuple[str, str], list[Any]], notes: list[str]) -> Recording:
-        """Sort, drop non-finite samples and build the streams relative to the earliest stamp."""
-        stamps = {key: np.array([r[0] for r in val], dtype=np.int64) for key, val in rows.items() if val}
-        t0_ns = min((int(ts.min()) for ts in stamps.values()), default=0)
-        streams: list[Stream] = []
-        for key in sorted(stamps, key=lambda k: (k[0] != "imu", k[1])):
-            kind, topic = key
-            order = np.argsort(stamps[key], kind="stable")
-            t = (stamps[key][order] - t0_ns) * 1e-9
-            arr = np.array([r[1] for r in rows[key]], dtype=np.float64)[order]
-            good = np.all(np.isfinite(arr), axis=1)
-            if not good.all():
-                notes.append(f"{topic}: dropped {int((~good).sum())} samples with NaN or inf")
-                arr, t = arr[good], t[good]
-            src = f"{path.name}#{topic}"
-            if kind == "imu":
-                streams.append(Stream(Kind.ACCELEROMETER, topic, t, arr[:, 0:3], src, "m/s^2"))
-                streams.append(Stream(Kind.GYROSCOPE, topic, t, arr[:, 3:6], src, "rad/s"))
-            else:
-                streams.append(Stream(Kind.MAGNETOMETER, topic, t, arr, src, "tesla"))
-        return Recording(path, "mcap", tuple(streams), t0=t0_ns * 1e-9, notes=tuple(notes))
-
+    def _add(path: Path, collector: Collector, msgtype: str, channel: Any, message: Any, decode: Decode) -> None:
+        """Decode one message; one without the type's ROS fields is an error naming the channel."""
+        is_json = channel.message_encoding == "json"
+        try:
+            collector.add(channel.topic, msgtype, message.log_time, decode(message.data))
+        except (AttributeError, TypeError, ValueError) as exc:
+            if isinstance(exc, ValueError) and not is_json:
+                raise                                   # a corrupt CDR/ROS 1 message: handled as corruption
+            hint = " See docs/readers-ros-csv.md for the JSON layout magcal reads" if is_json else ""
+            msg = (f"{path}: channel {channel.topic} ({msgtype}, {channel.message_encoding}): the message at log "
+                   f"time {message.log_time} ns does not have the ROS fields of {msgtype} "
+                   f"({type(exc).__name__}: {exc}).{hint}")
+            raise LogReadError(msg) from None
