@@ -12,6 +12,9 @@ from ..synth import Simulation
 #: file extension -> "module:function(sim, path)"; a directory path (no extension) is a ROS 2 bag
 LOG_WRITERS: dict[str, str] = {
     ".mcap": "magcal_cli.logwriters.mcap:write_mcap",
+    ".bag": "magcal_cli.logwriters.rosbag:write_bag",
+    "": "magcal_cli.logwriters.rosbag:write_ros2",
+    ".csv": "magcal_cli.logwriters.csvfile:write_csv",
 }
 
 
@@ -20,7 +23,7 @@ def write_log(sim: Simulation, path: Path) -> None:
     target = LOG_WRITERS.get(path.suffix.lower())
     if target is None:
         msg = (f"{path}: cannot write a log with extension {path.suffix or '(none)'!r}; "
-               f"use one of {', '.join(sorted(LOG_WRITERS))}")
+               f"use one of {', '.join(sorted(e or '(none: a ROS 2 bag directory)' for e in LOG_WRITERS))}")
         raise MagcalError(msg)
     module, func = target.split(":")
     writer: Callable[[Simulation, Path], None] = getattr(importlib.import_module(module), func)
