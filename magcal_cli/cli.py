@@ -197,6 +197,22 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
     click.echo(f"wrote {truth_path}")
 
 
+@cli.command("inspect", epilog=EXIT_CODES)
+@click.argument("log", type=click.Path(exists=True, path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON document instead of the table.")
+@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--receive-time", is_flag=True, help="ROS bags and MCAP: time samples by receive time, not header stamps.")
+@verbosity
+@click.pass_context
+@handle_errors
+def inspect_cmd(ctx: click.Context, log: Path, as_json: bool, fmt: str | None, receive_time: bool) -> None:
+    """List the streams in LOG: id, kind, source, count, rate, start and end time, units."""
+    from .inspect import inspect_log, to_json, to_table
+
+    rec = inspect_log(log, fmt, receive_time)
+    click.echo(to_json(rec) if as_json else to_table(rec))
+
+
 def main() -> None:
     """Console entry point."""
     cli(prog_name="magcal")

@@ -22,6 +22,7 @@ from .findings import Finding, Severity
 from .models.problem import Problem
 from .models.result import MagFit, MethodResult
 from .readers import ReadOptions, open_recording
+from .readers.checks import normalised_field
 from .streams import Kind, Recording, Stream
 
 FloatArray = npt.NDArray[np.float64]
@@ -132,6 +133,13 @@ def _findings(rec: Recording, problem: Problem, result: MethodResult, mags: list
         out.append(Finding(Severity.INFO, "accel_bias_not_modelled",
                            "Kok 2012 takes the accelerometer as an unbiased vertical; an accelerometer bias b "
                            "tilts every vertical by up to |b|/g rad and shows up in the misalignment and dip."))
+    for stream in problem.mags:
+        if normalised_field(stream.xyz):
+            out.append(Finding(Severity.WARNING, "normalised_field",
+                               f"{stream.id}: the log holds the field normalised to a unit vector, not the raw "
+                               "readings; the calibration ran, but hard iron is not recoverable in absolute terms "
+                               "and the field strength is arbitrary. Log the raw magnetometer.",
+                               {"magnitude_si": float(np.median(np.linalg.norm(stream.xyz, axis=1)))}))
     for m in mags:
         q = m.quality
         if q is not None and q.coverage_pct < 30.0:
