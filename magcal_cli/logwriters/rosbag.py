@@ -102,9 +102,8 @@ class Builder:
         fields = {"header": h, "voltage": voltage, "current": -current, "charge": nan, "capacity": nan,
                   "design_capacity": nan, "percentage": nan, "power_supply_status": 2,
                   "power_supply_health": 0, "power_supply_technology": 0, "present": True,
-                  "cell_voltage": np.zeros(0), "location": "", "serial_number": ""}
-        if not self.ros1:
-            fields |= {"temperature": nan, "cell_temperature": np.zeros(0)}
+                  "cell_voltage": np.zeros(0), "location": "", "serial_number": "", "temperature": nan,
+                  "cell_temperature": np.zeros(0)}
         return self.types["sensor_msgs/msg/BatteryState"](**fields)
 
 

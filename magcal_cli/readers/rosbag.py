@@ -67,7 +67,7 @@ class RosbagReader:
             if ignored:
                 notes.append(ignored_note(ignored))
             try:
-                for conn, recv_ns, raw in reader.messages(connections=conns):
+                for conn, recv_ns, raw in reader.messages(connections=conns) if conns else ():  # () means all
                     collector.add(conn.topic, conn.msgtype, recv_ns, reader.deserialize(raw, conn.msgtype))
             except errors as exc:
                 if not options.allow_truncated:
@@ -89,8 +89,9 @@ def _reason(exc: BaseException) -> str:
 def _advice(exc: BaseException) -> str:
     """How to fix the usual reasons a bag does not open."""
     text = str(exc).lower()
-    if "not indexed" in text or "reindex" in text:
-        return "The bag was not closed cleanly; run `rosbag reindex` on a copy and read that"
+    if "index" in text:
+        return ("The bag is truncated or was not closed cleanly; run `rosbag reindex` on a copy and read that "
+                "(magcal needs the bag's index)")
     if "metadata" in text or "yaml" in text:
         return "metadata.yaml is damaged; rebuild it with `ros2 bag reindex`"
     return "Check that the bag is complete and was written by rosbag/ros2 bag"
