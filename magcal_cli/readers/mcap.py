@@ -72,6 +72,15 @@ def decoder(schema: Any, channel: Any) -> tuple[Decode | None, str]:
     return None, f"{channel.topic} ({schema.name} in {enc or 'no'} encoding)"
 
 
+def _why(exc: BaseException) -> str:
+    """Why reading stopped, in words (a cut file ends inside a record; anything else names the library error)."""
+    from mcap.exceptions import EndOfFile
+
+    if isinstance(exc, (EndOfFile, EOFError, struct.error)):
+        return "it ends inside a record"
+    return f"{type(exc).__name__}: {str(exc).splitlines()[0][:80] if str(exc) else 'no detail'}"
+
+
 class McapReader:
     """Reads Imu, MagneticField, Vector3Stamped (field), BatteryState, Temperature and NavSatFix channels."""
 
@@ -82,6 +91,7 @@ class McapReader:
         from mcap.exceptions import McapError
         from mcap.reader import NonSeekingReader
         from rosbags.serde import SerdeError
+        from zstandard import ZstdError
 
         collector, notes = Collector(), []
         decoders: dict[int, Decode | None] = {}
@@ -89,7 +99,8 @@ class McapReader:
         try:
             with path.open("rb") as fh:
                 try:
-                    for schema, channel, message in NonSeekingReader(fh).iter_messages(log_time_order=False):
+                    for schema, channel, message in NonSeekingReader(fh, validate_crcs=True).iter_messages(
+                            log_time_order=False):
                         if channel.id not in decoders:
                             decoders[channel.id], why = decoder(schema, channel)
                             skipped += [why] if why else []
@@ -97,10 +108,10 @@ class McapReader:
                         if decode is not None:
                             self._add(path, collector, schema.name, channel, message, decode)
                 except (McapError, SerdeError, EOFError, KeyError, struct.error, UnicodeDecodeError,
-                        IndexError, ValueError) as exc:
+                        IndexError, ValueError, RuntimeError, ZstdError) as exc:
                     where = f"after {len(collector)} complete messages"
                     if not options.allow_truncated:
-                        msg = (f"{path}: the MCAP file is truncated or corrupt ({type(exc).__name__}) {where}. "
+                        msg = (f"{path}: the MCAP file is truncated or corrupt ({_why(exc)}) {where}. "
                                "Re-copy the log, or pass --allow-truncated to use the complete part")
                         raise LogReadError(msg) from None
                     notes.append(f"truncated or corrupt: read {len(collector)} complete messages")
