@@ -148,6 +148,8 @@ def fill_empty(body: str) -> str:
 
 def parse_table(body: str, first_line: int, where: str) -> FloatArray:
     """The numeric rows; a bad cell or a short row is an error naming its line."""
+    if not body.strip():
+        return np.zeros((0, 0))
     try:
         return np.loadtxt(fill_empty(body).splitlines(), delimiter=",", ndmin=2, dtype=np.float64)
     except ValueError as exc:
