@@ -5,17 +5,19 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from . import so3
 from .errors import StreamError
-from .streams import Stream
+from .streams import Kind, Stream
 
 FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
 
 
 def interpolate(stream: Stream, t: npt.ArrayLike) -> FloatArray:
     """Linear interpolation of `stream` at times `t` (s), which must lie inside the stream's span.
 
     Interpolation, not nearest-sample lookup: picking the nearest sample adds up to half a sample period
-    of time offset. Attitude quaternions should be slerped instead (not done here).
+    of time offset. Attitude quaternions are slerped (geodesic on SO(3)), everything else is linear.
     """
     t = np.asarray(t, dtype=np.float64)
     if stream.t.size < 2:
@@ -25,7 +27,37 @@ def interpolate(stream: Stream, t: npt.ArrayLike) -> FloatArray:
         msg = (f"{stream.source}: asked for times {t.min():.3f}..{t.max():.3f} s outside the stream's "
                f"{stream.t[0]:.3f}..{stream.t[-1]:.3f} s; cut the other streams to the common window first")
         raise StreamError(msg)
+    if stream.kind is Kind.ATTITUDE:
+        return _slerp(stream, t)
     return np.stack([np.interp(t, stream.t, stream.values[:, i]) for i in range(stream.values.shape[1])], axis=1)
+
+
+def _slerp(stream: Stream, t: FloatArray) -> FloatArray:
+    """Quaternions (w, x, y, z) at `t`: R = R_j Exp(u Log(R_j^T R_j+1)) between the neighbouring samples."""
+    j = np.clip(np.searchsorted(stream.t, t, side="right") - 1, 0, stream.t.size - 2)
+    u = (t - stream.t[j]) / (stream.t[j + 1] - stream.t[j])
+    r0, r1 = so3.from_quat(stream.values[j]), so3.from_quat(stream.values[j + 1])
+    step = so3.log(np.swapaxes(r0, -1, -2) @ r1)
+    return so3.as_quat(r0 @ so3.exp(u[:, None] * step))
+
+
+def onto(stream: Stream, t: npt.ArrayLike, max_gap_s: float | None = None) -> tuple[BoolArray, FloatArray]:
+    """`stream` interpolated onto the epochs `t` (e.g. the IMU's): (mask of usable epochs, values there).
+
+    An epoch is usable when it lies inside the stream's span and its two neighbouring samples are at most
+    `max_gap_s` apart (default: 4 median sample periods), so dropouts are never bridged and nothing is
+    extrapolated.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    if stream.t.size < 2:
+        return np.zeros(t.size, dtype=bool), np.zeros((0, stream.kind.width))
+    gap = max_gap_s if max_gap_s is not None else 4.0 * float(np.median(np.diff(stream.t)))
+    inside = (t >= stream.t[0]) & (t <= stream.t[-1])
+    j = np.clip(np.searchsorted(stream.t, t, side="right") - 1, 0, stream.t.size - 2)
+    dt = stream.t[j + 1] - stream.t[j]
+    on_sample = (t == stream.t[j]) | (t == stream.t[j + 1])
+    mask = inside & ((dt <= gap) | on_sample)
+    return mask, interpolate(stream, t[mask])
 
 
 def common_window(*streams: Stream) -> tuple[float, float]:
