@@ -138,3 +138,15 @@ def test_every_real_ros_and_csv_file_reads_or_fails_in_one_line(realdata: Path) 
         code, out, err = run(str(path))
         assert code == 1 and out == "", path
         assert err.startswith(f"Error: {path}: unrecognised log format") and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("name", ["handheld.bag", "handheld_ros2", "handheld.csv"])
+def test_sample_logs(name: str) -> None:
+    """The shipped sample logs of the ROS and CSV formats read: 50 Hz IMU, 25 Hz field, the truth's span."""
+    root = Path(__file__).resolve().parents[1] / "sample_logs"
+    code, out, err = run(str(root / name), "--json")
+    assert code == 0, err
+    truth = json.loads((root / f"{name}.truth.json").read_text())
+    streams = {s["kind"]: s for s in json.loads(out)["streams"]}
+    assert round(streams["accelerometer"]["rate_hz"]) == 50 and round(streams["magnetometer"]["rate_hz"]) == 25
+    assert streams["accelerometer"]["end_s"] == pytest.approx(truth["source"]["end_s"], abs=1e-6)
