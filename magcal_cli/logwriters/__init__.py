@@ -12,6 +12,7 @@ from ..synth import Simulation
 #: file extension -> "module:function(sim, path)"; a directory path (no extension) is a ROS 2 bag
 LOG_WRITERS: dict[str, str] = {
     ".mcap": "magcal_cli.logwriters.mcap:write_mcap",
+    ".bin": "magcal_cli.logwriters.dataflash:write_bin",
     ".bag": "magcal_cli.logwriters.rosbag:write_bag",
     "": "magcal_cli.logwriters.rosbag:write_ros2",
     ".csv": "magcal_cli.logwriters.csvfile:write_csv",

@@ -32,6 +32,7 @@ class Reader(Protocol):
 #: format name -> "module:Class" (imported on use, so `magcal --help` stays fast)
 READERS: dict[str, str | type[Reader]] = {
     "mcap": "magcal_cli.readers.mcap:McapReader",
+    "dataflash": "magcal_cli.readers.dataflash:DataflashReader",
     "rosbag": "magcal_cli.readers.rosbag:RosbagReader",
     "csv": "magcal_cli.readers.csvfile:CsvReader",
 }

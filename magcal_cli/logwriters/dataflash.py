@@ -1,0 +1,263 @@
+"""ArduPilot DataFlash `.bin` writer for simulations: a 4.x record set with the field logged *corrected*.
+
+The simulated firmware flies with an earlier onboard calibration (COMPASS_OFS/DIA/ODI, optionally SCALE and
+motor compensation) and logs MAG the way AP_Compass does: corrected, in the body frame, truncated to int16
+mGauss, with OfsX.. and MOX.. beside it. Metadata records (FMT, UNIT, MULT, FMTU, PARM, VER, MSG) are packed
+with struct; sensor records are built as numpy structured arrays and interleaved by time in one pass.
+"""
+
+from __future__ import annotations
+
+import struct
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+from numpy.lib.stride_tricks import as_strided
+
+from .. import so3
+from ..align import interpolate
+from ..atomic import atomic_path
+from ..readers.dataflash_format import FMT_ID, FMT_LENGTH, FORMAT_CHARS, HEAD1, HEAD2, MessageFormat
+from ..readers.dataflash_mag import Correction, apply_correction, effective_scale, iron_matrix
+from ..streams import Kind, Recording
+from ..synth import Simulation
+
+FloatArray = npt.NDArray[np.float64]
+
+BOOT_S = 30.0                    # the simulated log starts 30 s after boot, as real logs do
+UNITS = {"s": "s", "#": "instance", "G": "Gauss", "E": "rad/s", "o": "m/s/s", "O": "degC", "z": "Hz",
+         "d": "deg", "h": "degheading", "v": "V", "A": "A", "a": "Ah", "X": "W.h", "w": "Ohm", "%": "%",
+         "m": "m", "n": "m/s", "S": "satellites", "D": "deglatitude", "U": "deglongitude", "-": ""}
+MULTS = {"-": 0.0, "?": 1.0, "0": 1.0, "B": 1e-2, "C": 1e-3, "F": 1e-6, "G": 1e-7}
+#: (type id, name, format, columns, unit ids, multiplier ids) as ArduCopter 4.6 logs them (LogStructure.h)
+RECORDS = [
+    (32, "PARM", "QNff", "TimeUS,Name,Value,Default", "s---", "F---"),
+    (0, "CTUN", "Qffffffefffhh", "TimeUS,ThI,ABst,ThO,ThH,DAlt,Alt,BAlt,DSAlt,SAlt,TAlt,DCRt,CRt",
+     "s----mmmmmmnn", "F----00B000BB"),
+    (72, "ATT", "QffffffB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,AEKF", "sddddhh-", "F000000-"),
+    (88, "BAT", "QBfffffcfBBB", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res,RemPct,H,SH",
+     "s#vvAaXOw%-%", "F-000C0?0000"),
+    (94, "GPS", "QBBIHBcLLeffffB", "TimeUS,I,Status,GMS,GWk,NSats,HDop,Lat,Lng,Alt,Spd,GCrs,VZ,Yaw,U",
+     "s#-s-S-DUmnhnh-", "F--C-0BGGB000--"),
+    (113, "MAG", "QBhhhhhhhhhBI", "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOX,MOY,MOZ,Health,S",
+     "s#GGGGGGGGG-s", "F-CCCCCCCCC-F"),
+    (118, "FMTU", "QBNN", "TimeUS,FmtType,UnitIds,MultIds", "s---", "F---"),
+    (119, "UNIT", "QbZ", "TimeUS,Id,Label", "s--", "F--"),
+    (120, "MULT", "Qbd", "TimeUS,Id,Mult", "s--", "F--"),
+    (163, "IMU", "QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz",
+     "s#EEEooo--O--zz", "F-000000-----00"),
+    (177, "MSG", "QZ", "TimeUS,Message", "s-", "F-"),
+    (178, "VER", "QBHBBBBIZ", "TimeUS,BT,BST,Maj,Min,Pat,FWT,GH,FWS", "s--------", "F--------"),
+]
+
+
+@dataclass(frozen=True)
+class PreviousCalibration:
+    """The compass parameters the simulated vehicle flies with; `None` offsets mean 'derived from the truth'.
+
+    `ofs_after` (with `change_at_s`) simulates a PARM change during the log, e.g. offsets set from a GCS.
+    """
+
+    ofs: tuple[float, float, float] | None = None
+    dia: tuple[float, float, float] = (1.031, 0.968, 1.012)
+    odi: tuple[float, float, float] = (0.021, -0.014, 0.009)
+    scale: float = 0.0
+    mot: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    motct: int = 0
+    change_at_s: float | None = None
+    ofs_after: tuple[float, float, float] | None = None
+    current_swing_a: float = 0.0
+    extra_params: dict[str, float] = field(default_factory=dict)
+
+
+#: format character -> struct code
+STRUCT = {"b": "b", "B": "B", "h": "h", "H": "H", "i": "i", "I": "I", "f": "f", "d": "d", "n": "4s",
+          "N": "16s", "Z": "64s", "c": "h", "C": "H", "e": "i", "E": "I", "L": "i", "M": "B", "q": "q",
+          "Q": "Q", "g": "e"}
+
+
+def _formats() -> dict[str, MessageFormat]:
+    """The MessageFormat of every record type written."""
+    return {name: MessageFormat(tid, name, 3 + MessageFormat(tid, name, 0, fmt, ()).payload_size, fmt,
+                                tuple(cols.split(","))) for tid, name, fmt, cols, _, _ in RECORDS}
+
+
+FORMATS = _formats()
+
+
+def _pack(name: str, *values: object) -> bytes:
+    """One record packed with struct (metadata: a few hundred records)."""
+    f = FORMATS[name]
+    return bytes([HEAD1, HEAD2, f.type_id]) + struct.pack("<" + "".join(STRUCT[c] for c in f.format), *values)
+
+
+def f32(v: npt.ArrayLike) -> FloatArray:
+    """Values rounded to float32, as PARM records store them."""
+    return np.asarray(v, dtype=np.float32).astype(np.float64)
+
+
+def _us(t: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """Boot time in integer microseconds of simulation times (s)."""
+    return np.round((np.asarray(t, dtype=np.float64) + BOOT_S) * 1e6).astype(np.int64)
+
+
+def _records(name: str, n: int) -> np.ndarray:
+    """A zeroed structured array of n records of `name`, header bytes filled in."""
+    f = FORMATS[name]
+    fields = [(c, FORMAT_CHARS[ch][0]) for c, ch in zip(f.columns, f.format, strict=True)]
+    dt = np.dtype([("h1", "u1"), ("h2", "u1"), ("id", "u1"), *fields])
+    out = np.zeros(n, dtype=dt)
+    out["h1"], out["h2"], out["id"] = HEAD1, HEAD2, f.type_id
+    return out
+
+
+def interleave(parts: list[tuple[npt.NDArray[np.int64], np.ndarray]]) -> npt.NDArray[np.uint8]:
+    """Records of several types merged in time order (stable: equal times keep the part order)."""
+    times = np.concatenate([t for t, _ in parts])
+    lens = np.concatenate([np.full(len(r), r.dtype.itemsize, dtype=np.int64) for _, r in parts])
+    order = np.argsort(times, kind="stable")
+    start = np.empty_like(lens)
+    start[order] = np.concatenate([[0], np.cumsum(lens[order])[:-1]])
+    out = np.zeros(int(lens.sum()), dtype=np.uint8)
+    at = 0
+    for _, recs in parts:
+        width = recs.dtype.itemsize
+        window = as_strided(out, shape=(out.size - width + 1, width), strides=(1, 1), writeable=True)
+        window[start[at:at + len(recs)]] = recs.view(np.uint8).reshape(len(recs), width)
+        at += len(recs)
+    return out
+
+
+def _metadata(params: dict[str, float], t_us: int, banner: str) -> bytes:
+    """FMT for every type, UNIT, MULT, FMTU, the PARM dump, VER and MSG."""
+    fmt_code = "<BB4s16s64s"
+    out = [bytes([HEAD1, HEAD2, FMT_ID]) + struct.pack(fmt_code, FMT_ID, FMT_LENGTH, b"FMT", b"BBnNZ",
+                                                          b"Type,Length,Name,Format,Columns")]
+    out += [bytes([HEAD1, HEAD2, FMT_ID]) + struct.pack(fmt_code, f.type_id, f.length, f.name.encode(),
+                                                           f.format.encode(), ",".join(f.columns).encode())
+            for f in FORMATS.values()]
+    out += [_pack("UNIT", t_us, ord(k), v.encode()) for k, v in UNITS.items()]
+    out += [_pack("MULT", t_us, ord(k), v) for k, v in MULTS.items()]
+    out += [_pack("FMTU", t_us, tid, u.encode(), m.encode()) for tid, _, _, _, u, m in RECORDS]
+    out += [_pack("PARM", t_us, k.encode(), v, v) for k, v in params.items()]
+    out += [_pack("VER", t_us, 3, 0, 4, 6, 2, 255, 0, banner.encode()), _pack("MSG", t_us, banner.encode())]
+    return b"".join(out)
+
+
+def compass_params(prev: PreviousCalibration, ofs: FloatArray) -> dict[str, float]:
+    """The PARM dump: compass 1 calibration and the globals the reader and exporters look at."""
+    p = {f"COMPASS_OFS_{a}": float(v) for a, v in zip("XYZ", ofs, strict=True)}
+    p |= {f"COMPASS_DIA_{a}": v for a, v in zip("XYZ", prev.dia, strict=True)}
+    p |= {f"COMPASS_ODI_{a}": v for a, v in zip("XYZ", prev.odi, strict=True)}
+    p |= {f"COMPASS_MOT_{a}": v for a, v in zip("XYZ", prev.mot, strict=True)}
+    p |= {"COMPASS_SCALE": prev.scale, "COMPASS_MOTCT": float(prev.motct), "COMPASS_ORIENT": 0.0,
+          "COMPASS_EXTERNAL": 0.0, "COMPASS_USE": 1.0, "COMPASS_DEV_ID": 97539.0, "COMPASS_PRIO1_ID": 97539.0,
+          "COMPASS_LEARN": 0.0, "COMPASS_AUTODEC": 1.0, "AHRS_ORIENTATION": 0.0, "INS_GYRO_RATE": 0.0}
+    return p | prev.extra_params
+
+
+def default_offsets(sim: Simulation) -> FloatArray:
+    """COMPASS_OFS of an earlier calibration: the negated true hard iron (mGauss) missed by a few mGauss."""
+    out: FloatArray = np.round(-sim.truth.o * 1e7 + np.array([6.0, -4.0, 5.0]), 2)
+    return out
+
+
+def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArray[np.uint8]:
+    """The bytes of a `.bin` log of the simulation flown with `prev` (default: an earlier calibration)."""
+    prev = prev or PreviousCalibration()
+    rec = sim.recording
+    acc, gyr, mag = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), rec.select(Kind.MAGNETOMETER)
+    ofs0 = f32(prev.ofs if prev.ofs is not None else default_offsets(sim))
+    n = len(mag)
+
+    imu = _records("IMU", len(acc))
+    imu["TimeUS"] = _us(acc.t)
+    for i, a in enumerate("XYZ"):
+        imu[f"Gyr{a}"], imu[f"Acc{a}"] = gyr.values[:, i], acc.values[:, i]
+    imu["T"] = _series(rec, Kind.TEMPERATURE, acc.t, 38.0 + 4.0 * (1.0 - np.exp(-acc.t / 600.0)))
+    imu["GH"], imu["AH"], imu["GHz"], imu["AHz"] = 1, 1, round(acc.rate_hz), round(acc.rate_hz)
+
+    t10 = np.arange(0.0, float(acc.t[-1]), 0.1)
+    swing = 0.5 * (1.0 - np.cos(2.0 * np.pi * t10 / 20.0))
+    current = _series(rec, Kind.BATTERY_CURRENT, t10, 0.8 + prev.current_swing_a * swing)
+    throttle = _series(rec, Kind.THROTTLE, t10, 0.2 + 0.5 * swing if prev.motct == 1 else np.zeros_like(t10))
+
+    ofs = np.tile(ofs0, (n, 1))
+    if prev.change_at_s is not None and prev.ofs_after is not None:
+        ofs[mag.t >= prev.change_at_s] = f32(prev.ofs_after)
+    signal = np.zeros(n)
+    if prev.motct in (1, 2):
+        signal = np.interp(mag.t, t10, throttle if prev.motct == 1 else current)
+    corr = Correction(ofs, iron_matrix(np.tile(f32(prev.dia), (n, 1)), np.tile(f32(prev.odi), (n, 1))),
+                      effective_scale(np.full(n, f32(prev.scale))), signal[:, None] * f32(prev.mot))
+    logged = apply_correction(mag.values * 1e7, corr)
+    m = _records("MAG", n)
+    m["S"] = _us(mag.t) % (1 << 32)                     # uint32 us: wraps after 71.6 min, as in firmware
+    m["TimeUS"] = _us(mag.t) + 150                      # logged a little after the sample was taken
+    for i, a in enumerate("XYZ"):                       # int16 casts truncate toward zero, as (int16_t) does
+        m[f"Mag{a}"] = np.trunc(np.clip(logged[:, i], -32768, 32767))
+        m[f"Ofs{a}"] = np.trunc(ofs[:, i])
+        m[f"MO{a}"] = np.trunc(corr.motor[:, i])
+    m["Health"] = 1
+
+    parts = [(imu["TimeUS"], imu), (m["TimeUS"], m)] + _slow_records(sim, t10, current, throttle)
+    if prev.change_at_s is not None and prev.ofs_after is not None:
+        change = _records("PARM", 3)
+        change["TimeUS"] = _us(prev.change_at_s)
+        change["Name"] = [f"COMPASS_OFS_{a}".encode() for a in "XYZ"]
+        change["Value"] = change["Default"] = f32(prev.ofs_after)
+        parts.append((change["TimeUS"], change))
+    banner = f"ArduCopter V4.6.2 (magcal simulate {sim.scenario} seed={sim.seed})"
+    meta = _metadata(compass_params(prev, ofs0), int(_us(0.0)) - 50_000, banner)
+    head = np.frombuffer(meta, dtype=np.uint8)
+    return np.concatenate([head, interleave(parts)])
+
+
+def _series(rec: Recording, kind: Kind, t: FloatArray, default: FloatArray) -> FloatArray:
+    """The simulation's own stream of `kind` at t when it has one, else the default profile."""
+    found = rec.of_kind(kind)
+    if not found:
+        return np.asarray(default, dtype=np.float64)
+    return interpolate(found[0], np.clip(t, found[0].t[0], found[0].t[-1]))[:, 0]
+
+
+def _slow_records(sim: Simulation, t10: FloatArray, current: FloatArray,
+                  throttle: FloatArray) -> list[tuple[npt.NDArray[np.int64], np.ndarray]]:
+    """ATT, BAT, CTUN at 10 Hz and GPS at 5 Hz (a fixed position: the handheld scenario does not travel)."""
+    acc_t = sim.recording.select(Kind.ACCELEROMETER).t
+    idx = np.clip(np.searchsorted(acc_t, t10), 0, len(sim.rotations) - 1)
+    with warnings.catch_warnings():                 # poses pointing straight up or down are gimbal-locked
+        warnings.simplefilter("ignore", UserWarning)
+        rpy = np.rad2deg(so3.as_rpy(sim.rotations[idx]))
+    att = _records("ATT", len(t10))
+    att["TimeUS"] = _us(t10) + 300
+    att["Roll"] = att["DesRoll"] = rpy[:, 0]
+    att["Pitch"] = att["DesPitch"] = rpy[:, 1]
+    att["Yaw"] = att["DesYaw"] = np.mod(rpy[:, 2], 360.0)
+    att["AEKF"] = 3
+    bat = _records("BAT", len(t10))
+    bat["TimeUS"] = _us(t10) + 500
+    bat["Volt"] = bat["VoltR"] = 16.4 - 0.0002 * t10
+    bat["Curr"] = current
+    bat["CurrTot"] = np.cumsum(current) * 0.1 / 3.6
+    bat["RemPct"], bat["H"] = 99, 1
+    ctun = _records("CTUN", len(t10))
+    ctun["TimeUS"] = _us(t10) + 700
+    ctun["ThO"] = ctun["ThI"] = throttle
+    t5 = t10[::2]
+    gps = _records("GPS", len(t5))
+    gps["TimeUS"] = _us(t5) + 900
+    gps["Status"], gps["NSats"], gps["HDop"], gps["GWk"] = 3, 14, 70, 2390
+    gps["GMS"] = (np.round(t5 * 1000).astype(np.int64) + 345_600_000) % 604_800_000
+    gps["Lat"], gps["Lng"], gps["Alt"] = 473_977_420, 85_455_940, 48_800        # 1e-7 deg, 1e-7 deg, cm
+    return [(att["TimeUS"], att), (bat["TimeUS"], bat), (ctun["TimeUS"], ctun), (gps["TimeUS"], gps)]
+
+
+def write_bin(sim: Simulation, path: Path) -> None:
+    """Write the simulation as an ArduPilot `.bin` log (atomically)."""
+    data = build(sim)
+    with atomic_path(path) as tmp:
+        data.tofile(tmp)

@@ -1,0 +1,237 @@
+"""Vectorised parser of binary DataFlash logs (ArduPilot `.bin`, PX4 `.px4log`): no Python loop per message.
+
+A log is a chain of records `A3 95 <type> <payload>` whose lengths come from FMT records. The parser finds
+every header candidate with numpy, reads the FMT records once, gives each candidate the index of the first
+candidate at or after its end (its successor; a gap there means corrupt bytes, skipped as a resynchronising
+reader would) and follows the chain from the first header by pointer doubling. Each wanted type is then
+decoded in one `view` of a structured dtype over the gathered records.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Collection
+from pathlib import Path
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from .dataflash_format import (
+    FMT_ID,
+    FMT_LENGTH,
+    HEAD1,
+    HEAD2,
+    IntArray,
+    MessageFormat,
+    RawLog,
+    Table,
+    valid_format,
+)
+
+FMT_DTYPE = np.dtype([("Type", "u1"), ("Length", "u1"), ("Name", "S4"), ("Format", "S16"),
+                      ("Columns", "S64")])
+FMT_SELF = MessageFormat(FMT_ID, "FMT", FMT_LENGTH, "BBnNZ", ("Type", "Length", "Name", "Format", "Columns"))
+#: types the reader always needs besides the caller's: units and multipliers
+META_TYPES = ("FMTU", "UNIT", "MULT")
+#: (offset of the FMT record, the format it defines)
+Placed = tuple[int, MessageFormat]
+CHUNK = 1 << 23
+
+
+def header_candidates(buf: np.ndarray) -> IntArray:
+    """Offsets of every `A3 95` pair followed by at least a type byte (scanned in chunks to bound memory)."""
+    parts = []
+    end = buf.size - 2
+    for lo in range(0, max(end, 0), CHUNK):
+        hi = min(lo + CHUNK, end)
+        hits = np.flatnonzero((buf[lo:hi] == HEAD1) & (buf[lo + 1:hi + 1] == HEAD2))
+        parts.append(hits.astype(np.int64) + lo)
+    return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
+
+def _header_prefix(buf: np.ndarray) -> int:
+    """Length (0-2) of a record header cut off at the end of the file."""
+    if buf.size >= 2 and buf[-2] == HEAD1 and buf[-1] == HEAD2:
+        return 2
+    return 1 if buf.size and buf[-1] == HEAD1 else 0
+
+
+def _fmt_candidates(buf: np.ndarray, heads: IntArray) -> list[tuple[int, MessageFormat]]:
+    """(offset, format) of every plausible FMT record, in file order."""
+    at = heads[buf[heads + 2] == FMT_ID]
+    at = at[at + FMT_LENGTH <= buf.size]
+    if not at.size:
+        return []
+    recs = sliding_window_view(buf, FMT_LENGTH - 3)[at + 3].view(FMT_DTYPE)[:, 0]
+    out = []
+    for off, rec in zip(at.tolist(), recs, strict=False):            # FMT records: a few hundred per log
+        try:
+            name = rec["Name"].split(b"\0", 1)[0].decode("ascii")
+            fmt = rec["Format"].split(b"\0", 1)[0].decode("ascii")
+            cols = tuple(c for c in rec["Columns"].split(b"\0", 1)[0].decode("ascii").split(",") if c or fmt)
+        except UnicodeDecodeError:
+            continue
+        length = int(rec["Length"])
+        if int(rec["Type"]) != FMT_ID and valid_format(name, fmt, cols, length):
+            out.append((off, MessageFormat(int(rec["Type"]), name, length, fmt, cols)))
+    return out
+
+
+def follow_chain(heads: IntArray, lengths: IntArray, size: int) -> tuple[IntArray, IntArray]:
+    """Offsets of the records on the chain from the first confirmed header, and their lengths.
+
+    `size` is where the data end (the file size less a trailing partial header).
+
+    A candidate is confirmed when the next two records start exactly where their predecessors end (or the file
+    ends), so a stray `A3 95` inside corrupt bytes is not taken for a record. succ[i] is the candidate at the
+    end of i, else (corrupt bytes follow) the first confirmed candidate after it. The nodes reachable from the
+    start are found by pointer doubling: after round k the frontier holds the nodes 2^k..2^(k+1)-1 steps
+    away, so ceil(log2(chain length)) rounds of whole-array gathers suffice.
+    """
+    m = heads.size
+    if m == 0:
+        return heads, lengths
+    ends = heads + lengths
+    nxt = np.searchsorted(heads, ends, side="left")
+    exact = heads[np.minimum(nxt, m - 1)] == ends
+    exact &= nxt < m
+    last = ends >= size
+    nxt_c = np.minimum(nxt, m - 1)
+    confirmed = np.flatnonzero(last | (exact & (exact[nxt_c] | last[nxt_c])))     # two records line up
+    if confirmed.size == 0:
+        return heads[:0], lengths[:0]
+    resync = np.searchsorted(heads[confirmed], ends, side="left")
+    succ = np.where(exact, nxt, np.append(confirmed, m)[resync])
+    succ = np.append(succ, m)
+    on = np.zeros(m + 1, dtype=bool)
+    on[confirmed[0]] = True
+    reached = confirmed[:1]
+    jump = succ
+    while True:
+        step = jump[reached]
+        step = step[~on[step]]
+        if step.size == 0:
+            break
+        on[step] = True
+        reached = np.concatenate([reached, step])
+        jump = jump[jump]
+    on[m] = False
+    on[:m] &= exact | last          # a record not followed by a header may hold the corrupt bytes: dropped
+    chain = np.flatnonzero(on[:m])
+    return heads[chain], lengths[chain]
+
+
+def _choose_formats(cands: list[tuple[int, MessageFormat]], banned: set[int]) -> dict[int, Placed]:
+    """The first definition of each type id (file order), skipping FMT records known to be off the chain."""
+    chosen: dict[int, tuple[int, MessageFormat]] = {}
+    for off, f in cands:
+        if off not in banned and f.type_id not in chosen:
+            chosen[f.type_id] = (off, f)
+    return chosen
+
+
+def decode(buf: np.ndarray, offsets: IntArray, fmt: MessageFormat) -> Table:
+    """Decode the records of one type at `offsets` in one structured-dtype view."""
+    width = fmt.length - 3
+    if width <= 0 or offsets.size == 0:
+        return Table(fmt, offsets, {c: np.zeros(0) for c in fmt.columns})
+    recs = sliding_window_view(buf, width)[offsets + 3].view(fmt.dtype())[:, 0]
+    cols: dict[str, np.ndarray] = {}
+    for col, name in zip(fmt.columns, recs.dtype.names or (), strict=False):
+        cols.setdefault(col, recs[name])
+    return Table(fmt, offsets, cols)
+
+
+def attach_units(formats: dict[str, MessageFormat], fmtu: Table | None, unit: Table | None,
+                 mult: Table | None) -> dict[str, MessageFormat]:
+    """Formats with FMTU/UNIT/MULT units and multipliers (ArduPilot 3.6+) attached per column."""
+    if fmtu is None or not fmtu.fmt.has("FmtType", "UnitIds"):
+        return formats
+    units = dict(zip(unit.num("Id").astype(int).tolist(), unit.text("Label"), strict=True)) if unit else {}
+    mults = (dict(zip(mult.num("Id").astype(int).tolist(), mult.num("Mult").tolist(), strict=True))
+             if mult else {})
+    by_id = {f.type_id: f for f in formats.values()}
+    uids = fmtu.text("UnitIds")
+    mids = fmtu.text("MultIds") if fmtu.fmt.has("MultIds") else [""] * len(uids)
+    for tid, u_s, m_s in zip(np.asarray(fmtu.num("FmtType"), dtype=int).tolist(), uids, mids, strict=False):
+        f = by_id.get(tid)
+        if f is None:
+            continue
+        col_units = {c: units[ord(ch)] for c, ch in zip(f.columns, u_s, strict=False)
+                     if units.get(ord(ch))}
+        col_mults = {c: float(f"{mults[ord(ch)]:.7g}") for c, ch in zip(f.columns, m_s, strict=False)
+                     if ord(ch) in mults and ch not in "-?"}
+        formats[f.name] = dataclasses.replace(f, units=col_units, mults=col_mults)
+    return formats
+
+
+def parse_buffer(buf: np.ndarray, wanted: Collection[str] | None = None) -> RawLog:
+    """Parse a whole binary log held in a uint8 array; decode the types in `wanted` (all when None)."""
+    heads = header_candidates(buf)
+    cands = _fmt_candidates(buf, heads)
+    banned: set[int] = set()
+    for _ in range(8):              # a bogus FMT inside corrupt bytes is dropped and the chain redone
+        chosen = _choose_formats(cands, banned)
+        table = np.zeros(256, dtype=np.int64)
+        table[FMT_ID] = FMT_LENGTH
+        for tid, (_, f) in chosen.items():
+            table[tid] = f.length
+        lens = table[buf[heads + 2]]
+        keep = lens > 0
+        offs, lengths = follow_chain(heads[keep], lens[keep], buf.size - _header_prefix(buf))
+        used = np.array(sorted(o for o, _ in chosen.values()), dtype=np.int64)
+        at = np.minimum(np.searchsorted(offs, used), max(offs.size - 1, 0))
+        off_chain = set(used[(offs[at] != used) if offs.size else slice(None)].tolist())
+        if not off_chain:
+            break
+        banned |= off_chain
+    return _assemble(buf, offs, lengths, chosen, wanted)
+
+
+def _assemble(buf: np.ndarray, offs: IntArray, lengths: IntArray, chosen: dict[int, Placed],
+              wanted: Collection[str] | None) -> RawLog:
+    """Split the chain by type, decode the wanted types and account for skipped and truncated bytes."""
+    size = int(buf.size)
+    truncated = 0
+    notes: list[str] = []
+    formats = {f.name: f for _, f in chosen.values()}
+    formats.setdefault("FMT", FMT_SELF)
+    if offs.size and offs[-1] + lengths[-1] > size:
+        truncated = size - int(offs[-1])
+        last = int(buf[offs[-1] + 2])
+        name = chosen[last][1].name if last in chosen else "FMT"
+        notes.append(f"the file ends inside a {name} record ({truncated} of {int(lengths[-1])} bytes): the "
+                     f"log is truncated; read the {offs.size - 1} complete messages")
+        offs, lengths = offs[:-1], lengths[:-1]
+    else:
+        tail = buf[int(offs[-1] + lengths[-1]) if offs.size else 0:]
+        if 0 < tail.size < 3 and tail[0] == HEAD1 and (tail.size == 1 or tail[1] == HEAD2):
+            truncated = int(tail.size)
+            notes.append(f"the file ends inside a record header ({truncated} bytes): the log is truncated; "
+                         f"read the {offs.size} complete messages")
+    used = int(lengths.sum()) + truncated
+    skipped = size - used
+    ids = buf[offs + 2].astype(np.int64)
+    order = np.argsort(ids, kind="stable")
+    bounds = np.searchsorted(ids[order], np.arange(257))
+    counts: dict[str, int] = {}
+    tables: dict[str, Table] = {}
+    want = None if wanted is None else set(wanted) | set(META_TYPES)
+    by_id = {tid: f for tid, (_, f) in chosen.items()}
+    by_id.setdefault(FMT_ID, FMT_SELF)
+    for tid in np.flatnonzero(bounds[1:] > bounds[:-1]).tolist():
+        f = by_id[tid]
+        counts[f.name] = counts.get(f.name, 0) + int(bounds[tid + 1] - bounds[tid])
+        if want is None or f.name in want:
+            tables[f.name] = decode(buf, offs[order[bounds[tid]:bounds[tid + 1]]], f)
+    formats = attach_units(formats, tables.get("FMTU"), tables.get("UNIT"), tables.get("MULT"))
+    tables = {k: dataclasses.replace(t, fmt=formats.get(k, t.fmt)) for k, t in tables.items()}
+    if skipped:
+        notes.append(f"skipped {skipped} bytes that are not complete records (corrupt data or padding); "
+                     "reading resynchronised on the next message header")
+    return RawLog(formats, tables, counts, size, skipped, truncated, notes)
+
+
+def parse_binary(path: Path, wanted: Collection[str] | None = None) -> RawLog:
+    """Parse a binary DataFlash file; decode the types in `wanted` (all when None)."""
+    return parse_buffer(np.fromfile(path, dtype=np.uint8), wanted)

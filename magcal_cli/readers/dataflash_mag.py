@@ -1,0 +1,189 @@
+"""ArduPilot's compass correction, forward and inverse, with the parameters in force at each sample.
+
+The firmware logs the *corrected* field (design/firmware-export.md section 1; AP_Compass_Backend.cpp
+`correct_field`), in the body frame after `rotate_field` (COMPASS_ORIENTn / AHRS_ORIENTATION):
+
+    x = raw + OFS;  x = x * SCALE (only if 0.85 <= SCALE <= 1.4);  x = M x;  x = x + MO
+
+with M = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]] (DIA = 0 means ones) and MO the
+motor offset the MAG record logs (MOfsX.. / MOX..). Firmware 3.5 and older added MO before M (versions of
+`correct_field` without per-motor compensation); 3.6 and newer add it after M.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]
+
+#: COMPASS_MIN_SCALE_FACTOR / COMPASS_MAX_SCALE_FACTOR (CompassCalibrator.h); outside, SCALE is ignored
+SCALE_RANGE = (0.85, 1.4)
+AXES = ("X", "Y", "Z")
+
+
+class ParamHistory:
+    """Every PARM record of a log: the value of each parameter over time (s, the log's clock)."""
+
+    def __init__(self, names: list[str], times: FloatArray, values: FloatArray) -> None:
+        order = np.argsort(times, kind="stable")
+        self._series: dict[str, tuple[FloatArray, FloatArray]] = {}
+        grouped: dict[str, list[int]] = {}
+        for i in order.tolist():                  # PARM records: a few hundred to a few thousand
+            grouped.setdefault(names[i], []).append(i)
+        for name, idx in grouped.items():
+            self._series[name] = (np.asarray(times)[idx], np.asarray(values, dtype=np.float64)[idx])
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._series
+
+    def last(self) -> dict[str, float]:
+        """Each parameter's last logged value."""
+        return {k: float(v[-1]) for k, (_, v) in self._series.items()}
+
+    def at(self, name: str, t: FloatArray, default: float) -> FloatArray:
+        """The value in force at each time: the latest record at or before t, else the first record."""
+        if name not in self._series:
+            return np.full(np.shape(t), default, dtype=np.float64)
+        times, values = self._series[name]
+        i = np.searchsorted(times, t, side="right") - 1
+        return values[np.clip(i, 0, None)]
+
+    def changes(self, name: str) -> int:
+        """How many times the value changed after its first record."""
+        if name not in self._series:
+            return 0
+        v = self._series[name][1]
+        return int(np.count_nonzero(np.diff(v) != 0))
+
+
+@dataclass(frozen=True, eq=False)
+class Correction:
+    """Per-sample correction: offsets (N, 3) mG, iron matrix (N, 3, 3), scale (N,), motor offset (N, 3) mG."""
+
+    ofs: FloatArray
+    matrix: FloatArray
+    scale: FloatArray
+    motor: FloatArray
+    motor_after_matrix: bool = True
+
+
+def iron_matrix(dia: FloatArray, odi: FloatArray) -> FloatArray:
+    """(N, 3, 3) symmetric matrices from COMPASS_DIA/ODI rows; an all-zero DIA means ones (correct_field)."""
+    dia = np.where(np.all(dia == 0, axis=1, keepdims=True), 1.0, dia)
+    m = np.empty(dia.shape[:1] + (3, 3))
+    m[:, 0, 0], m[:, 1, 1], m[:, 2, 2] = dia[:, 0], dia[:, 1], dia[:, 2]
+    m[:, 0, 1] = m[:, 1, 0] = odi[:, 0]
+    m[:, 0, 2] = m[:, 2, 0] = odi[:, 1]
+    m[:, 1, 2] = m[:, 2, 1] = odi[:, 2]
+    return m
+
+
+def effective_scale(scale: FloatArray) -> FloatArray:
+    """COMPASS_SCALE as applied: the value inside [0.85, 1.4], else 1 (have_scale_factor)."""
+    return np.where((scale >= SCALE_RANGE[0]) & (scale <= SCALE_RANGE[1]), scale, 1.0)
+
+
+def apply_correction(raw: FloatArray, c: Correction) -> FloatArray:
+    """The field the firmware logs for body-frame raw readings (N, 3) mG (before int16 truncation)."""
+    x = (raw + c.ofs) * c.scale[:, None]
+    if not c.motor_after_matrix:
+        x = x + c.motor
+    x = np.einsum("nij,nj->ni", c.matrix, x)
+    out: FloatArray = x + c.motor if c.motor_after_matrix else x
+    return out
+
+
+def undo_correction(logged: FloatArray, c: Correction) -> FloatArray:
+    """The body-frame raw readings (N, 3) mG behind a logged corrected field (apply_correction's inverse)."""
+    x = logged - c.motor if c.motor_after_matrix else logged
+    y: FloatArray = np.linalg.solve(c.matrix, x[:, :, None])[:, :, 0].astype(np.float64)
+    if not c.motor_after_matrix:
+        y = y - c.motor
+    return y / c.scale[:, None] - c.ofs
+
+
+def param_suffix(instance: int, params: dict[str, float]) -> tuple[str, str | None]:
+    """Parameter suffix of a logged MAG instance ("" , "2", "3"), checked against COMPASS_PRIOn_ID.
+
+    Log instance I is priority I; `_reorder_compass_params` puts priority I in slot I, i.e. suffix I+1.
+    When COMPASS_DEV_ID{suffix} disagrees with COMPASS_PRIO{I+1}_ID, the slot holding that device is used.
+    """
+    suffix = "" if instance == 0 else str(instance + 1)
+    prio = params.get(f"COMPASS_PRIO{instance + 1}_ID", 0.0)
+    if not prio or params.get(f"COMPASS_DEV_ID{suffix}", prio) == prio:
+        return suffix, None
+    for k in ("", "2", "3"):
+        if params.get(f"COMPASS_DEV_ID{k}") == prio:
+            return k, (f"MAG[{instance}]: COMPASS_PRIO{instance + 1}_ID={prio:.0f} is COMPASS_DEV_ID{k}, "
+                       f"so its calibration was read from the COMPASS_*{k} parameters")
+    return suffix, None
+
+
+def _vec(hist: ParamHistory, stem: str, suffix: str, t: FloatArray, default: float) -> FloatArray:
+    """(N, 3) per-sample values of COMPASS_<stem><suffix>_X/Y/Z."""
+    return np.stack([hist.at(f"COMPASS_{stem}{suffix}_{a}", t, default) for a in AXES], axis=1)
+
+
+def _fmt(v: FloatArray) -> str:
+    return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
+
+
+def compass_correction(hist: ParamHistory, suffix: str, t: FloatArray, logged_ofs: FloatArray | None,
+                       logged_motor: FloatArray | None, motor_after_matrix: bool,
+                       throttle: FloatArray | None = None,
+                       current: FloatArray | None = None) -> tuple[Correction, str]:
+    """The correction in force at each sample time t (s) and a description of what it contains.
+
+    Offsets come from the PARM history; where the logged OfsX.. disagree by 1 mG or more (int16 truncation
+    aside) the logged ones are used (offsets learned in flight are not written as PARM records).
+    Motor offsets come from the logged MO fields, else from COMPASS_MOT times `throttle` (0..1, MOTCT=1) or
+    `current` (A, MOTCT=2) at the sample times.
+    """
+    n = t.size
+    parts: list[str] = []
+    have_ofs = all(f"COMPASS_OFS{suffix}_{a}" in hist for a in AXES)
+    ofs = _vec(hist, "OFS", suffix, t, 0.0)
+    if logged_ofs is not None:
+        bad = np.any(np.abs(ofs - logged_ofs) >= 1.0, axis=1) if have_ofs else np.ones(n, dtype=bool)
+        ofs = np.where(bad[:, None], logged_ofs, ofs)
+        if have_ofs and bad.any():
+            parts.append(f"logged OfsX.. used at {int(bad.sum())} samples where they differ from the PARM "
+                         "records")
+    elif not have_ofs:
+        parts.append(f"no COMPASS_OFS{suffix} records and no logged offsets; offsets taken as zero")
+    dia, odi = _vec(hist, "DIA", suffix, t, 0.0), _vec(hist, "ODI", suffix, t, 0.0)
+    scale_raw = hist.at(f"COMPASS_SCALE{suffix}", t, 0.0)
+    scale = effective_scale(scale_raw)
+    if logged_motor is not None:
+        motor, motor_desc = logged_motor, "motor offsets from the logged MO fields"
+        if np.any(logged_motor != 0):
+            motor_desc += f" (up to {np.abs(logged_motor).max():.0f} mG)"
+        else:
+            motor_desc += " (all zero)"
+    else:
+        motct = hist.at("COMPASS_MOTCT", t, 0.0)
+        mot = _vec(hist, "MOT", suffix, t, 0.0)
+        zero = np.zeros(n)
+        signal = np.where(motct == 1, zero if throttle is None else throttle,
+                          np.where(motct == 2, zero if current is None else current, 0.0))
+        motor = mot * signal[:, None]
+        motor_desc = ("motor offsets COMPASS_MOT x throttle/current per COMPASS_MOTCT" if np.any(motor != 0)
+                      else "no motor offsets (COMPASS_MOTCT=0 or MOT=0)")
+    corr = Correction(ofs, iron_matrix(dia, odi), scale, motor, motor_after_matrix)
+    s0 = scale[0] if n else 1.0
+    def first(a: FloatArray) -> FloatArray:
+        return a[0] if n else np.zeros(3)
+
+    desc = (f"COMPASS_OFS{suffix}={_fmt(first(ofs))}, DIA{suffix}={_fmt(first(dia))}, "
+            f"ODI{suffix}={_fmt(first(odi))}, "
+            + (f"SCALE{suffix}={s0:.4g}" if s0 != 1.0 else f"SCALE{suffix} not applied") + f", {motor_desc}")
+    changed = [f"{stem}{suffix}" for stem in ("OFS", "DIA", "ODI")
+               if any(hist.changes(f"COMPASS_{stem}{suffix}_{a}") for a in AXES)]
+    changed += [f"SCALE{suffix}"] if hist.changes(f"COMPASS_SCALE{suffix}") else []
+    if changed:
+        parts.append(f"{', '.join(changed)} changed during the log; the values in force at each sample were "
+                     "used (first values shown)")
+    return corr, desc + ("; " + "; ".join(parts) if parts else "")

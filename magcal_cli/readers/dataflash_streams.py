@@ -1,0 +1,120 @@
+"""From decoded DataFlash tables to streams: message times, instances, and the Recording in SI units."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import so3
+from ..align import clean_time
+from ..streams import Kind, Recording, Stream
+from .dataflash_format import FloatArray, IntArray, RawLog, Table
+
+
+class Clock:
+    """Time of messages that carry none (old PARM, px4log): that of the latest timed message before them."""
+
+    def __init__(self, pos: IntArray, t: FloatArray) -> None:
+        order = np.argsort(pos, kind="stable")
+        self.pos, self.t = pos[order], t[order]
+
+    def __bool__(self) -> bool:
+        return bool(self.pos.size)
+
+    def at(self, pos: IntArray) -> FloatArray:
+        """The time (s) in force at each file position; before the first timed message, the first time."""
+        if not self.pos.size:
+            return np.full(pos.shape, np.nan)
+        i = np.searchsorted(self.pos, pos, side="right") - 1
+        return self.t[np.clip(i, 0, None)]
+
+
+def own_time(table: Table) -> FloatArray | None:
+    """A message's boot time (s) from its own fields: TimeUS, TimeMS, or T of old GPS (TimeMS is GPS time)."""
+    f = table.fmt
+    if f.has("TimeUS"):
+        return table.num("TimeUS") * 1e-6
+    if f.name.startswith("GPS"):
+        return table.num("T") * 1e-3 if f.has("T") else None
+    if f.has("TimeMS"):
+        return table.num("TimeMS") * 1e-3
+    return None
+
+
+def time_of(table: Table, clock: Clock) -> FloatArray:
+    """Seconds on the log's boot clock for every message of `table`."""
+    t = own_time(table)
+    return t if t is not None else clock.at(table.pos)
+
+
+def clock_from(raw: RawLog) -> Clock:
+    """A clock made of every decoded message that carries its own time."""
+    pos, ts = [], []
+    for table in raw.tables.values():
+        t = own_time(table)
+        if t is not None and len(table):
+            pos.append(table.pos)
+            ts.append(t)
+    if not pos:
+        return Clock(np.zeros(0, dtype=np.int64), np.zeros(0))
+    return Clock(np.concatenate(pos), np.concatenate(ts))
+
+
+def instances(raw: RawLog, names: tuple[str, ...],
+              columns: tuple[str, ...] = ("I", "Inst")) -> list[tuple[int, Table]]:
+    """(instance, messages) of a sensor logged as NAME, NAME2, NAME3 or one NAME with an instance column."""
+    out: list[tuple[int, Table]] = []
+    for k, name in enumerate(names):
+        table = raw.table(name)
+        if table is None:
+            continue
+        col = next((c for c in columns if table.fmt.has(c)), None)
+        if col is None:
+            out.append((k, table))
+            continue
+        inst = table.num(col).astype(np.int64)
+        out += [(k + int(i), table.where(inst == i)) for i in np.unique(inst).tolist()]
+    return sorted(out, key=lambda x: x[0])
+
+
+def euler_quat(roll_deg: FloatArray, pitch_deg: FloatArray, yaw_deg: FloatArray) -> FloatArray:
+    """(N, 4) quaternions wxyz (body to NED) of ArduPilot/PX4 Euler angles, R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    rpy = np.deg2rad(np.stack([roll_deg, pitch_deg, yaw_deg], axis=1))
+    if not rpy.size:
+        return np.zeros((0, 4))
+    return so3.as_quat(so3.from_rpy(rpy))
+
+
+@dataclass(frozen=True, eq=False)
+class Pending:
+    """Samples of streams that share their times (an IMU's accelerometer and gyro), absolute time (s)."""
+
+    kinds: tuple[Kind, ...]
+    id: str
+    t: FloatArray
+    values: FloatArray
+    source: str
+    units: tuple[str, ...]
+
+
+def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float],
+           notes: list[str]) -> Recording:
+    """Recording with times relative to the first IMU or magnetometer sample, cleaned and noted."""
+    anchor = [p.t for p in pending if Kind.MAGNETOMETER in p.kinds or Kind.ACCELEROMETER in p.kinds]
+    finite = [t[np.isfinite(t)] for t in (anchor or [p.t for p in pending])]
+    t0 = min((float(t.min()) for t in finite if t.size), default=0.0)
+    streams: list[Stream] = []
+    for p in pending:
+        where = p.id if len(p.kinds) > 1 else f"{p.id} {p.kinds[0].value}"
+        t, values, cleaned = clean_time(p.t - t0, p.values, where)
+        notes.extend(cleaned)
+        if t.size == 0:
+            notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
+            continue
+        col = 0
+        for kind, unit in zip(p.kinds, p.units, strict=False):
+            streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit))
+            col += kind.width
+    return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes))
