@@ -77,8 +77,60 @@ def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
 
 
-def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig) -> StillResult:
-    """Still segments of an IMU whose accelerometer and gyro share timestamps."""
+def _resolution_floor(x: FloatArray) -> FloatArray:
+    """Per-axis quantisation noise step/sqrt(12), so integer-logged signals are not judged noise-free."""
+    d = np.abs(np.diff(x, axis=0))
+    d = np.where(d > 0, d, np.inf)
+    step = np.min(d, axis=0) if len(d) else np.full(x.shape[1], np.inf)
+    return np.where(np.isfinite(step), step / np.sqrt(12.0), 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class _Signal:
+    """A three-axis signal whose block means must stay constant while still, with its per-sample noise."""
+
+    t: FloatArray
+    x: FloatArray
+    sd: FloatArray
+
+
+def _steady_parts(sig: list[_Signal], t_imu: FloatArray, i0: int, i1: int, n: int,
+                  alpha: float) -> list[tuple[int, int]]:
+    """Split IMU samples [i0, i1) until every signal's n-sample block means agree with the part's mean.
+
+    A still body sees a constant specific force and a constant field; a slow rotation that hides in the
+    noise of one short window drifts across a run (about the vertical only the field shows it). The worst
+    block is removed until each part passes a chi-square test (3 dof, Bonferroni over blocks and signals).
+    """
+    todo, out = [(i0, i1)], []
+    while todo:
+        j0, j1 = todo.pop()
+        blocks = (j1 - j0) // n
+        if blocks < 2:
+            out.append((j0, j1))
+            continue
+        edges = t_imu[j0 + n * np.arange(blocks + 1) - (np.arange(blocks + 1) == blocks)]
+        dev = np.zeros(blocks)
+        for s in sig:
+            lo, hi = np.searchsorted(s.t, edges[:-1]), np.searchsorted(s.t, edges[1:])
+            c = np.concatenate([np.zeros((1, 3)), np.cumsum(s.x, axis=0)])
+            cnt = (hi - lo).astype(np.float64)
+            ok = cnt > 0
+            means = (c[hi[ok]] - c[lo[ok]]) / cnt[ok, None]
+            centre = np.sum(means * cnt[ok, None], axis=0) / cnt[ok].sum()
+            dev[ok] = np.maximum(dev[ok], np.sum((means - centre) ** 2 / (s.sd**2 / cnt[ok, None]), axis=1))
+        worst = int(np.argmax(dev))
+        if dev[worst] <= stats.chi2.ppf(1.0 - alpha / (blocks * len(sig)), 3):
+            out.append((j0, j1))
+            continue
+        cut0, cut1 = j0 + worst * n, j0 + (worst + 1) * n
+        todo += [(j0, cut0), (cut1 if worst < blocks - 1 else j1, j1)]
+    return sorted(p for p in out if p[1] > p[0])
+
+
+def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig, mags: tuple[Stream, ...] = ()) -> StillResult:
+    """Still segments of an IMU whose accelerometer and gyro share timestamps; magnetometers, when given,
+    must be steady too (they reveal rotations about the vertical that the accelerometer cannot see)."""
     if len(acc) != len(gyr) or not np.allclose(acc.t, gyr.t):
         msg = f"{acc.source}: accelerometer and gyro timestamps differ; stillness needs one IMU time base"
         raise StreamError(msg)
@@ -88,8 +140,8 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig) -> StillResult:
         msg = f"{acc.source}: only {len(acc)} IMU samples; a still-segment search needs at least {2 * n}"
         raise StreamError(msg)
     a, w = acc.xyz, gyr.xyz
-    a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), 1e-12)
-    w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), 1e-12)
+    a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), np.maximum(_resolution_floor(a), 1e-12))
+    w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), np.maximum(_resolution_floor(w), 1e-12))
     var_bound = stats.chi2.ppf(1.0 - cfg.false_alarm, n - 1) / (n - 1)
     a_mean, a_var = _moving(a, n)
     w_mean_c, w_var = _moving(w, n)
@@ -107,7 +159,14 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig) -> StillResult:
     mask = np.convolve(still_win.astype(np.int64), np.ones(n, dtype=np.int64))[: len(acc)] > 0
     trim = int(round(cfg.edge_trim_s * rate))
     segments = []
-    for i0, i1 in _runs(mask):
+    signals = [_Signal(acc.t, a, a_sd)]
+    for m in mags:
+        n_m = max(5, int(round(cfg.window_s * m.rate_hz)))
+        if len(m) >= 2 * n_m:
+            floor = np.maximum(_resolution_floor(m.xyz), 1e-300)
+            signals.append(_Signal(m.t, m.xyz, np.maximum(noise_std(m.xyz, n_m, cfg.noise_quantile), floor)))
+    parts = [p for i0, i1 in _runs(mask) for p in _steady_parts(signals, acc.t, i0, i1, n, cfg.false_alarm)]
+    for i0, i1 in parts:
         j0, j1 = i0 + trim, i1 - trim
         if j1 <= j0 or acc.t[j1 - 1] - acc.t[j0] < cfg.min_duration_s:
             continue

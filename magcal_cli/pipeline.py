@@ -96,7 +96,7 @@ def select_problem(rec: Recording, cfg: Config) -> Problem:
             msg = (f"{where}: {s.kind.value} {s.id} has only {len(s)} samples between --start and --end; "
                    "widen the time window")
             raise StreamError(msg)
-    return Problem(where, acc.id, acc, gyr, mags, detect_still(acc, gyr, cfg.still))
+    return Problem(where, acc.id, acc, gyr, mags, detect_still(acc, gyr, cfg.still, mags))
 
 
 def coverage_pct(m_b: FloatArray, cells: int = 100) -> float:

@@ -7,7 +7,7 @@ with preintegration; accelerometers see gravity only (pure rotation): y_a = -R^T
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -156,8 +156,11 @@ def handheld_trajectory(rng: np.random.Generator, rate: float,
 
 
 def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
-             duration: float | None = None) -> Simulation:
-    """Simulate one recording (IMU stream `/imu/data`, magnetometer `/imu/mag`) with seeded truth."""
+             duration: float | None = None, truth: Truth | None = None) -> Simulation:
+    """Simulate one recording (IMU stream `/imu/data`, magnetometer `/imu/mag`) with seeded truth.
+
+    `truth` replaces the drawn calibration (its noise_std is still set from the rates).
+    """
     if scenario not in SCENARIOS:
         msg = f"simulate: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}"
         raise MagcalError(msg)
@@ -168,7 +171,8 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
         msg = f"simulate: --rate {rate:g} must be a whole multiple of --mag-rate {mag_rate:g}"
         raise MagcalError(msg)
     rng = np.random.default_rng(seed)
-    truth = draw_truth(rng, rate, mag_rate)
+    drawn = draw_truth(rng, rate, mag_rate)
+    truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
     if scenario == "paper":
         rot, still = paper_trajectory(rng, rate, duration), ()
     else:

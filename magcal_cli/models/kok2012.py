@@ -24,6 +24,7 @@ from .ellipsoid import Ellipsoid, fit_ellipsoid
 from .mag import MagLayout, field_nav, mag_factor
 from .problem import Problem
 from .result import ImuFit, MagFit, MethodResult
+from .sandwich import cluster_robust_cov, time_clusters
 from .solve import Factor, Options, Solution, solve
 
 FloatArray = npt.NDArray[np.float64]
@@ -39,6 +40,7 @@ class KokData:
     y: FloatArray
     v: FloatArray
     source: str
+    t: FloatArray | None = None       # times of quasi-static pairs: their errors are clustered in time
 
     @classmethod
     def from_samples(cls, mag_id: str, mag_all: FloatArray, y: FloatArray, v: FloatArray, source: str,
@@ -141,8 +143,14 @@ def fit_kok2012(data: KokData, sigma_rounds: int = 3, where: str = "kok2012") ->
     if not np.all(np.isfinite(sol.cov_theta)):
         msg = f"{where}: the ML problem is singular at the optimum; record more distinct orientations"
         raise ConvergenceError(msg, tuple(log))
+    cov_w = sol.cov_theta
+    if data.t is not None:
+        # per-sample verticals share the tilt of any accelerometer bias, which drifts with the orientation:
+        # errors correlate over tens of seconds, so use time clusters with Newey-West lags (docs/methods.md)
+        ids = time_clusters(data.t)
+        cov_w = cluster_robust_cov(sol, [ids, ids], lags=4)
     scale_vec = np.concatenate([np.full(12, scale), [1.0]])
-    cov = sol.cov_theta * np.outer(scale_vec, scale_vec)
+    cov = cov_w * np.outer(scale_vec, scale_vec)
     dmat, o, dip = LAYOUT.unpack(sol.theta)
     resid = sol.factors[0].r * sig_m * scale
     return MagFit(data.mag_id, dmat * scale, o * scale, dip, cov,
@@ -178,9 +186,9 @@ def kok_data(problem: Problem, mag: Stream, min_poses: int, separation_deg: floa
     a = interpolate(problem.acc, t[inside])
     norm = np.linalg.norm(a, axis=1)
     quasi = np.abs(norm / G - 1.0) <= gravity_tolerance
-    y, v = mag.xyz[inside][quasi], a[quasi] / norm[quasi, None]
+    y, v, tq = mag.xyz[inside][quasi], a[quasi] / norm[quasi, None], t[inside][quasi]
     step = max(1, len(y) // 20000)
-    return KokData(mag.id, ell, y[::step], v[::step], f"{len(y[::step])} quasi-static samples")
+    return KokData(mag.id, ell, y[::step], v[::step], f"{len(y[::step])} quasi-static samples", tq[::step])
 
 
 def gyro_bias_from_still(problem: Problem) -> ImuFit:
