@@ -76,21 +76,21 @@ def clean_time(t: npt.ArrayLike, values: npt.ArrayLike, where: str) -> tuple[Flo
 
     Returns (t, values, notes); readers pass the notes on to `Recording.notes` so the report repeats them.
     """
-    t = np.asarray(t, dtype=np.float64)
-    values = np.asarray(values, dtype=np.float64)
-    values2 = values.reshape(len(t), -1)
+    tt: FloatArray = np.asarray(t, dtype=np.float64)
+    vals: FloatArray = np.asarray(values, dtype=np.float64)
+    values2 = vals.reshape(tt.size, -1)
     notes: list[str] = []
-    finite = np.isfinite(t) & np.all(np.isfinite(values2), axis=1)
+    finite = np.isfinite(tt) & np.all(np.isfinite(values2), axis=1)
     if not finite.all():
         notes.append(f"{where}: dropped {int((~finite).sum())} samples with NaN or inf")
-        t, values2 = t[finite], values2[finite]
-    if t.size > 1 and np.any(np.diff(t) < 0):
-        notes.append(f"{where}: {int(np.sum(np.diff(t) < 0))} timestamps went backwards; samples were sorted by time")
-        order = np.argsort(t, kind="stable")
-        t, values2 = t[order], values2[order]
-    if t.size > 1:
-        dup = np.concatenate([[False], np.diff(t) == 0])
+        tt, values2 = tt[finite], values2[finite]
+    if tt.size > 1 and np.any(np.diff(tt) < 0):
+        notes.append(f"{where}: {int(np.sum(np.diff(tt) < 0))} timestamps went backwards; samples were sorted by time")
+        order = np.argsort(tt, kind="stable")
+        tt, values2 = tt[order], values2[order]
+    if tt.size > 1:
+        dup = np.concatenate([[False], np.diff(tt) == 0])
         if dup.any():
             notes.append(f"{where}: dropped {int(dup.sum())} samples with duplicated timestamps")
-            t, values2 = t[~dup], values2[~dup]
-    return t, values2.reshape((len(t),) + values.shape[1:]), notes
+            tt, values2 = tt[~dup], values2[~dup]
+    return tt, values2.reshape((tt.size, *vals.shape[1:])), notes

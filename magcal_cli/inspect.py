@@ -80,7 +80,7 @@ def to_table(rec: Recording) -> str:
     right = {"count", "rate_hz", "start_s", "end_s"}
 
     def line(cells: list[str] | tuple[str, ...]) -> str:
-        parts = [c.rjust(w) if col in right else c.ljust(w) for c, w, col in zip(cells, widths, COLUMNS)]
+        parts = [c.rjust(w) if col in right else c.ljust(w) for c, w, col in zip(cells, widths, COLUMNS, strict=True)]
         return "  ".join(parts).rstrip()
 
     out = [f"{rec.path.name}: {rec.format}, {len(rec.streams)} streams, t0 = {rec.t0:.6f} s (log clock)",

@@ -8,7 +8,6 @@ NavSatFix. Both writers build the bag under a temporary name and rename it into 
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -158,8 +157,8 @@ def write_ros2(sim: Simulation, path: Path, storage: str = "mcap") -> None:
             for ns, top, mt, msg in messages(sim.recording, builder):
                 writer.write(conns[top], ns, store.serialize_cdr(msg, mt))
         if path.exists():                                 # an old bag, and the CLI was given --force
-            os.replace(path, parent / "old")
-        os.replace(tmp, path)
+            path.replace(parent / "old")
+        tmp.replace(path)
     finally:
         with contextlib.suppress(OSError):
             shutil.rmtree(parent)

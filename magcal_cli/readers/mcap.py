@@ -105,7 +105,7 @@ class McapReader:
                             decoders[channel.id], why = decoder(schema, channel)
                             skipped += [why] if why else []
                         decode = decoders[channel.id]
-                        if decode is not None:
+                        if decode is not None and schema is not None:
                             self._add(path, collector, schema.name, channel, message, decode)
                 except (McapError, SerdeError, EOFError, KeyError, struct.error, UnicodeDecodeError,
                         IndexError, ValueError, RuntimeError, ZstdError) as exc:

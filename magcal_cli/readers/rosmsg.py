@@ -92,7 +92,7 @@ class Collector:
         t0 = min((int(ts.min()) for ts in times.values() if ts.size), default=0)
         streams: list[Stream] = []
         for key in keys:
-            t = (times[key] - t0) * 1e-9
+            t = (times[key] - t0).astype(np.float64) * 1e-9
             values = np.array(self.values[key], dtype=np.float64)
             streams += _streams(path, key, t, values, notes)
         return Recording(path, fmt, tuple(streams), t0=t0 * 1e-9, notes=tuple(notes))

@@ -70,7 +70,7 @@ def write_mcap(sim: Simulation, path: Path, encoding: str, compression: str = "z
             else:
                 data = bytes(store.serialize_cdr(msg, msgtype))
             writer.add_message(channels[topic], log_time=ns + 1000, data=data, publish_time=ns, sequence=seq)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]
 
 
 def assert_same(rec: Recording, sim: Simulation) -> None:
@@ -147,7 +147,7 @@ def test_channels_magcal_cannot_decode_are_listed(tmp_path: Path) -> None:
         other = writer.register_schema(name="tf2_msgs/msg/TFMessage", encoding="ros2msg", data=b"")
         writer.add_message(writer.register_channel("/imu/pb", "protobuf", pb), log_time=1, data=b"", publish_time=1)
         writer.add_message(writer.register_channel("/tf", "cdr", other), log_time=2, data=b"", publish_time=2)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]
     rec = open_recording(tmp_path / "p.mcap")
     assert rec.streams == ()
     assert rec.notes == ("ignored 2 topics of types magcal does not read: /imu/pb (sensor_msgs/msg/Imu in "

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -107,7 +109,7 @@ def test_zero_stamps_and_other_clocks_fall_back_to_receive_time(tmp_path: Path, 
     assert_same(rec, sim)
 
 
-def _rewrite_stamps(src: Path, dst: Path, stamp: object) -> None:
+def _rewrite_stamps(src: Path, dst: Path, stamp: Callable[[int, str], int]) -> None:
     """Copy a ROS 1 bag with header stamps changed by stamp(ns, topic) (receive times kept)."""
     from rosbags.rosbag1 import Reader, Writer
     from rosbags.typesys import Stores, get_typestore
@@ -116,8 +118,8 @@ def _rewrite_stamps(src: Path, dst: Path, stamp: object) -> None:
     with Reader(src) as reader, Writer(dst) as writer:
         conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store) for c in reader.connections}
         for c, ns, raw in reader.messages():
-            msg = store.deserialize_ros1(raw, c.msgtype)
-            new = stamp(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec, c.topic)  # type: ignore[operator]
+            msg: Any = store.deserialize_ros1(raw, c.msgtype)
+            new = stamp(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec, c.topic)
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(new, 10**9)
             writer.write(conns[c.id], ns, store.serialize_ros1(msg, c.msgtype))
 
