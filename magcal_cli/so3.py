@@ -156,14 +156,36 @@ def angle(rot: npt.ArrayLike) -> FloatArray:
     return np.linalg.norm(log(rot), axis=-1)
 
 
-def cumulative_product(rots: npt.ArrayLike) -> FloatArray:
+def cumulative_product(rots: npt.ArrayLike, reproject: bool = True) -> FloatArray:
     """Prefix products P_k = R_0 R_1 ... R_k of (N, 3, 3) rotations, by a log-depth scan (Hillis-Steele).
 
-    ceil(log2 N) batched matmuls instead of N sequential ones; the result is re-projected onto SO(3).
+    ceil(log2 N) batched matmuls instead of N sequential ones; the result is re-projected onto SO(3) unless
+    `reproject` is False (each P_k is then a product of only ~log2 N factors, orthogonal to ~1e-15).
     """
     out = np.array(rots, dtype=np.float64)
     shift = 1
     while shift < out.shape[0]:
         out[shift:] = out[:-shift] @ out[shift:]
         shift *= 2
-    return project(out)
+    return project(out) if reproject else out
+
+
+def log_small(rot: npt.ArrayLike, limit: float = 3.0) -> FloatArray:
+    """Log of rotations whose angle is mostly below `limit` (rad): atan2 of the skew and symmetric parts.
+
+    theta = atan2(|v|, (tr R - 1)/2) with v = vee(R - R^T)/2 = sin(theta) axis is accurate at every angle
+    except near pi, where the axis is lost in v; rows beyond `limit` go through `log`. Several times faster
+    than the quaternion route for the small residual rotations of least-squares factors.
+    """
+    rot = np.asarray(rot, dtype=np.float64)
+    v = vee(rot)
+    s = np.linalg.norm(v, axis=-1)
+    c = 0.5 * (np.trace(rot, axis1=-2, axis2=-1) - 1.0)
+    theta = np.arctan2(s, c)
+    small = s < _SMALL
+    ratio = np.where(small, 1.0 + s * s / 6.0, theta / np.where(small, 1.0, s))   # theta / sin(theta)
+    out = ratio[..., None] * v
+    far = theta > limit
+    if np.any(far):
+        out[far] = log(rot[far])
+    return out

@@ -18,15 +18,19 @@ UP_N = np.array([0.0, 0.0, -1.0])
 
 
 def accel_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: FloatArray, bias_at: int,
-                 idx: IntArray | None, gravity: float = G, jacobians: bool = True) -> Factor:
+                 idx: IntArray | None, gravity: float = G, jacobians: bool = True,
+                 compact: bool = False) -> Factor:
     """Whitened r = L^-1 (y + R^T g_n - b_a) (Huang et al. 2025, methods.md section 3 item 1).
 
-    dr/dphi = L^-1 [R^T g_n]x, dr/db_a = -L^-1.
+    dr/dphi = L^-1 [R^T g_n]x, dr/db_a = -L^-1. `compact`: J_theta holds only the b_a columns (theta_cols).
     """
-    g_b = np.einsum("mji,j->mi", rot, np.array([0.0, 0.0, gravity]))
+    g_b = gravity * rot[:, 2, :]                                  # R^T [0, 0, g]
     r = (y + g_b - theta[bias_at:bias_at + 3]) @ l_inv.T
     if not jacobians:
         return Factor("accel", r)
+    if compact:
+        jt = np.broadcast_to(-l_inv, (y.shape[0], 3, 3))
+        return Factor("accel", r, idx, l_inv @ so3.hat(g_b), None, jt, np.arange(bias_at, bias_at + 3))
     jt = np.zeros((y.shape[0], 3, theta.size))
     jt[:, :, bias_at:bias_at + 3] = -l_inv
     return Factor("accel", r, idx, l_inv @ so3.hat(g_b), None, jt)

@@ -39,11 +39,13 @@ def field_nav(dip: float) -> FloatArray:
 
 
 def mag_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: FloatArray, layout: MagLayout,
-               idx: IntArray | None, jacobians: bool = True, name: str = "mag") -> Factor:
+               idx: IntArray | None, jacobians: bool = True, name: str = "mag",
+               compact: bool = False) -> Factor:
     """Whitened r = L^-1 (y - D R^T m_n - o) for rows with rotations rot (M, 3, 3) and readings y (M, 3).
 
     Jacobians with R <- R Exp(phi): dr/dphi = -L^-1 D [R^T m_n]x, dr/dvec(D) = -L^-1 ((R^T m_n)^T kron I),
-    dr/do = -L^-1, dr/ddip = -L^-1 D R^T [-sin dip, 0, cos dip]^T.
+    dr/do = -L^-1, dr/ddip = -L^-1 D R^T [-sin dip, 0, cos dip]^T. `compact`: J_theta holds only the 13
+    columns of this magnetometer (theta_cols: D, o, dip).
     """
     d, o, dip = layout.unpack(theta)
     mb = np.einsum("mji,j->mi", rot, field_nav(dip))
@@ -51,10 +53,13 @@ def mag_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: FloatAr
     if not jacobians:
         return Factor(name, r)
     m = y.shape[0]
-    jt = np.zeros((m, 3, theta.size))
-    jt[:, :, layout.D:layout.D + 9] = -np.einsum("ik,mj->mijk", l_inv, mb).reshape(m, 3, 9)
-    jt[:, :, layout.o:layout.o + 3] = -l_inv
+    cols = np.concatenate([np.arange(layout.D, layout.D + 9), np.arange(layout.o, layout.o + 3),
+                           [layout.dip]])
+    jt = np.zeros((m, 3, 13)) if compact else np.zeros((m, 3, theta.size))
+    at_d, at_o, at_dip = (0, 9, 12) if compact else (layout.D, layout.o, layout.dip)
+    jt[:, :, at_d:at_d + 9] = -np.einsum("ik,mj->mijk", l_inv, mb).reshape(m, 3, 9)
+    jt[:, :, at_o:at_o + 3] = -l_inv
     dm = np.einsum("mji,j->mi", rot, np.array([-np.sin(dip), 0.0, np.cos(dip)]))
-    jt[:, :, layout.dip] = -dm @ (l_inv @ d).T
+    jt[:, :, at_dip] = -dm @ (l_inv @ d).T
     jx = -(l_inv @ d) @ so3.hat(mb)
-    return Factor(name, r, idx, jx, None, jt)
+    return Factor(name, r, idx, jx, None, jt, cols.astype(np.int64) if compact else None)

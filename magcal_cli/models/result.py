@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from ..findings import Finding
+
 FloatArray = npt.NDArray[np.float64]
 
 
@@ -39,10 +41,11 @@ class ImuFit:
 
 @dataclass(frozen=True, eq=False)
 class MethodResult:
-    """An estimator's output: magnetometers, IMU, the noise levels it used, remarks for the report."""
+    """An estimator's output: magnetometers, IMU, the noise levels it used, remarks and findings (report)."""
 
     method: str
     mags: tuple[MagFit, ...]
     imu: ImuFit
     noise: dict[str, list[float]] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    findings: tuple[Finding, ...] = ()

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 from scipy import linalg
+from scipy.linalg import lapack
+from threadpoolctl import threadpool_limits
 
 from .. import so3
 
@@ -25,7 +27,10 @@ IntArray = npt.NDArray[np.int64]
 @dataclass(frozen=True, eq=False)
 class Factor:
     """Whitened residual rows r (M, m); row group i touches state idx[i] through J_x (M, m, 3),
-    state idx[i] + 1 through J_next (M, m, 3) and theta through J_theta (M, m, p); any may be None."""
+    state idx[i] + 1 through J_next (M, m, 3) and theta through J_theta (M, m, p); any may be None.
+
+    With `theta_cols` (q,) J_theta is compact, (M, m, q): only the theta entries it names are touched.
+    """
 
     name: str
     r: FloatArray
@@ -33,6 +38,24 @@ class Factor:
     J_x: FloatArray | None = None
     J_next: FloatArray | None = None
     J_theta: FloatArray | None = None
+    theta_cols: IntArray | None = None
+
+    def theta_slice(self, p: int) -> slice | IntArray:
+        """Where J_theta's columns sit in theta: a slice when contiguous (all of theta without theta_cols)."""
+        c = self.theta_cols
+        if c is None:
+            return slice(0, p)
+        if c.size and c[-1] - c[0] == c.size - 1 and bool(np.all(np.diff(c) == 1)):
+            return slice(int(c[0]), int(c[-1]) + 1)
+        return c
+
+    def full_theta(self, p: int) -> FloatArray | None:
+        """J_theta expanded to all p columns."""
+        if self.J_theta is None or self.theta_cols is None:
+            return self.J_theta
+        out = np.zeros(self.J_theta.shape[:2] + (p,))
+        out[:, :, self.theta_cols] = self.J_theta
+        return out
 
 
 #: linearize(states (N,3,3), theta (p,), with_jacobians) -> factors
@@ -49,6 +72,18 @@ class Options:
     lambda0: float = 1e-6
     loss: str = "l2"
     loss_scale: float = 3.0
+    abs_cost_tol: float = 0.0        # also stop when an accepted step lowers the cost by less than this
+
+
+@dataclass(frozen=True, eq=False)
+class Marginals:
+    """Blocks of H^-1 on the sparsity pattern of H (marginal covariances): state k (N, 3, 3), states k and
+    k+1 (N-1, 3, 3), state k with theta (N, 3, p) and theta (p, p)."""
+
+    xx: FloatArray
+    x_next: FloatArray
+    xt: FloatArray
+    tt: FloatArray
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,24 +101,96 @@ class Solution:
     _hxx_diag: FloatArray = field(repr=False)
     _w: FloatArray = field(repr=False)
     _band: int = field(repr=False)
+    _off: FloatArray | None = field(default=None, repr=False)
+    _weights: tuple[FloatArray, ...] = field(default=(), repr=False)
 
-    def leverage(self, factor: Factor) -> FloatArray:
-        """Diagonal of the hat matrix J H^-1 J^T for a unary factor's rows (M, m); block-diagonal trajectories only."""
-        if self._band != 2 or factor.J_next is not None:
-            msg = "leverage is implemented for unary factors on a block-diagonal trajectory"
+    def marginals(self) -> Marginals:
+        """Selected inverse of the undamped information at the optimum, O(N) (see `selected_inverse`)."""
+        n = self._hxx_diag.shape[0]
+        off = self._off if self._off is not None and self._band == 5 else np.zeros((max(n - 1, 0), 3, 3))
+        z_xx, z_next = selected_inverse(self._hxx_diag, off)
+        w_s = self._w @ self.cov_theta                                  # Hxx^-1 Hxt S^-1, (N, 3, p)
+        xx = z_xx + w_s @ self._w.transpose(0, 2, 1)
+        x_next = z_next + w_s[:-1] @ self._w[1:].transpose(0, 2, 1)
+        return Marginals(xx, x_next, -w_s, self.cov_theta)
+
+    def leverage(self, factor: Factor, marginals: Marginals | None = None) -> FloatArray:
+        """Diagonal of the hat matrix J H^-1 J^T for a factor's rows (M, m); unary or consecutive-binary."""
+        if factor.J_next is not None and self._band != 5:
+            msg = "leverage of a binary factor needs the tridiagonal trajectory it was solved with"
             raise ValueError(msg)
+        if factor.J_next is None and factor.J_x is not None and self._band == 2 and marginals is None:
+            return self._leverage_block_diagonal(factor)
+        z = marginals or self.marginals()
+        h = np.zeros(factor.r.shape)
+        p = self.theta.size
+        cols = factor.theta_slice(p)
+        jt = factor.J_theta if isinstance(cols, slice) else factor.full_theta(p)
+        cols = cols if isinstance(cols, slice) else slice(0, p)
+        if jt is not None:
+            h += np.einsum("mkp,mkp->mk", jt @ z.tt[cols, cols], jt)
+        if factor.idx is None or factor.J_x is None:
+            return h
+        i = factor.idx
+        h += np.einsum("mki,mki->mk", factor.J_x @ z.xx[i], factor.J_x)
+        if jt is not None:
+            h += 2.0 * np.einsum("mkp,mkp->mk", factor.J_x @ z.xt[i][:, :, cols], jt)
+        if factor.J_next is not None:
+            h += np.einsum("mki,mki->mk", factor.J_next @ z.xx[i + 1], factor.J_next)
+            h += 2.0 * np.einsum("mki,mki->mk", factor.J_x @ z.x_next[i], factor.J_next)
+            if jt is not None:
+                h += 2.0 * np.einsum("mkp,mkp->mk", factor.J_next @ z.xt[i + 1][:, :, cols], jt)
+        return h
+
+    def _leverage_block_diagonal(self, factor: Factor) -> FloatArray:
+        """Unary factors on a block-diagonal trajectory: one 3x3 inverse per state."""
         p_tt = self.cov_theta
         h = np.zeros(factor.r.shape)
-        if factor.J_theta is not None:
-            h += np.einsum("mkp,pq,mkq->mk", factor.J_theta, p_tt, factor.J_theta)
+        jt = factor.full_theta(self.theta.size)
+        if jt is not None:
+            h += np.einsum("mkp,pq,mkq->mk", jt, p_tt, jt)
         if factor.J_x is not None and factor.idx is not None:
             w = self._w[factor.idx]                                   # (M, 3, p) = Hxx^-1 Hxt
             p_kk = np.linalg.inv(self._hxx_diag[factor.idx]) + w @ p_tt @ w.transpose(0, 2, 1)
             h += np.einsum("mki,mij,mkj->mk", factor.J_x, p_kk, factor.J_x)
-            if factor.J_theta is not None:
+            if jt is not None:
                 p_kt = -w @ p_tt
-                h += 2.0 * np.einsum("mki,mip,mkp->mk", factor.J_x, p_kt, factor.J_theta)
+                h += 2.0 * np.einsum("mki,mip,mkp->mk", factor.J_x, p_kt, jt)
         return h
+
+
+def selected_inverse(diag: FloatArray, off: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Diagonal (N, 3, 3) and super-diagonal (N-1, 3, 3) blocks of A^-1 for SPD block-tridiagonal A, in O(N).
+
+    The forward pivots F_k (A_kk minus what states < k contribute) are the Gram matrices of the diagonal
+    blocks of A's banded Cholesky factor; the backward pivots G_k come from factoring A with its block order
+    reversed. The
+    marginal of states (k, k+1) is then [[F_k, A_k,k+1], [A_k+1,k, G_k+1]]^-1 (a 6x6 inverse per pair), and a
+    single state's is (F_k + G_k - A_kk)^-1 -- two LAPACK factorisations, no sequential Python loop.
+    """
+    n = diag.shape[0]
+    if n == 1:
+        return np.linalg.inv(diag), np.zeros((0, 3, 3))
+    fwd = _pivots(diag, off)
+    bwd = _pivots(diag[::-1], off[::-1].transpose(0, 2, 1))[::-1]
+    pair = np.empty((n - 1, 6, 6))
+    pair[:, :3, :3], pair[:, :3, 3:] = fwd[:-1], off
+    pair[:, 3:, :3], pair[:, 3:, 3:] = off.transpose(0, 2, 1), bwd[1:]
+    pinv = np.linalg.inv(pair)
+    xx = np.concatenate([pinv[:, :3, :3], pinv[-1:, 3:, 3:]])
+    return 0.5 * (xx + xx.transpose(0, 2, 1)), pinv[:, :3, 3:]
+
+
+def _pivots(diag: FloatArray, off: FloatArray) -> FloatArray:
+    """Block pivots F_k = U_kk^T U_kk of the upper banded Cholesky factor U of a block-tridiagonal matrix."""
+    n, u = diag.shape[0], 5
+    cb = linalg.cholesky_banded(_band(diag, off, u), lower=False, check_finite=False)
+    ukk = np.zeros((n, 3, 3))
+    cols = 3 * np.arange(n)
+    for a in range(3):
+        for b in range(a, 3):
+            ukk[:, a, b] = cb[u - (b - a), cols + b]
+    return ukk.transpose(0, 2, 1) @ ukk
 
 
 def _robust_weights(factors: Sequence[Factor], opts: Options) -> tuple[float, list[FloatArray]]:
@@ -117,25 +224,46 @@ class _Normal:
     gt: FloatArray         # (p,)
 
 
+def _scatter(target: FloatArray, idx: IntArray, values: FloatArray) -> None:
+    """target[idx] += values; a slice add when idx is a run of consecutive states (the common case)."""
+    m = idx.shape[0]
+    if m and idx[-1] - idx[0] == m - 1 and (m < 3 or bool(np.all(np.diff(idx) == 1))):
+        target[idx[0]:idx[0] + m] += values
+    else:
+        np.add.at(target, idx, values)
+
+
 def _assemble(factors: Sequence[Factor], weights: Sequence[FloatArray], n: int, p: int) -> _Normal:
-    """Accumulate J^T W J and J^T W r factor by factor (vectorised over rows)."""
+    """Accumulate J^T W J and J^T W r factor by factor (vectorised over rows; theta blocks through BLAS)."""
     ne = _Normal(np.zeros((n, 3, 3)), np.zeros((max(n - 1, 0), 3, 3)), np.zeros((n, 3, p)),
                  np.zeros((p, p)), np.zeros((n, 3)), np.zeros(p))
-    for f, w in zip(factors, weights):
-        r = f.r * w[:, None]
+    for f, w in zip(factors, weights, strict=True):
+        unit = bool(np.all(w == 1.0))
+        r = f.r if unit else f.r * w[:, None]
+        jt_w = None
+        cols = f.theta_slice(p)
+        if not isinstance(cols, slice):                       # scattered columns: expand (rare)
+            f = Factor(f.name, f.r, f.idx, f.J_x, f.J_next, f.full_theta(p))
+            cols = slice(0, p)
         if f.J_theta is not None:
             jt = f.J_theta
-            ne.htt += np.einsum("mkp,m,mkq->pq", jt, w, jt)
-            ne.gt += np.einsum("mkp,mk->p", jt, r)
+            q = jt.shape[2]
+            jt_w = jt if unit else jt * w[:, None, None]
+            jt2 = jt.reshape(-1, q)
+            ne.htt[cols, cols] += jt_w.reshape(-1, q).T @ jt2
+            ne.gt[cols] += jt2.T @ r.reshape(-1)
+        hxt = ne.hxt[:, :, cols]                              # a view: scatters below write into ne.hxt
         for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
             if jx is None or idx is None:
                 continue
-            np.add.at(ne.diag, idx, np.einsum("mki,m,mkj->mij", jx, w, jx))
-            np.add.at(ne.gx, idx, np.einsum("mki,mk->mi", jx, r))
-            if f.J_theta is not None:
-                np.add.at(ne.hxt, idx, np.einsum("mki,m,mkp->mip", jx, w, f.J_theta))
+            jx_t = jx.transpose(0, 2, 1)
+            _scatter(ne.diag, idx, jx_t @ (jx if unit else jx * w[:, None, None]))
+            _scatter(ne.gx, idx, (jx_t @ r[:, :, None])[:, :, 0])
+            if jt_w is not None:
+                _scatter(hxt, idx, jx_t @ jt_w)
         if f.J_x is not None and f.J_next is not None and f.idx is not None:
-            np.add.at(ne.off, f.idx, np.einsum("mki,m,mkj->mij", f.J_x, w, f.J_next))
+            jn = f.J_next if unit else f.J_next * w[:, None, None]
+            _scatter(ne.off, f.idx, f.J_x.transpose(0, 2, 1) @ jn)
     return ne
 
 
@@ -153,8 +281,14 @@ def _band(diag: FloatArray, off: FloatArray, u: int) -> FloatArray:
     return ab
 
 
-def _step(ne: _Normal, lam: float, u: int) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Solve the damped normal equations; returns dx (N,3), dtheta, S^-1, damped Hxx blocks, Hxx^-1 Hxt."""
+def _step(ne: _Normal, lam: float, u: int, need_w: bool = False
+          ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    """Solve the damped normal equations; returns dx (N,3), dtheta, S^-1, damped Hxx blocks and, if asked,
+    Hxx^-1 Hxt (N,3,p).
+
+    With Hxx = U^T U (banded Cholesky): X = U^-T Hxt and y = U^-T gx (one triangular banded solve with p+1
+    right-hand sides), S = Htt - X^T X, dtheta = S^-1 (X^T y - gt), dx = -U^-1 (y + X dtheta).
+    """
     n, p = ne.gx.shape[0], ne.gt.size
     diag = ne.diag.copy()
     d = np.einsum("nii->ni", diag)
@@ -163,20 +297,42 @@ def _step(ne: _Normal, lam: float, u: int) -> tuple[FloatArray, FloatArray, Floa
     htt = ne.htt + lam * np.diag(np.diag(ne.htt) + 1e-9 * max(float(np.mean(np.diag(ne.htt))), 1e-300))
     cb = linalg.cholesky_banded(_band(diag, ne.off, u), lower=False, check_finite=False)
     rhs = np.concatenate([ne.hxt.reshape(3 * n, p), ne.gx.reshape(3 * n, 1)], axis=1)
-    sol = linalg.cho_solve_banded((cb, False), rhs, check_finite=False)
-    w, hinv_g = sol[:, :p], sol[:, p]
-    hxt = ne.hxt.reshape(3 * n, p)
-    s = htt - hxt.T @ w
+    sol, info = lapack.dtbtrs(cb, rhs, uplo="U", trans="T")
+    if info != 0:
+        msg = "banded triangular solve failed"
+        raise np.linalg.LinAlgError(msg)
+    x, y = sol[:, :p], sol[:, p]
+    s = htt - x.T @ x
     s = 0.5 * (s + s.T)
-    s_inv = np.linalg.inv(s)
-    dt = s_inv @ (-ne.gt + hxt.T @ hinv_g)
-    dx = -(hinv_g + w @ dt)
-    return dx.reshape(n, 3), dt, s_inv, diag, w.reshape(n, 3, p)
+    # Jacobi scaling before the inverse: theta mixes units (tesla, rad, m/s^2) with very different scales
+    sd = np.diag(s)
+    if np.any(~np.isfinite(sd)) or np.any(sd <= 0.0):
+        msg = "Schur complement not positive definite"
+        raise np.linalg.LinAlgError(msg)
+    js = 1.0 / np.sqrt(sd)
+    s_inv = js[:, None] * np.linalg.inv(js[:, None] * s * js[None, :]) * js[None, :]
+    dt = s_inv @ (x.T @ y - ne.gt)
+    back = np.concatenate([(y + x @ dt)[:, None], x], axis=1) if need_w else (y + x @ dt)[:, None]
+    back, info = lapack.dtbtrs(cb, back, uplo="U", trans="N")
+    if info != 0:
+        msg = "banded triangular solve failed"
+        raise np.linalg.LinAlgError(msg)
+    dx = -back[:, 0]
+    w = back[:, 1:].reshape(n, 3, p) if need_w else None
+    return dx.reshape(n, 3), dt, s_inv, diag, w
 
 
-def solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: Options | None = None) -> Solution:
+def solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray,
+          opts: Options | None = None) -> Solution:
     """Minimise 1/2 sum |r|^2 (or a robust loss) over states (right perturbation) and theta."""
-    opts = opts or Options()
+    # the dense blocks are small (N x 3 x p): multi-threaded BLAS only adds overhead, and on a loaded machine
+    # its spinning threads cost ~100x (measured on 2 shared cores)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _solve(linearize, states0, theta0, opts or Options())
+
+
+def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: Options) -> Solution:
+    """The Levenberg-Marquardt loop of `solve`."""
     states, theta = np.array(states0, dtype=np.float64), np.array(theta0, dtype=np.float64)
     n, p = states.shape[0], theta.size
     factors = linearize(states, theta, True)
@@ -194,16 +350,19 @@ def solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: O
                 break
             continue
         new_states, new_theta = states @ so3.exp(dx), theta + dt
-        new_cost, _ = _robust_weights(linearize(new_states, new_theta, False), opts)
+        # linearise at the trial point straight away: steps are nearly always accepted, so this saves the
+        # separate residual-only evaluation per iteration
+        trial = linearize(new_states, new_theta, True)
+        new_cost, new_weights = _robust_weights(trial, opts)
         step = float(np.sqrt(np.sum(dx * dx) + dt @ dt))
         if np.isfinite(new_cost) and new_cost <= cost:
-            rel = (cost - new_cost) / max(cost, 1e-300)
+            drop = cost - new_cost
+            rel = drop / max(cost, 1e-300)
             states, theta, cost = new_states, new_theta, new_cost
             lam = max(lam / 3.0, 1e-12)
             log.append(f"iter {it}: cost {cost:.6g}, step {step:.2e}, lambda {lam:.1e}")
-            factors = linearize(states, theta, True)
-            _, weights = _robust_weights(factors, opts)
-            if step < opts.step_tol or rel < opts.cost_tol:
+            factors, weights = trial, new_weights
+            if step < opts.step_tol or rel < opts.cost_tol or drop < opts.abs_cost_tol:
                 converged = True
                 break
         else:
@@ -215,5 +374,22 @@ def solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: O
             if lam > 1e12:
                 break
     ne = _assemble(factors, weights, n, p)
-    _, _, s_inv, hdiag, w = _step(ne, 0.0, u)
-    return Solution(states, theta, cost, it, converged, s_inv, tuple(log), tuple(factors), hdiag, w, u)
+    try:
+        _, _, s_inv, hdiag, w = _step(ne, 0.0, u, need_w=True)
+        assert w is not None
+    except (np.linalg.LinAlgError, linalg.LinAlgError):
+        log.append("the information is singular at the optimum: the data do not determine all unknowns")
+        s_inv, hdiag, w = np.full((p, p), np.nan), ne.diag, np.full((n, 3, p), np.nan)
+    return Solution(states, theta, cost, it, converged, s_inv, tuple(log), tuple(factors), hdiag, w, u,
+                    ne.off, tuple(weights))
+
+
+def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatArray) -> FloatArray:
+    """Inverse Schur complement of the Gauss-Newton information at a given point (no iterations), e.g. the
+    Cramer-Rao bound of theta when evaluated at the truth with the true noise levels."""
+    factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
+    n, p = states.shape[0], theta.size
+    u = 5 if any(f.J_next is not None for f in factors) else 2
+    with threadpool_limits(limits=1, user_api="blas"):
+        ne = _assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        return _step(ne, 0.0, u)[2]
