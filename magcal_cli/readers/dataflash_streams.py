@@ -10,6 +10,7 @@ import numpy as np
 from .. import so3
 from ..align import clean_time
 from ..streams import Kind, Recording, Stream
+from .checks import drop_held
 from .dataflash_format import FloatArray, IntArray, RawLog, Table
 
 
@@ -109,6 +110,9 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
     for p in pending:
         where = p.id if len(p.kinds) > 1 else f"{p.id} {p.kinds[0].value}"
         t, values, cleaned = clean_time(p.t - t0, p.values, where)
+        if p.kinds == (Kind.MAGNETOMETER,):
+            t, values, held = drop_held(t, values, p.id)
+            cleaned += held
         notes.extend(cleaned)
         if t.size == 0:
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")

@@ -1,4 +1,4 @@
-"""ArduPilot DataFlash: vectorised parser, firmware correction and inverse, round trips, text and real logs."""
+"""ArduPilot DataFlash: vectorised parser, firmware correction and inverse, round trips, text, real logs."""
 
 from __future__ import annotations
 
