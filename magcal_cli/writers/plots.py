@@ -34,34 +34,40 @@ def _figures(mag_id: str, series: MagSeries, still: list[tuple[float, float]]) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    raw = series.raw
-    centre = np.median(raw, axis=0)
-    r_raw = np.linalg.norm(raw - centre, axis=1)
+    r_raw = np.linalg.norm(series.raw, axis=1)
     r_cal = np.linalg.norm(series.calibrated, axis=1)
     fig, ax = plt.subplots(figsize=(9, 3.2))
     for t0, t1 in still:
         ax.axvspan(t0, t1, color="0.92", lw=0)
-    ax.plot(series.t, 100 * (r_raw / np.mean(r_raw) - 1), lw=0.7, label="raw (about the median centre)")
-    ax.plot(series.t, 100 * (r_cal - 1), lw=0.7, label="calibrated")
+    ax.plot(series.t, 100 * (r_raw / np.mean(r_raw) - 1), lw=0.7, label="raw |y| (relative to its mean)")
+    ax.plot(series.t, 100 * (r_cal - 1), lw=0.7, label="calibrated |A (y - b)|")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("field strength error [%]")
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(alpha=0.3)
-    out = [(f"{mag_id}: field strength over time (grey: still segments)", _png(fig))]
-    fig, axes = plt.subplots(1, 3, figsize=(9, 3.2))
-    step = max(1, len(raw) // 4000)
-    unit_raw = (raw - centre) / np.mean(r_raw)
-    circle = np.linspace(0, 2 * np.pi, 200)
-    for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2))):
-        ax.plot(np.cos(circle), np.sin(circle), color="0.6", lw=0.8)
-        ax.scatter(unit_raw[::step, i], unit_raw[::step, j], s=1, alpha=0.4, label="raw, scaled")
-        ax.scatter(series.calibrated[::step, i], series.calibrated[::step, j], s=1, alpha=0.4, label="calibrated")
-        ax.set_aspect("equal")
-        ax.set_xlabel("xyz"[i])
-        ax.set_ylabel("xyz"[j])
-    axes[0].legend(loc="lower left", fontsize=7, markerscale=6)
-    out.append((f"{mag_id}: readings projected on the body axes (calibrated ones lie on the unit circle "
-                "only where the field lies in that plane)", _png(fig)))
+    out = [(f"{mag_id}: field strength over time; a good calibration is flat at 0 (grey: still segments)",
+            _png(fig))]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.4), gridspec_kw={"width_ratios": [1.6, 1]})
+    u = series.calibrated / np.maximum(r_cal[:, None], 1e-12)
+    step = max(1, len(u) // 5000)
+    az = np.degrees(np.arctan2(u[::step, 1], u[::step, 0]))
+    el = np.degrees(np.arcsin(np.clip(u[::step, 2], -1, 1)))
+    ax1.scatter(az, el, s=2, alpha=0.5)
+    ax1.set_xlim(-180, 180)
+    ax1.set_ylim(-90, 90)
+    ax1.set_xticks(range(-180, 181, 60))
+    ax1.set_yticks(range(-90, 91, 30))
+    ax1.grid(alpha=0.3)
+    ax1.set_xlabel("azimuth in the body frame [deg]")
+    ax1.set_ylabel("elevation [deg]")
+    ax1.set_title("field directions seen (coverage)", fontsize=9)
+    ax2.hist(100 * (r_cal - 1), bins=60, color="tab:orange")
+    ax2.set_xlabel("calibrated field strength error [%]")
+    ax2.set_ylabel("readings")
+    ax2.set_title("residual field strength error", fontsize=9)
+    fig.tight_layout()
+    out.append((f"{mag_id}: where the field pointed in the body frame (empty areas are orientations the "
+                "recording never visited) and the spread of the calibrated field strength", _png(fig)))
     return out
 
 

@@ -18,6 +18,7 @@ if TYPE_CHECKING:
 
 METHOD_NAMES = {
     "kok2012": "Kok et al. 2012 (ellipsoid fit, alignment with the accelerometer's vertical, maximum likelihood)",
+    "map": "Huang et al. 2025 joint MAP (trajectory, accelerometer and gyro biases, D, o, dip; gyro preintegration)",
 }
 #: the unit a report shows a native unit in (tesla is unreadable at Earth-field scale)
 DISPLAY = {"tesla": ("microtesla", "uT"), "millitesla": ("microtesla", "uT"), "microtesla": ("microtesla", "uT"),
@@ -92,7 +93,7 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
     series = result.series.get(mag.id)
     before = float("nan")
     if series is not None:
-        r = np.linalg.norm(series.raw - np.median(series.raw, axis=0), axis=1)
+        r = np.linalg.norm(series.raw, axis=1)
         before = float(100.0 * np.std(r) / np.mean(r))
     q = mag.quality
     lines = [f"Magnetometer {mag.id} (log unit: {mag.unit})", "  What was found",
@@ -105,7 +106,7 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
              f"    A = D^-1 [1/{sym}]".ljust(23) + _mat(mag.A / f, 23, "{:+.6f}")]
     if q is not None:
         lines += ["  How good",
-                  f"    field-norm spread  raw {before:.2f} % (about the median centre) -> calibrated "
+                  f"    field-norm spread  raw |y| {before:.2f} % RMS -> calibrated "
                   f"{q.field_norm_rms_pct:.3f} % RMS over {q.samples} readings",
                   f"    model residual     {q.residual_rms * units.to_si(mag.unit) * units.from_si(unit):.4f} {sym} RMS",
                   f"    coverage           {q.coverage_pct:.0f} % of the sphere of field directions",
