@@ -35,6 +35,7 @@ READERS: dict[str, str | type[Reader]] = {
     "dataflash": "magcal_cli.readers.dataflash:DataflashReader",
     "rosbag": "magcal_cli.readers.rosbag:RosbagReader",
     "csv": "magcal_cli.readers.csvfile:CsvReader",
+    "ulog": "magcal_cli.readers.ulog:UlogReader",
 }
 
 #: leading bytes -> format name (mcap read_magic; rosbags; pyulog HEADER_BYTES; DataFlash HEAD1/HEAD2)
