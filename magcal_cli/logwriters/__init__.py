@@ -16,6 +16,7 @@ LOG_WRITERS: dict[str, str] = {
     ".bag": "magcal_cli.logwriters.rosbag:write_bag",
     "": "magcal_cli.logwriters.rosbag:write_ros2",
     ".csv": "magcal_cli.logwriters.csvfile:write_csv",
+    ".ulg": "magcal_cli.logwriters.ulog:write_ulg",
 }
 
 

@@ -1,0 +1,208 @@
+"""PX4 ULog writer for simulated recordings (`magcal simulate out.ulg`) and the small builder tests use.
+
+Layout per the ULog specification (PX4 docs, "ULog File Format"): a 16-byte header, the flag-bits message
+('B', first), formats ('F'), info ('I') and parameters ('P'), then subscriptions ('A') and data ('D'),
+dropouts ('O') and parameter changes ('P') in time order. Fields are written packed in the declared order,
+as pyulog and PX4's tools read them. Data records are built as numpy structured arrays, not per sample.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from .. import __version__, so3, units
+from ..atomic import atomic_path
+from ..streams import Kind
+from ..synth import Simulation
+
+#: pyulog's HEADER_BYTES ("ULog" + 0x01 0x12 0x35), then the file version
+MAGIC = b"ULog\x01\x12\x35"
+FILE_VERSION = 1
+#: ULog field type -> little-endian numpy type (pyulog's _UNPACK_TYPES)
+NUMPY_TYPES = {"int8_t": "i1", "uint8_t": "u1", "int16_t": "<i2", "uint16_t": "<u2", "int32_t": "<i4",
+               "uint32_t": "<u4", "int64_t": "<i8", "uint64_t": "<u8", "float": "<f4", "double": "<f8",
+               "bool": "u1", "char": "i1"}
+#: the simulated vehicle's clock when logging starts (us since boot); samples follow at their simulation times
+START_US = 20_000_000
+#: DeviceStructure of the simulated magnetometer: bus type 4 (simulation), bus 0, address 0x0e, devtype 0x06
+SIM_MAG_DEVICE_ID = 4 | (0 << 3) | (0x0E << 8) | (0x06 << 16)
+#: the temperature the simulated magnetometer reports (degC; the simulator has no thermal model)
+SIM_MAG_TEMPERATURE = 25.0
+#: vehicle_attitude is logged at most this often (Hz), as PX4's logger rate-limits it
+ATTITUDE_RATE_HZ = 50.0
+
+
+@dataclass(frozen=True, eq=False)
+class Topic:
+    """One logged topic instance: its ULog fields (type, name), timestamp first, and a column per field.
+
+    Array fields (`float[3] gyro_rad`) take (N, 3) columns; scalar fields (N,) columns.
+    """
+
+    name: str
+    fields: tuple[tuple[str, str], ...]
+    data: Mapping[str, npt.ArrayLike]
+    multi_id: int = 0
+
+    def format_text(self) -> str:
+        """The 'F' message body: `name:type field;type field;...`."""
+        return f"{self.name}:" + "".join(f"{t} {n};" for t, n in self.fields)
+
+    def dtype(self) -> np.dtype[np.void]:
+        """A packed record: message header (uint16 size, uint8 'D'), uint16 msg_id, then the fields."""
+        cols: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [
+            ("size", "<u2"), ("type", "u1"), ("msg_id", "<u2")]
+        for type_, name in self.fields:
+            base, _, count = type_.partition("[")
+            np_type = NUMPY_TYPES[base]
+            cols.append((name, np_type, (int(count.rstrip("]")),)) if count else (name, np_type))
+        return np.dtype(cols)
+
+    def records(self, msg_id: int) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
+        """(timestamps, (N, record size) bytes) of every data message of this topic."""
+        dt = self.dtype()
+        n = len(np.asarray(self.data["timestamp"]))
+        rec = np.zeros(n, dtype=dt)
+        rec["size"], rec["type"], rec["msg_id"] = dt.itemsize - 3, ord("D"), msg_id
+        for _, name in self.fields:
+            rec[name] = np.asarray(self.data[name])
+        return np.asarray(self.data["timestamp"], dtype=np.int64), rec.view(np.uint8).reshape(n, dt.itemsize)
+
+
+@dataclass(frozen=True, eq=False)
+class UlogContent:
+    """Everything a written ULog holds: topics, info, initial parameters, later changes and dropouts."""
+
+    topics: Sequence[Topic]
+    params: Mapping[str, int | float] = field(default_factory=dict)
+    info: Mapping[str, str] = field(default_factory=dict)
+    start_us: int = START_US
+    changed_params: Sequence[tuple[int, str, int | float]] = ()
+    dropouts: Sequence[tuple[int, int]] = ()          # (time us, duration ms)
+
+
+def _message(kind: str, payload: bytes) -> bytes:
+    """One message: uint16 payload size, uint8 type, payload."""
+    return struct.pack("<HB", len(payload), ord(kind)) + payload
+
+
+def _key_value(type_: str, name: str, value: bytes) -> bytes:
+    """An info or parameter body: uint8 key length, key `type name`, value bytes."""
+    key = f"{type_} {name}".encode()
+    return bytes([len(key)]) + key + value
+
+
+def _param(name: str, value: int | float) -> bytes:
+    """A parameter body: int32_t for integers, float otherwise (the two types PX4 has)."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return _key_value("int32_t", name, struct.pack("<i", int(value)))
+    return _key_value("float", name, struct.pack("<f", float(value)))
+
+
+def ulog_bytes(content: UlogContent) -> bytes:
+    """The complete file."""
+    head = [MAGIC + bytes([FILE_VERSION]) + struct.pack("<Q", content.start_us),
+            _message("B", bytes(16) + struct.pack("<3Q", 0, 0, 0))]     # no flags set, nothing appended
+    formats = {t.name: t.format_text() for t in content.topics}
+    head += [_message("F", text.encode()) for text in formats.values()]
+    head += [_message("I", _key_value(f"char[{len(v.encode())}]", k, v.encode()))
+             for k, v in content.info.items()]
+    head += [_message("P", _param(k, v)) for k, v in content.params.items()]
+    head += [_message("A", struct.pack("<BH", t.multi_id, i) + t.name.encode())
+             for i, t in enumerate(content.topics)]
+    chunks = [t.records(i) for i, t in enumerate(content.topics)]
+    for t_us, name, value in content.changed_params:
+        chunks.append(_single(t_us, _message("P", _param(name, value))))
+    for t_us, duration_ms in content.dropouts:
+        chunks.append(_single(t_us, _message("O", struct.pack("<H", duration_ms))))
+    return b"".join(head) + _merge(chunks).tobytes()
+
+
+def _single(t_us: int, message: bytes) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]:
+    """One message as a chunk of one record."""
+    return np.array([t_us], dtype=np.int64), np.frombuffer(message, dtype=np.uint8)[None, :]
+
+
+def _merge(chunks: list[tuple[npt.NDArray[np.int64], npt.NDArray[np.uint8]]]) -> npt.NDArray[np.uint8]:
+    """Interleave the fixed-size records of several chunks by time stamp (earlier chunks first at a tie)."""
+    if not chunks:
+        return np.zeros(0, dtype=np.uint8)
+    times = np.concatenate([t for t, _ in chunks])
+    sizes = np.concatenate([np.full(len(t), rows.shape[1], dtype=np.int64) for t, rows in chunks])
+    order = np.argsort(times, kind="stable")
+    start = np.empty_like(sizes)
+    start[order] = np.cumsum(sizes[order]) - sizes[order]          # where each record lands in the output
+    out = np.empty(int(sizes.sum()), dtype=np.uint8)
+    first = 0
+    for t, rows in chunks:
+        dest = start[first:first + len(t), None] + np.arange(rows.shape[1])
+        out[dest] = rows
+        first += len(t)
+    return out
+
+
+def write_content(content: UlogContent, path: Path) -> None:
+    """Write a ULog atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(ulog_bytes(content))
+
+
+def _us(t: npt.ArrayLike) -> npt.NDArray[np.int64]:
+    """Simulation seconds -> the vehicle clock in integer microseconds."""
+    return START_US + np.round(np.asarray(t, dtype=np.float64) * 1e6).astype(np.int64)
+
+
+def sim_content(sim: Simulation) -> UlogContent:
+    """The simulation as PX4 logs it: sensor_combined, sensor_mag (gauss), vehicle_attitude, parameters."""
+    rec = sim.recording
+    acc, gyr, mag = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), rec.select(Kind.MAGNETOMETER)
+    t_imu, n = _us(gyr.t), len(gyr)
+    period = int(round(1e6 / gyr.rate_hz)) if gyr.rate_hz > 0 else 0
+    zeros = np.zeros(n)
+    comb = Topic("sensor_combined", (
+        ("uint64_t", "timestamp"), ("float[3]", "gyro_rad"), ("uint32_t", "gyro_integral_dt"),
+        ("int32_t", "accelerometer_timestamp_relative"), ("float[3]", "accelerometer_m_s2"),
+        ("uint32_t", "accelerometer_integral_dt"), ("uint8_t", "accelerometer_clipping"),
+        ("uint8_t", "gyro_clipping"), ("uint8_t", "accel_calibration_count"),
+        ("uint8_t", "gyro_calibration_count")),
+        {"timestamp": t_imu, "gyro_rad": gyr.values, "gyro_integral_dt": np.full(n, period),
+         "accelerometer_timestamp_relative": _us(acc.t) - t_imu, "accelerometer_m_s2": acc.values,
+         "accelerometer_integral_dt": np.full(n, period), "accelerometer_clipping": zeros,
+         "gyro_clipping": zeros, "accel_calibration_count": zeros, "gyro_calibration_count": zeros})
+    t_mag, m = _us(mag.t), len(mag)
+    field_g = mag.xyz * units.from_si("gauss")
+    sensor_mag = Topic("sensor_mag", (
+        ("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+        ("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature"), ("uint32_t", "error_count"),
+        ("bool", "is_external")),
+        {"timestamp": t_mag + 150, "timestamp_sample": t_mag, "device_id": np.full(m, SIM_MAG_DEVICE_ID),
+         "x": field_g[:, 0], "y": field_g[:, 1], "z": field_g[:, 2],
+         "temperature": np.full(m, SIM_MAG_TEMPERATURE), "error_count": np.zeros(m),
+         "is_external": np.ones(m)})
+    step = max(1, int(round(gyr.rate_hz / ATTITUDE_RATE_HZ)))
+    att_t = t_imu[::step]
+    att = Topic("vehicle_attitude", (
+        ("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("float[4]", "q"),
+        ("float[4]", "delta_q_reset"), ("uint8_t", "quat_reset_counter")),
+        {"timestamp": att_t + 300, "timestamp_sample": att_t, "q": so3.as_quat(sim.rotations[::step]),
+         "delta_q_reset": np.zeros((len(att_t), 4)), "quat_reset_counter": np.zeros(len(att_t))})
+    params: dict[str, int | float] = {"CAL_MAG0_ID": SIM_MAG_DEVICE_ID, "CAL_MAG0_PRIO": 50,
+                                      "CAL_MAG0_ROT": 0, "CAL_MAG_COMP_TYP": 0, "SENS_BOARD_ROT": 0,
+                                      "SDLOG_PROFILE": 1 | 64}
+    for axis in "XYZ":
+        params |= {f"CAL_MAG0_{axis}OFF": 0.0, f"CAL_MAG0_{axis}SCALE": 1.0, f"CAL_MAG0_{axis}ODIAG": 0.0,
+                   f"CAL_MAG0_{axis}COMP": 0.0, f"SENS_BOARD_{axis}_OFF": 0.0}
+    info = {"sys_name": "PX4", "ver_hw": "MAGCAL_SIM", "ver_sw": f"magcal {__version__} simulate",
+            "magcal_simulation": f"{sim.scenario} seed={sim.seed}"}
+    return UlogContent((comb, sensor_mag, att), params, info)
+
+
+def write_ulg(sim: Simulation, path: Path) -> None:
+    """Write the simulation as a PX4 ULog: raw field in sensor_mag (gauss), IMU in sensor_combined."""
+    write_content(sim_content(sim), path)
