@@ -100,6 +100,28 @@ def _parse_outputs(value: str) -> list[str]:
     return names
 
 
+def _location(_: click.Context, __: click.Parameter, value: str | None) -> tuple[float, float, float] | None:
+    """--location LAT,LON[,ALT] parsed, or a usage error."""
+    from .errors import MagcalError
+    from .wmm import parse_location
+
+    try:
+        return None if value is None else parse_location(value)
+    except MagcalError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | None:
+    """--date YYYY-MM-DD checked, or a usage error."""
+    from .errors import MagcalError
+    from .wmm import parse_date
+
+    try:
+        return None if value is None else parse_date(value).isoformat()
+    except MagcalError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
 @cli.command(epilog=EXIT_CODES)
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
 @click.option("-o", "--outdir", type=click.Path(path_type=Path), default=None,
@@ -117,12 +139,19 @@ def _parse_outputs(value: str) -> list[str]:
 @click.option("--allow-truncated", is_flag=True, help="Calibrate from the complete part of a truncated log.")
 @click.option("--json", "as_json", is_flag=True, help="Print the calibration document on stdout.")
 @click.option("--force", is_flag=True, help="Overwrite existing outputs.")
+@click.option("--location", default=None, metavar="LAT,LON[,ALT]", callback=_location,
+              help="Where the log was recorded (deg, deg, m): dip and field strength from the World Magnetic Model "
+                   "[default: the log's position stream, if any].")
+@click.option("--date", default=None, metavar="YYYY-MM-DD", callback=_date,
+              help="Date for the World Magnetic Model [default: the log's date when known, else today].")
+@click.option("--robust-loss", type=click.Choice(["l2", "huber", "cauchy"]), default="l2", show_default=True,
+              help="Joint MAP (--method map): down-weight outlying readings with a Huber or Cauchy loss.")
 @verbosity
 @click.pass_context
 @handle_errors
 def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str | None, method: str, outputs: str,
         start_s: float | None, end_s: float | None, fmt: str | None, allow_truncated: bool, as_json: bool,
-        force: bool) -> None:
+        force: bool, location: tuple[float, float, float] | None, date: str | None, robust_loss: str) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from .document import dumps_json
     from .pipeline import calibrate
@@ -131,7 +160,8 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     names = _parse_outputs(outputs)
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
     check_targets(outdir, names, force)
-    cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=allow_truncated)
+    cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=allow_truncated,
+                 location=location, date=date, robust_loss=robust_loss)
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     outdir.mkdir(parents=True, exist_ok=True)
     written = [p for name in names for p in get_writer(name).write(result, outdir)]

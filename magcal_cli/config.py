@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-METHODS = ("auto", "kok2012")
+METHODS = ("auto", "kok2012", "map")
 
 
 @dataclass(frozen=True)
@@ -34,3 +34,6 @@ class Config:
     min_pose_separation_deg: float = 15.0
     kok_sigma_rounds: int = 3        # ML alternations between theta and the noise covariances
     allow_truncated: bool = False
+    location: tuple[float, float, float] | None = None   # lat, lon (deg), alt (m): dip and field from the WMM
+    date: str | None = None          # YYYY-MM-DD for the WMM (default: the log's date when known, else today)
+    robust_loss: str = "l2"          # joint MAP: l2, huber or cauchy (outlier-tolerant)

@@ -7,7 +7,7 @@ import importlib
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,7 @@ from .models.result import MagFit, MethodResult
 from .readers import ReadOptions, open_recording
 from .readers.checks import normalised_field
 from .streams import Kind, Recording, Stream
+from .wmm import ReferenceField, reference_for
 
 FloatArray = npt.NDArray[np.float64]
 Progress = Callable[[str], None]
@@ -31,6 +32,7 @@ Progress = Callable[[str], None]
 #: method name -> "module:function(problem, config) -> MethodResult"
 METHODS: dict[str, str] = {
     "kok2012": "magcal_cli.models.kok2012:run",
+    "map": "magcal_cli.models.map:run",
 }
 
 
@@ -110,7 +112,19 @@ def coverage_pct(m_b: FloatArray, cells: int = 100) -> float:
     return 100.0 * hit.size / cells
 
 
-def _mag_calibration(fit: MagFit, stream: Stream) -> tuple[MagCalibration, MagSeries]:
+def _with_position(rec: Recording, cfg: Config) -> Config:
+    """The config with `location` from the log's position stream and `date` from its clock, when not given."""
+    pos = [st.values[np.isfinite(st.values).all(axis=1)] for st in rec.streams if st.kind is Kind.POSITION]
+    if cfg.location is None and pos and len(pos[0]):
+        lat, lon, alt = np.median(pos[0], axis=0)
+        cfg = replace(cfg, location=(float(lat), float(lon), float(alt)))
+    if cfg.location is not None and cfg.date is None and rec.t0 > 1e9:          # t0 is a Unix time
+        cfg = replace(cfg, date=time.strftime("%Y-%m-%d", time.gmtime(rec.t0)))
+    return cfg
+
+
+def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = None
+                     ) -> tuple[MagCalibration, MagSeries]:
     """Convert an SI fit to the stream's native unit and measure its quality on every reading."""
     f = units.from_si(stream.native_unit)
     scale = np.concatenate([np.full(12, f), [np.rad2deg(1.0)]])
@@ -120,8 +134,9 @@ def _mag_calibration(fit: MagFit, stream: Stream) -> tuple[MagCalibration, MagSe
     norm_err = np.linalg.norm(m_b, axis=1) - 1.0
     quality = Quality(len(stream), fit.residual_rms * f, float(100.0 * np.sqrt(np.mean(norm_err**2))),
                       coverage_pct(m_b), bool(fit.converged), int(fit.iterations))
+    strength, source = (float(np.cbrt(np.linalg.det(d))), "data") if ref is None else (ref.intensity * f, "wmm")
     cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
-                         fit.cov * np.outer(scale, scale), float(np.cbrt(np.linalg.det(d))), "data", quality)
+                         fit.cov * np.outer(scale, scale), strength, source, quality)
     return cal, MagSeries(stream.t, raw, m_b)
 
 
@@ -129,6 +144,7 @@ def _findings(rec: Recording, problem: Problem, result: MethodResult, mags: list
     """What the report should tell the user beyond the numbers."""
     out = [Finding(Severity.INFO, "reader_note", note) for note in rec.notes]
     out += [Finding(Severity.INFO, "method_note", note) for note in result.notes]
+    out += list(result.findings)
     if result.method == "kok2012":
         out.append(Finding(Severity.INFO, "accel_bias_not_modelled",
                            "Kok 2012 takes the accelerometer as an unbiased vertical; an accelerometer bias b "
@@ -160,7 +176,8 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     progress(f"reading {path.name}")
     rec = open_recording(path, fmt, ReadOptions(allow_truncated=cfg.allow_truncated))
     problem = select_problem(rec, cfg)
-    method = "kok2012" if cfg.method == "auto" else cfg.method
+    method = ("map" if len(problem.gyr) else "kok2012") if cfg.method == "auto" else cfg.method
+    cfg = _with_position(rec, cfg)
     target = METHODS.get(method)
     if target is None:
         msg = (f"{path.name}: --method {method} is not available in magcal {__version__}; "
@@ -171,8 +188,9 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     module, func = target.split(":")
     result: MethodResult = getattr(importlib.import_module(module), func)(problem, cfg)
     mags, series = [], {}
+    ref = reference_for(cfg)
     for fit, stream in zip(result.mags, problem.mags):
-        cal, ser = _mag_calibration(fit, stream)
+        cal, ser = _mag_calibration(fit, stream, ref)
         mags.append(cal)
         series[stream.id] = ser
     imu = ImuCalibration(result.imu.id, result.imu.accel_bias, result.imu.gyro_bias,
@@ -183,6 +201,9 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     for m, stream in zip(mags, problem.mags):
         if segs:
             noise[f"magnetometer_std[{m.id}]"] = (pooled_std(stream, segs) * units.from_si(stream.native_unit)).tolist()
+    if result.noise:                     # the levels the method estimated and used replace the detector's
+        noise.update(result.noise)
+        noise["source"] = f"estimated by {result.method} from its residuals (variance components)"
     t_used = np.concatenate([problem.acc.t, *[m.t for m in problem.mags]])
     source = Source(str(path), rec.format, sha256(path), float(t_used.min()), float(t_used.max()))
     findings = _findings(rec, problem, result, mags)

@@ -1,0 +1,378 @@
+"""Huang et al. 2025: joint MAP calibration of magnetometer, accelerometer bias and gyro bias (`--method map`).
+
+Unknowns (methods.md section 3): theta = (b_a, db_g, vec D, o, dip) (19) and the orientations R_k at the
+magnetometer epochs. Factors: accelerometer and magnetometer at every epoch, gyro preintegration between
+consecutive epochs. The one solver (`solve.py`) eliminates the block-tridiagonal trajectory; the marginal
+covariance of theta is the inverse Schur complement. The noise levels are re-estimated from the residuals with
+leverage-corrected degrees of freedom (variance components), so the reported covariance matches the data.
+
+Internally the magnetometer is expressed in units of its ellipsoid-fit scale (D ~ I); results are in SI.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+from threadpoolctl import threadpool_limits
+
+from .. import so3, units
+from ..align import interpolate
+from ..config import Config
+from ..detect import pooled_std
+from ..errors import InsufficientDataError
+from ..findings import Finding
+from ..streams import Stream
+from . import map_init
+from .accel import accel_factor
+from .gyro import Preintegrated, gyro_factor, preintegrate
+from .mag import MagLayout, mag_factor
+from .observability import check_observability
+from .problem import Problem
+from .result import ImuFit, MagFit, MethodResult
+from .solve import Factor, Linearize, Options, Solution, marginal_covariance, solve
+
+FloatArray = npt.NDArray[np.float64]
+
+#: theta layout: accelerometer bias, gyro bias correction, then D (column-major), o, dip
+BA, BG = 0, 3
+LAYOUT = MagLayout.packed(6)
+P = 19
+#: at most this many epochs per magnetometer (longer logs use every k-th reading)
+MAX_EPOCHS = 60_000
+MIN_EPOCHS = 50
+#: rounds of (solve, re-estimate the noise levels); stop when no level changes by more than NOISE_TOL
+NOISE_ROUNDS = 6
+NOISE_TOL = 0.03
+#: without still segments the gyro noise starts at the quietest-window level divided by this
+GYRO_START_DIVISOR = 10.0
+#: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
+REPREINTEGRATE_RAD = 0.01
+#: typical bias magnitudes (m/s^2, rad/s) to compare bias uncertainties of different magnetometers' fits
+BIAS_SCALE = np.array([0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3])
+
+
+@dataclass(frozen=True, eq=False)
+class Epochs:
+    """One magnetometer's epochs: times (K,) s, readings / scale (K, 3), accelerometer interpolated onto them
+    (K, 3) m/s^2 and the factor (K,) by which interpolation shrinks its noise std."""
+
+    mag_id: str
+    t: FloatArray
+    mag: FloatArray
+    acc: FloatArray
+    acc_factor: FloatArray
+    scale: float
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Per-sample standard deviations per axis: accelerometer (m/s^2), gyro (rad/s), magnetometer (scaled units)."""
+
+    acc: FloatArray
+    gyr: FloatArray
+    mag: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class MapEstimate:
+    """One magnetometer's joint MAP result in SI: theta (b_a, b_g, vec D, o, dip) with the *total* gyro bias,
+    its 19x19 covariance, the noise levels used (SI), the trajectory and the solver's record."""
+
+    mag_id: str
+    theta: FloatArray
+    cov: FloatArray
+    noise: Noise
+    states: FloatArray
+    epochs: FloatArray
+    cost: float
+    iterations: int
+    converged: bool
+    residual_rms: float
+    log: tuple[str, ...]
+    findings: tuple[Finding, ...] = ()
+    notes: tuple[str, ...] = ()
+    condition: float = float("nan")
+    extra: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def std(self) -> FloatArray:
+        """Marginal standard deviations of theta (SI)."""
+        return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+
+
+def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MAX_EPOCHS) -> Epochs:
+    """The magnetometer readings inside the IMU span, with the accelerometer linearly interpolated onto them."""
+    t_imu = problem.acc.t
+    keep = (mag.t >= t_imu[0]) & (mag.t <= t_imu[-1])
+    t, y = mag.t[keep], mag.xyz[keep]
+    notes = []
+    dt = float(np.median(np.diff(t_imu)))
+    distinct = np.concatenate([[True], np.diff(t) > 0.01 * dt]) if t.size else np.zeros(0, bool)
+    t, y = t[distinct], y[distinct]
+    step = int(np.ceil(t.size / max_epochs)) if t.size else 1
+    if step > 1:
+        t, y = t[::step], y[::step]
+        notes.append(f"{mag.id}: {t.size * step} readings; used every {step}th ({t.size} epochs) to bound time "
+                     "and memory")
+    if t.size < MIN_EPOCHS:
+        msg = (f"{problem.where}: {mag.id} has only {t.size} readings inside the IMU's time span (need >= "
+               f"{MIN_EPOCHS}); check that both sensors were logged at the same time, or widen --start/--end")
+        raise InsufficientDataError(msg)
+    acc = interpolate(problem.acc, t)
+    j = np.clip(np.searchsorted(t_imu, t, side="right") - 1, 0, t_imu.size - 2)
+    w = np.clip((t - t_imu[j]) / (t_imu[j + 1] - t_imu[j]), 0.0, 1.0)
+    factor = np.sqrt((1.0 - w) ** 2 + w**2)        # std of (1-w) a_j + w a_j+1 relative to one sample's
+    return Epochs(mag.id, t, y / scale, acc, factor, scale, tuple(notes))
+
+
+def replace_values(stream: Stream, values: FloatArray) -> Stream:
+    """The stream with other values (same times, id and provenance)."""
+    return Stream(stream.kind, stream.id, stream.t, values, stream.source, stream.native_unit)
+
+
+def _scaled(f: Factor, s: FloatArray) -> Factor:
+    """A factor's rows multiplied by s (M,)."""
+    def mul(a: FloatArray | None) -> FloatArray | None:
+        return None if a is None else a * s.reshape((-1,) + (1,) * (a.ndim - 1))
+    return Factor(f.name, f.r * s[:, None], f.idx, mul(f.J_x), mul(f.J_next), mul(f.J_theta), f.theta_cols)
+
+
+def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise) -> Linearize:
+    """Accelerometer, magnetometer and gyro-preintegration factors of the MAP cost (methods.md section 3)."""
+    l_acc, l_mag = np.diag(1.0 / noise.acc), np.diag(1.0 / noise.mag)
+    idx = np.arange(ep.t.size)
+    s_acc = 1.0 / ep.acc_factor
+    interpolated = bool(np.any(ep.acc_factor < 1.0 - 1e-12))
+
+    def linearize(states: FloatArray, theta: FloatArray, jac: bool) -> list[Factor]:
+        fa = accel_factor(states, ep.acc, l_acc, theta, BA, idx, jacobians=jac, compact=True)
+        if interpolated:
+            fa = _scaled(fa, s_acc)
+        return [fa, mag_factor(states, ep.mag, l_mag, theta, LAYOUT, idx, jac, compact=True),
+                gyro_factor(states, theta, pre, BG, jac)]   # gyro noise is in pre.l_inv
+
+    return linearize
+
+
+def initial_noise(problem: Problem, mag: Stream, scale: float, fit_rms: float) -> Noise:
+    """Starting noise levels: IMU from its quietest windows, magnetometer from still segments or the ellipsoid fit."""
+    still = problem.still
+    m = pooled_std(mag, still.segments) / scale if still.segments else np.full(3, fit_rms)
+    m = np.where(np.isfinite(m), m, fit_rms)
+    # without a still segment the quietest windows still contain motion: their gyro level is an upper bound.
+    # The variance-component iteration converges fast from below and slowly from above, so start low.
+    gyr = still.gyr_noise if still.segments else still.gyr_noise / GYRO_START_DIVISOR
+    return Noise(np.maximum(still.acc_noise, 1e-4), np.maximum(gyr, 1e-6), np.maximum(m, 1e-5))
+
+
+def variance_ratios(sol: Solution, loss: str = "l2", c: float = 3.0) -> FloatArray:
+    """Variance factors sum(r^2) / (rows - leverage) of the accelerometer (3 axes), gyro (1), magnetometer (3).
+
+    The leverage (trace of the hat matrix over a group's rows) counts the degrees of freedom the unknowns take
+    from that group (Foerstner's variance-component estimation); a factor of 1 means the assumed noise level
+    fits. With a robust loss each row's |r|^2 is truncated at c^2 and divided by its expectation under the
+    model (E min(chi2_m, c^2) / m), one factor per group: outliers then cannot inflate the levels.
+    """
+    marg = sol.marginals()
+    out = {}
+    for f in sol.factors:
+        h = sol.leverage(f, marg)
+        rows, m = f.r.shape
+        if loss != "l2":
+            s2 = np.minimum(np.sum(f.r**2, axis=1), c * c)
+            # E[min(X, c^2)] for X ~ chi2_m: m F_(m+2)(c^2) + c^2 (1 - F_m(c^2))
+            kappa = (m * stats.chi2.cdf(c * c, m + 2) + c * c * stats.chi2.sf(c * c, m)) / m
+            width = 1 if f.name == "gyro" else m
+            ss = np.full(width, s2.sum() / kappa / m)
+            dof = np.full(width, (rows * m - h.sum()) / m)
+        else:
+            ss, dof = np.sum(f.r**2, axis=0), rows - h.sum(axis=0)
+            if f.name == "gyro":
+                ss, dof = ss.sum(keepdims=True), dof.sum(keepdims=True)
+        out[f.name] = np.where(dof > 10.0, ss / np.maximum(dof, 1e-300), 1.0)
+    return np.concatenate([out["accel"], out["gyro"], out["mag"]])
+
+
+def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
+    """Next step for the gyro log-variance x whose fixed-point residual is f (the log variance factor).
+
+    The plain update x += f converges linearly with rate 1 + slope, slowly for the weakly determined gyro level;
+    a secant step on f(x) = 0 (slope clipped to [-1, -0.1], so at most 10 plain steps) converges in a few rounds.
+    """
+    if history:
+        x0, f0 = history[-1]
+        if abs(x - x0) > 1e-12:
+            slope = float(np.clip((f - f0) / (x - x0), -1.0, -0.1))
+            return -f / slope
+    return f
+
+
+def rescaled(noise: Noise, pre: Preintegrated, log_var: FloatArray) -> tuple[Noise, Preintegrated]:
+    """Noise levels (and the preintegration whitening) with variances multiplied by exp(log_var) (7,)."""
+    f = np.exp(0.5 * log_var)
+    return Noise(noise.acc * f[:3], noise.gyr * f[3], noise.mag * f[4:]), pre.scaled(float(np.exp(log_var[3])))
+
+
+def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise: Noise,
+                   dip_prior: float | None) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
+    """Start values (states, theta, preintegration) following Sec. III-D; the trajectory that fits better wins."""
+    notes = []
+    gyr = problem.gyr
+    where = f"{problem.where}: {ep.mag_id}"
+    if problem.still.segments:
+        bias = problem.still.gyr_bias
+        notes.append(f"{ep.mag_id}: gyro bias started from {len(problem.still.segments)} still segments")
+    else:
+        bias = np.zeros(3)
+    pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where)
+    h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
+    window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
+    r_d, db = map_init.wu_luo(h, so3.log(pre.delta), pre.duration, window)
+    if not problem.still.segments:
+        bias = bias + db
+        pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where)
+        notes.append(f"{ep.mag_id}: no still segment; gyro bias started from the Wu & Luo alignment "
+                     f"({np.array2string(bias, precision=4)} rad/s)")
+    d0 = intr.D0 @ r_d
+    m_b = (ep.mag - intr.o0) @ np.linalg.inv(d0).T
+    dip = dip_prior if dip_prior is not None else map_init.dip_from_data(m_b, ep.acc)
+    theta = np.zeros(P)
+    theta[LAYOUT.D:LAYOUT.D + 9] = d0.ravel(order="F")
+    theta[LAYOUT.o:LAYOUT.o + 3] = intr.o0
+    theta[LAYOUT.dip] = dip
+    att = map_init.attitudes(m_b, ep.acc, dip)
+    candidates = {"gyro-integrated": map_init.integrated(pre.delta, att), "accelerometer/magnetometer": att}
+    lin = make_linearize(ep, pre, noise)
+    costs = {k: sum(float(np.sum(f.r**2)) for f in lin(s, theta, False)) for k, s in candidates.items()}
+    best = min(costs, key=costs.__getitem__)
+    notes.append(f"{ep.mag_id}: started from the {best} trajectory")
+    return candidates[best], theta, pre, notes
+
+
+def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | None = None,
+            noise_rounds: int = NOISE_ROUNDS) -> MapEstimate:
+    """The joint MAP calibration of one magnetometer against the problem's IMU."""
+    with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
+        return _fit_map(problem, mag, loss, dip_prior, noise_rounds)
+
+
+def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, noise_rounds: int) -> MapEstimate:
+    """`fit_map` without the BLAS thread limit."""
+    where = f"{problem.where}: {mag.id}"
+    clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
+    intr = map_init.intrinsic_fit(clean, where)
+    ep = epochs_for(problem, mag, intr.scale)
+    noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
+    clean_ep = Epochs(ep.mag_id, ep.t, epochs_for(problem, replace_values(mag, clean), intr.scale).mag, ep.acc,
+                      ep.acc_factor, ep.scale)
+    states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior)
+    if spikes:
+        notes.append(f"{mag.id}: {spikes} isolated spikes in the readings were smoothed for the start values "
+                     "only" + ("" if loss != "l2" else "; consider --robust-loss huber"))
+    # a step that lowers the whitened cost by < 1e-3 moved the estimate by ~0.03 sigma: converged. Between noise
+    # rounds two Gauss-Newton steps suffice (the optimum moves little when the weights change by a few per cent)
+    first = Options(max_iterations=60, abs_cost_tol=1e-3, loss=loss)
+    opts_scale = first.loss_scale
+    later = Options(max_iterations=2, abs_cost_tol=1e-3, loss=loss)
+    log: list[str] = []
+    iters = 0
+    sol = None
+    history: list[tuple[float, float]] = []      # (gyro log-variance applied so far, log variance factor found)
+    applied = 0.0
+    for rnd in range(noise_rounds + 1):
+        sol = solve(make_linearize(ep, pre, noise), states, theta, first if rnd == 0 else later)
+        states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
+        log.extend(f"round {rnd}: {line}" for line in sol.log)
+        db = theta[BG:BG + 3]
+        if float(np.linalg.norm(db)) * float(pre.duration.max()) > REPREINTEGRATE_RAD:
+            pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias + db, noise.gyr, where)
+            theta[BG:BG + 3] = 0.0
+            log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
+            continue
+        if rnd == noise_rounds or not np.all(np.isfinite(sol.cov_theta)):
+            break
+        step = np.log(variance_ratios(sol, loss, opts_scale))
+        log.append(f"round {rnd}: noise variance factors {np.array2string(np.exp(step), precision=3)}")
+        if float(np.max(np.abs(step))) < 2.0 * NOISE_TOL:
+            break
+        measured = float(step[3])
+        step[3] = _secant(history, applied, measured)
+        history.append((applied, measured))
+        applied += float(step[3])
+        noise, pre = rescaled(noise, pre, step)
+    if sol is not None and not sol.converged:
+        sol = solve(make_linearize(ep, pre, noise), states, theta, first)
+        iters += sol.iterations
+        log.extend(f"final: {line}" for line in sol.log)
+    assert sol is not None
+    return _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes)
+
+
+def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, sol: Solution, iters: int,
+              log: tuple[str, ...], notes: tuple[str, ...]) -> MapEstimate:
+    """Convert the scaled solution to SI, with the total gyro bias and the observability findings."""
+    s = ep.scale
+    jac = np.concatenate([np.ones(6), np.full(12, s), [1.0]])
+    theta = sol.theta * jac
+    theta[BG:BG + 3] += pre.bias
+    cov = sol.cov_theta * np.outer(jac, jac)
+    fm = sol.factors[1]
+    resid = fm.r * noise.mag * s
+    noise_si = Noise(noise.acc, noise.gyr, noise.mag * s)
+    where = f"{problem.where}: {ep.mag_id}"
+    condition, findings = check_observability(cov, s, ep.acc, where)
+    return MapEstimate(ep.mag_id, theta, cov, noise_si, sol.states, ep.t, sol.cost, iters, sol.converged,
+                       float(np.sqrt(np.mean(resid**2))), log, tuple(findings), notes, condition)
+
+
+def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: FloatArray,
+                   noise_si: Noise) -> FloatArray:
+    """Inverse Fisher information of theta (SI, total gyro bias) at given states and theta: the Cramer-Rao bound."""
+    scale = float(np.cbrt(abs(np.linalg.det(LAYOUT.unpack(theta_si)[0]))))
+    ep = epochs_for(problem, mag, scale)
+    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, theta_si[BG:BG + 3], noise_si.gyr)
+    jac = np.concatenate([np.ones(6), np.full(12, scale), [1.0]])
+    theta = theta_si / jac
+    theta[BG:BG + 3] = 0.0
+    noise = Noise(noise_si.acc, noise_si.gyr, noise_si.mag / scale)
+    return marginal_covariance(make_linearize(ep, pre, noise), states, theta) * np.outer(jac, jac)
+
+
+def to_fits(est: MapEstimate, stream: Stream) -> MagFit:
+    """The magnetometer part of an estimate as a MagFit (D, o in tesla; covariance of vec D, o, dip)."""
+    d, o, dip = LAYOUT.unpack(est.theta)
+    return MagFit(est.mag_id, d, o, dip, est.cov[6:, 6:], est.residual_rms, int(est.epochs.size), est.iterations,
+                  est.converged, est.log)
+
+
+def run(problem: Problem, cfg: Config) -> MethodResult:
+    """Joint MAP for every magnetometer of the problem, each against the IMU (the paper's 30-magnetometer setup)."""
+    from ..wmm import reference_for
+
+    ref = reference_for(cfg)
+    dip_prior = None if ref is None else ref.dip
+    loss = getattr(cfg, "robust_loss", "l2")
+    ests = [fit_map(problem, m, loss, dip_prior) for m in problem.mags]
+    best = min(ests, key=lambda e: float(np.sum(e.std[:6] / BIAS_SCALE)))
+    imu = ImuFit(problem.imu_id, best.theta[BA:BA + 3], best.theta[BG:BG + 3], best.std[BA:BA + 3],
+                 best.std[BG:BG + 3])
+    notes: list[str] = []
+    findings: list[Finding] = []
+    noise: dict[str, list[float]] = {"accelerometer_std": best.noise.acc.tolist(),
+                                     "gyroscope_std": best.noise.gyr.tolist()}
+    for est, stream in zip(ests, problem.mags, strict=True):
+        notes.extend(est.notes)
+        findings.extend(est.findings)
+        noise[f"magnetometer_std[{est.mag_id}]"] = (est.noise.mag * units.from_si(stream.native_unit)).tolist()
+    if ref is not None:
+        notes.append(f"dip initialised from the {ref.model} at the log's position ({ref.dip_deg:.2f} deg); "
+                     f"field strength {ref.intensity * 1e6:.2f} uT")
+    if len(ests) > 1:
+        notes.append(f"IMU biases from the fit against {best.mag_id} (smallest bias uncertainty of "
+                     f"{len(ests)} magnetometers)")
+    fits = tuple(to_fits(e, s) for e, s in zip(ests, problem.mags, strict=True))
+    return MethodResult("map", fits, imu, noise, tuple(notes), tuple(findings))

@@ -1,0 +1,110 @@
+"""Initial values for the joint MAP calibration (Huang et al. 2025, Sec. III-D; methods.md section 3).
+
+Intrinsic magnetometer fit (Kok's ellipsoid fit, defined up to a rotation), the gyro-magnetometer misalignment
+of Wu & Luo 2016 (which also gives a gyro bias when the log has no still segment), the dip angle, and the
+trajectory: the gyro-integrated one the paper uses, aligned to the per-epoch accelerometer/magnetometer
+attitudes, or those attitudes themselves -- whichever explains the data better.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy import ndimage
+
+from .. import so3
+from ..errors import InsufficientDataError
+from .accel import UP_N
+from .ellipsoid import fit_ellipsoid
+from .mag import field_nav
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Wu & Luo integrate the kinematics over short windows (the authors' `alignment_interval`, s)
+ALIGNMENT_WINDOW_S = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Intrinsic:
+    """Ellipsoid fit in units of its own scale: |D0^-1 (y/scale - o0)| ~ 1, D0 known up to a rotation; scale in T."""
+
+    D0: FloatArray
+    o0: FloatArray
+    scale: float
+    residual_rms: float
+
+
+def despike(y: FloatArray, width: int = 5, k: float = 6.0) -> tuple[FloatArray, int]:
+    """Readings with isolated spikes replaced by a running median (for the initialisation only).
+
+    A reading is a spike when it deviates from the median of its `width` neighbours by more than k robust
+    standard deviations (1.4826 MAD) of those deviations on some axis. Returns the cleaned readings and the count.
+    """
+    med = ndimage.median_filter(y, size=(width, 1), mode="nearest")
+    dev = y - med
+    mad = 1.4826 * np.median(np.abs(dev - np.median(dev, axis=0)), axis=0)
+    spike = np.any(np.abs(dev) > k * np.maximum(mad, 1e-12 * np.abs(y).max()), axis=1)
+    return np.where(spike[:, None], med, y), int(spike.sum())
+
+
+def intrinsic_fit(y: FloatArray, where: str) -> Intrinsic:
+    """Kok 2012 ellipsoid fit on at most ~5000 evenly spaced readings, normalised so that det(D0) = 1."""
+    ell = fit_ellipsoid(y[:: max(1, len(y) // 5000)], where)
+    scale = float(np.cbrt(np.linalg.det(ell.D0)))
+    return Intrinsic(ell.D0 / scale, ell.o0 / scale, scale, ell.residual_rms)
+
+
+def wu_luo(h: FloatArray, phi: FloatArray, duration: FloatArray, window: int) -> tuple[FloatArray, FloatArray]:
+    """Misalignment R_D (h = R_D m_b, possibly improper) and gyro bias correction from the field kinematics.
+
+    In a homogeneous field the body-frame field obeys dm_b/dt = -w x m_b, so h = R_D m_b changes by
+    h_k+1 - h_k ~ [h_mid]x R_D (phi_k - db dt_k) over an interval with integrated rate phi_k (Wu & Luo 2016,
+    eqs. 12-13). Summed over windows this is linear in (vec R_D, R_D db); R_D is the nearest orthogonal matrix
+    of the least-squares solution (its determinant sign is kept, so a left-handed magnetometer works too).
+    """
+    k = phi.shape[0]
+    mid = so3.hat(0.5 * (h[:-1] + h[1:]))                                 # (K-1, 3, 3)
+    rows = np.empty((k, 3, 12))
+    rows[:, :, :9] = np.einsum("kj,kab->kajb", phi, mid).reshape(k, 3, 9)  # (phi^T kron [h]x) vec(R_D)
+    rows[:, :, 9:] = -mid * duration[:, None, None]
+    starts = np.arange(0, k, max(1, window))
+    a = np.add.reduceat(rows, starts, axis=0).reshape(-1, 12)
+    ends = np.minimum(starts + max(1, window), k)
+    b = (h[ends] - h[starts]).reshape(-1)
+    x, *_ = np.linalg.lstsq(a, b, rcond=None)
+    m = x[:9].reshape(3, 3, order="F")
+    det = np.linalg.det(m)
+    if not np.isfinite(det) or abs(det) < 1e-6:
+        msg = ("map: the gyro and magnetometer do not determine their relative orientation (too little rotation); "
+               "rotate the sensor about at least two different axes")
+        raise InsufficientDataError(msg)
+    sign = float(np.sign(det))
+    r_d = sign * so3.project(sign * m)
+    return r_d, r_d.T @ x[9:]
+
+
+def dip_from_data(m_b: FloatArray, up_b: FloatArray) -> float:
+    """Dip (rad) from the mean angle between calibrated field and vertical: up . m_b = -sin(dip)."""
+    m = m_b / np.linalg.norm(m_b, axis=1, keepdims=True)
+    u = up_b / np.linalg.norm(up_b, axis=1, keepdims=True)
+    return float(np.arcsin(np.clip(-np.mean(np.sum(m * u, axis=1)), -1.0, 1.0)))
+
+
+def attitudes(m_b: FloatArray, up_b: FloatArray, dip: float) -> FloatArray:
+    """Per-epoch body->NED rotations aligning (m_b, up_b) with (m_n(dip), up) (Wahba's problem, equal weights)."""
+    m = m_b / np.linalg.norm(m_b, axis=1, keepdims=True)
+    u = up_b / np.linalg.norm(up_b, axis=1, keepdims=True)
+    return so3.wahba(np.stack([m, u], axis=1), np.stack([field_nav(dip), UP_N]))
+
+
+def integrated(delta: FloatArray, anchor: FloatArray) -> FloatArray:
+    """Gyro-integrated trajectory R_k = R_0 dR_0 ... dR_k-1, with R_0 chosen to best match `anchor` (K, 3, 3).
+
+    The paper starts from a fixed attitude; aligning the whole integrated trajectory to the per-epoch attitudes
+    (one Wahba problem over all epochs) starts it from the data instead.
+    """
+    rel = np.concatenate([np.eye(3)[None], so3.cumulative_product(delta, reproject=False)])  # R_0^T R_k
+    r0 = so3.project(np.einsum("kij,klj->il", anchor, rel))                   # argmin sum |anchor_k - R_0 rel_k|
+    return r0 @ rel

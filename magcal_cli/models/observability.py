@@ -1,0 +1,136 @@
+"""What a log leaves undetermined: Fisher-information condition number, poorly observable parameters and the
+manoeuvre that would fix them (findings), or an InsufficientDataError when the motion determines nothing useful.
+
+Works on the marginal covariance of theta = (b_a, b_g, vec D, o, dip) in SI (the joint MAP layout).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from ..errors import InsufficientDataError
+from ..findings import Finding, Severity
+
+FloatArray = npt.NDArray[np.float64]
+
+#: names of the 19 entries of theta
+NAMES = (["b_a.x", "b_a.y", "b_a.z", "b_g.x", "b_g.y", "b_g.z"]
+         + [f"D[{i}][{j}]" for j in range(3) for i in range(3)] + ["o.x", "o.y", "o.z", "dip"])
+#: beyond this (scaled) condition number the information matrix is numerically singular
+SINGULAR_CONDITION = 1e14
+#: a parameter whose variance correlation inflates more than this (std x ~30) is confounded with others
+CONFOUNDED_VIF = 1e3
+
+TILT_ADVICE = ("tilt the vehicle through large pitch and roll angles -- on each side and, if possible, upside "
+               "down -- so that gravity and the field are seen along every body axis")
+ROTATE_ADVICE = ("rotate the vehicle about all three axes so that the field sweeps the whole sphere of body "
+                 "directions; a flat, yaw-only recording cannot separate the hard-iron offset along the vertical "
+                 "axis from the soft-iron column of that axis")
+GYRO_ADVICE = "record for longer, or hold the vehicle still for a few seconds at the start and at the end"
+DIP_ADVICE = "tilt the vehicle, or give --location and --date so that the dip starts from the World Magnetic Model"
+
+
+class Group(NamedTuple):
+    """A parameter group: its slice of theta, a label, the std above which it is poorly determined and above
+    which it is not determined at all (in SI, `field`-relative for D and o), the manoeuvre that helps, and the
+    unit and factor used to print its std."""
+
+    sl: slice
+    label: str
+    poor: float
+    fatal: float
+    relative: bool
+    advice: str
+    unit: str
+    display: float
+
+
+GROUPS = (
+    Group(slice(0, 3), "accelerometer bias", 0.05, 2.0, False, TILT_ADVICE, "m/s^2", 1.0),
+    Group(slice(3, 6), "gyroscope bias", 1e-3, 0.05, False, GYRO_ADVICE, "deg/s", float(np.degrees(1.0))),
+    Group(slice(6, 15), "soft-iron/misalignment matrix D", 0.02, 0.5, True, ROTATE_ADVICE, "% of the field", 100.0),
+    Group(slice(15, 18), "hard-iron offset o", 0.02, 0.5, True, ROTATE_ADVICE, "% of the field", 100.0),
+    Group(slice(18, 19), "dip angle", float(np.deg2rad(1.0)), float(np.deg2rad(20.0)), False, DIP_ADVICE, "deg",
+          float(np.degrees(1.0))),
+)
+
+
+def tilt_spread_deg(acc: FloatArray) -> float:
+    """95th percentile of the angle (deg) between the measured vertical and its mean direction."""
+    v = acc / np.linalg.norm(acc, axis=1, keepdims=True)
+    mean = v.mean(axis=0)
+    norm = float(np.linalg.norm(mean))
+    if norm < 1e-6:
+        return 180.0
+    ang = np.degrees(np.arccos(np.clip(v @ (mean / norm), -1.0, 1.0)))
+    return float(np.percentile(ang, 95))
+
+
+def scaled_information(cov: FloatArray) -> FloatArray:
+    """The Fisher information inv(cov) scaled to unit diagonal (invariant to the units of the parameters)."""
+    sd = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(sd, sd)
+    info = np.linalg.inv(corr)
+    d = np.sqrt(np.diag(info))
+    return info / np.outer(d, d)
+
+
+def _fmt(values: FloatArray, names: list[str], unit: str, factor: float = 1.0) -> str:
+    """'name std unit' pairs of the worst entries."""
+    order = np.argsort(values)[::-1][:3]
+    return ", ".join(f"{names[i]} {values[i] * factor:.3g}" for i in order) + f" {unit}"
+
+
+def _advice(groups: list[Group]) -> str:
+    """The manoeuvres that help these groups, most effective first."""
+    order = (TILT_ADVICE, ROTATE_ADVICE, DIP_ADVICE, GYRO_ADVICE)
+    return "; ".join(a for a in order if any(g.advice == a for g in groups)) + "."
+
+
+def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: str) -> tuple[float, list[Finding]]:
+    """Condition number and findings for a 19x19 covariance; raises when the log cannot determine theta."""
+    tilt = tilt_spread_deg(acc)
+    flat = f" (the measured vertical stayed within {tilt:.0f} deg of its mean direction)" if tilt < 45.0 else ""
+    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0.0):
+        msg = (f"{where}: the motion in this log does not determine the calibration (the information matrix is "
+               f"singular){flat}; {ROTATE_ADVICE}")
+        raise InsufficientDataError(msg)
+    info = scaled_information(cov)
+    eig = np.linalg.eigvalsh(info)
+    condition = float(eig[-1] / max(eig[0], 1e-300))
+    vif = np.diag(np.linalg.inv(info)) if np.isfinite(condition) else np.full(len(NAMES), np.inf)
+    std = np.sqrt(np.diag(cov))
+    fatal, poor = [], []
+    for g in GROUPS:
+        rel = std[g.sl] / (field if g.relative else 1.0)
+        if np.any(rel > g.fatal):
+            fatal.append(g)
+        elif np.any(rel > g.poor) or np.any(vif[g.sl] > CONFOUNDED_VIF):
+            poor.append((g, rel))
+    if fatal or condition > SINGULAR_CONDITION:
+        what = ", ".join(g.label for g in fatal) or f"calibration (condition number {condition:.2g})"
+        msg = (f"{where}: the motion in this log cannot determine the {what}{flat}. To fix: "
+               f"{_advice(fatal or list(GROUPS[2:4]))}")
+        raise InsufficientDataError(msg)
+    worst = int(np.argmax(vif))
+    findings = [Finding(
+        Severity.INFO, "fisher_condition",
+        f"{where}: the Fisher information of the 19 calibration parameters has condition number "
+        f"{condition:.3g} (scaled to unit diagonal); the most confounded parameter is {NAMES[worst]} "
+        f"(variance inflation {vif[worst]:.3g}).",
+        {"condition_number": condition, "max_variance_inflation": float(vif[worst]), "parameter": NAMES[worst],
+         "tilt_spread_deg": tilt})]
+    for g, rel in poor:
+        names = list(NAMES[g.sl])
+        findings.append(Finding(
+            Severity.WARNING, "poorly_observable",
+            f"{where}: this log leaves the {g.label} poorly determined{flat}: std {_fmt(rel, names, g.unit, g.display)}"
+            f", variance inflated up to {vif[g.sl].max():.3g}x by correlation with other parameters. "
+            f"To fix: {g.advice}.",
+            {"parameters": names, "std": [float(x) for x in std[g.sl]], "threshold": g.poor,
+             "relative_to_field": g.relative, "variance_inflation": [float(x) for x in vif[g.sl]],
+             "tilt_spread_deg": tilt}))
+    return condition, findings
