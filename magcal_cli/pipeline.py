@@ -93,10 +93,14 @@ def select_problem(rec: Recording, cfg: Config) -> Problem:
     mags = tuple(rec.select(Kind.MAGNETOMETER, m or None, "--mag").between(cfg.start_s, cfg.end_s)
                  for m in (mag_ids or [None]))
     acc, gyr = acc.between(cfg.start_s, cfg.end_s), gyr.between(cfg.start_s, cfg.end_s)
+    windowed = cfg.start_s is not None or cfg.end_s is not None
     for s in (acc, *mags):
         if len(s) < 10:
+            span = f" ({s.t[-1] - s.t[0]:.1f} s)" if len(s) > 1 else ""
             msg = (f"{where}: {s.kind.value} {s.id} has only {len(s)} samples between --start and --end; "
-                   "widen the time window")
+                   "widen the time window" if windowed else
+                   f"{where}: {s.kind.value} {s.id} has only {len(s)} samples{span}; a calibration needs a "
+                   "recording of at least a minute with the vehicle turned through many orientations")
             raise StreamError(msg)
     return Problem(where, acc.id, acc, gyr, mags, detect_still(acc, gyr, cfg.still, mags))
 
