@@ -211,6 +211,7 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
     from .errors import OutputError
     from .logwriters import write_log
     from .pipeline import utc_now
+    from .readers import open_recording
     from .synth import simulate as run_simulation
     from .synth import truth_calibration
 
@@ -222,7 +223,8 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
     _stderr(ctx, f"simulating {scenario} (seed {seed})")
     sim = run_simulation(scenario, seed, rate, mag_rate, duration)
     write_log(sim, out)
-    write_text(truth_path, dumps_json(truth_calibration(sim, out, __version__, utc_now())))
+    written = open_recording(out)                       # the truth uses the ids and unit readers report
+    write_text(truth_path, dumps_json(truth_calibration(sim, written, __version__, utc_now())))
     click.echo(f"wrote {out}")
     click.echo(f"wrote {truth_path}")
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from . import so3
+from . import so3, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Source
 from .errors import MagcalError
 from .models.accel import G
@@ -61,18 +61,24 @@ class Simulation:
     seed: int
 
 
-def truth_calibration(sim: Simulation, log_path: Path, version: str, created_utc: str) -> Calibration:
-    """The truth as a calibration document (method "truth", zero uncertainty) plus the simulation settings."""
+def truth_calibration(sim: Simulation, log: Recording, version: str, created_utc: str) -> Calibration:
+    """The truth as a calibration document (method "truth", zero uncertainty) plus the simulation settings.
+
+    Ids and the magnetometer unit are those a reader reports for the written `log`, so the truth compares
+    directly with what `magcal fit` produces from it (e.g. MAG[0] in milligauss for a .bin).
+    """
     tr = sim.truth
-    rec = sim.recording
-    mag = rec.select(Kind.MAGNETOMETER)
-    acc = rec.select(Kind.ACCELEROMETER)
-    cal = MagCalibration(mag.id, "tesla", tr.D, tr.o, float(np.rad2deg(tr.dip)), np.zeros((13, 13)),
-                         tr.field_strength, "data")
-    imu = ImuCalibration(acc.id, tr.accel_bias, tr.gyro_bias, np.zeros(3), np.zeros(3))
-    source = Source(str(log_path), log_path.suffix.lstrip(".") or "rosbag", "", 0.0, float(acc.t[-1]))
-    sim_info = {"scenario": sim.scenario, "seed": sim.seed, "rate_hz": acc.rate_hz, "mag_rate_hz": mag.rate_hz,
-                "still_intervals_s": [list(s) for s in sim.still]}
+    mag_sim, acc_sim = sim.recording.select(Kind.MAGNETOMETER), sim.recording.select(Kind.ACCELEROMETER)
+    mag = log.select(Kind.MAGNETOMETER)
+    gyro_ids = set(log.ids(Kind.GYROSCOPE))
+    imu_id = next((i for i in log.ids(Kind.ACCELEROMETER) if i in gyro_ids), acc_sim.id)
+    f = units.from_si(mag.native_unit)
+    cal = MagCalibration(mag.id, units.canonical(mag.native_unit), tr.D * f, tr.o * f,
+                         float(np.rad2deg(tr.dip)), np.zeros((13, 13)), tr.field_strength * f, "data")
+    imu = ImuCalibration(imu_id, tr.accel_bias, tr.gyro_bias, np.zeros(3), np.zeros(3))
+    source = Source(str(log.path), log.format, "", 0.0, float(acc_sim.t[-1]))
+    sim_info = {"scenario": sim.scenario, "seed": sim.seed, "rate_hz": acc_sim.rate_hz,
+                "mag_rate_hz": mag_sim.rate_hz, "still_intervals_s": [list(s) for s in sim.still]}
     noise = {f"{k}_std": [v] * 3 for k, v in tr.noise_std.items()} | {"source": "simulation (per-sample std, SI)"}
     return Calibration(source, "truth", imu, (cal,), version, created_utc, noise, extra={"simulation": sim_info})
 

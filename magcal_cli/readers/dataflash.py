@@ -75,8 +75,12 @@ class DataflashReader:
     name: ClassVar[str] = "dataflash"
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
-        """Every stream magcal uses; a truncated log yields its complete messages and says so in the notes."""
+        """Every stream magcal uses; a truncated log is an error unless allowed (then its complete messages)."""
         raw = load(path)
+        if raw.truncated_bytes and not options.allow_truncated:
+            msg = (f"{path}: the log is truncated (the file ends inside a record, {raw.truncated_bytes} bytes "
+                   "from its end). Re-copy the log, or pass --allow-truncated to use the complete messages")
+            raise LogReadError(msg)
         if is_px4log(raw):
             from .dataflash_px4log import build_px4log
 
