@@ -26,7 +26,7 @@ from ..errors import InsufficientDataError
 from ..findings import Finding
 from ..streams import Stream
 from . import map_init
-from .accel import accel_factor
+from .accel import G, accel_factor
 from .gyro import Preintegrated, gyro_factor, preintegrate
 from .mag import MagLayout, mag_factor
 from .observability import check_observability
@@ -40,14 +40,17 @@ FloatArray = npt.NDArray[np.float64]
 BA, BG = 0, 3
 LAYOUT = MagLayout.packed(6)
 P = 19
-#: at most this many epochs per magnetometer (longer logs use every k-th reading)
+#: at most this many epochs per magnetometer, at most this epoch rate (else every k-th reading is used)
 MAX_EPOCHS = 60_000
+MAX_EPOCH_RATE_HZ = 100.0
 MIN_EPOCHS = 50
 #: rounds of (solve, re-estimate the noise levels); stop when no level changes by more than NOISE_TOL
 NOISE_ROUNDS = 6
 NOISE_TOL = 0.03
 #: without still segments the gyro noise starts at the quietest-window level divided by this
 GYRO_START_DIVISOR = 10.0
+#: with at least this much still data (s) its noise levels are floors and the gyro level is kept
+MIN_STILL_S = 2.0
 #: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
 REPREINTEGRATE_RAD = 0.01
 #: typical bias magnitudes (m/s^2, rad/s) to compare bias uncertainties of different magnetometers' fits
@@ -113,11 +116,13 @@ def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MA
     dt = float(np.median(np.diff(t_imu)))
     distinct = np.concatenate([[True], np.diff(t) > 0.01 * dt]) if t.size else np.zeros(0, bool)
     t, y = t[distinct], y[distinct]
-    step = int(np.ceil(t.size / max_epochs)) if t.size else 1
+    rate = 1.0 / float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    step = max(int(np.ceil(t.size / max_epochs)), int(np.ceil(rate / MAX_EPOCH_RATE_HZ))) if t.size else 1
     if step > 1:
+        n = t.size
         t, y = t[::step], y[::step]
-        notes.append(f"{mag.id}: {t.size * step} readings; used every {step}th ({t.size} epochs) to bound time "
-                     "and memory")
+        notes.append(f"{mag.id}: {n} readings at {rate:.0f} Hz; used every {step}th ({t.size} epochs, "
+                     f"{rate / step:.0f} Hz) to bound time and memory (the paper decimates too)")
     if t.size < MIN_EPOCHS:
         msg = (f"{problem.where}: {mag.id} has only {t.size} readings inside the IMU's time span (need >= "
                f"{MIN_EPOCHS}); check that both sensors were logged at the same time, or widen --start/--end")
@@ -197,6 +202,11 @@ def variance_ratios(sol: Solution, loss: str = "l2", c: float = 3.0) -> FloatArr
     return np.concatenate([out["accel"], out["gyro"], out["mag"]])
 
 
+def _levels(noise: Noise) -> FloatArray:
+    """The 7 noise levels in variance_ratios order (accelerometer 3, gyro 1, magnetometer 3)."""
+    return np.concatenate([noise.acc, noise.gyr[:1], noise.mag])
+
+
 def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
     """Next step for the gyro log-variance x whose fixed-point residual is f (the log variance factor).
 
@@ -267,6 +277,12 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     intr = map_init.intrinsic_fit(clean, where)
     ep = epochs_for(problem, mag, intr.scale)
     noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
+    still_s = sum(seg.end - seg.start for seg in problem.still.segments)
+    floor = noise if still_s >= MIN_STILL_S else None
+    # in motion the accelerometer also sees linear acceleration: start from the spread of |a| about g
+    dev = np.linalg.norm(ep.acc, axis=1) - G
+    noise = Noise(np.maximum(noise.acc, 1.4826 * float(np.median(np.abs(dev - np.median(dev))))), noise.gyr,
+                  noise.mag)
     clean_ep = Epochs(ep.mag_id, ep.t, epochs_for(problem, replace_values(mag, clean), intr.scale).mag, ep.acc,
                       ep.acc_factor, ep.scale)
     states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior)
@@ -297,10 +313,15 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
             break
         step = np.log(variance_ratios(sol, loss, opts_scale))
         log.append(f"round {rnd}: noise variance factors {np.array2string(np.exp(step), precision=3)}")
+        if floor is not None:
+            # still data measured the sensors' white noise: levels never go below it, and the gyro keeps it
+            # (its residuals in motion mostly hold unmodelled scale and timing errors, see docs/method-map.md)
+            step[3] = 0.0
+            step = np.maximum(step, 2.0 * np.log(_levels(floor) / _levels(noise)))
         if float(np.max(np.abs(step))) < 2.0 * NOISE_TOL:
             break
         measured = float(step[3])
-        step[3] = _secant(history, applied, measured)
+        step[3] = _secant(history, applied, measured) if floor is None else 0.0
         history.append((applied, measured))
         applied += float(step[3])
         noise, pre = rescaled(noise, pre, step)

@@ -36,16 +36,18 @@ class Intrinsic:
     residual_rms: float
 
 
-def despike(y: FloatArray, width: int = 5, k: float = 6.0) -> tuple[FloatArray, int]:
+def despike(y: FloatArray, width: int = 5, k: float = 6.0, share: float = 0.05) -> tuple[FloatArray, int]:
     """Readings with isolated spikes replaced by a running median (for the initialisation only).
 
     A reading is a spike when it deviates from the median of its `width` neighbours by more than k robust
-    standard deviations (1.4826 MAD) of those deviations on some axis. Returns the cleaned readings and the count.
+    standard deviations (1.4826 MAD) of those deviations and by more than `share` of the typical field
+    magnitude: only spikes large enough to distort the algebraic ellipsoid fit. Returns readings and count.
     """
     med = ndimage.median_filter(y, size=(width, 1), mode="nearest")
-    dev = y - med
-    mad = 1.4826 * np.median(np.abs(dev - np.median(dev, axis=0)), axis=0)
-    spike = np.any(np.abs(dev) > k * np.maximum(mad, 1e-12 * np.abs(y).max()), axis=1)
+    dev = np.linalg.norm(y - med, axis=1)
+    mad = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
+    big = share * float(np.median(np.linalg.norm(y - np.median(y, axis=0), axis=1)))
+    spike = dev > max(k * mad, big)
     return np.where(spike[:, None], med, y), int(spike.sum())
 
 

@@ -36,6 +36,7 @@ READERS: dict[str, str | type[Reader]] = {
     "rosbag": "magcal_cli.readers.rosbag:RosbagReader",
     "csv": "magcal_cli.readers.csvfile:CsvReader",
     "ulog": "magcal_cli.readers.ulog:UlogReader",
+    "broad": "magcal_cli.readers.broad:BroadReader",
 }
 
 #: leading bytes -> format name (mcap read_magic; rosbags; pyulog HEADER_BYTES; DataFlash HEAD1/HEAD2)
@@ -45,6 +46,8 @@ MAGIC: dict[bytes, str] = {
     b"ULog\x01\x12\x35": "ulog",
     b"\xa3\x95": "dataflash",
     b"SQLite format 3\x00": "rosbag",   # the .db3 inside a ROS 2 bag directory
+    b"\x89HDF\r\n\x1a\n": "broad",      # HDF5: read in the BROAD dataset layout
+    b"MATLAB 5.0 MAT": "broad",          # MATLAB v5: read in the BROAD dataset layout
 }
 
 #: extensions tried when the magic bytes say nothing (text formats)
