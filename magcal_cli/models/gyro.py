@@ -29,7 +29,8 @@ class Preintegrated:
     """Relative rotations between consecutive epochs (K-1 intervals), integrated with the gyro bias `bias`.
 
     delta: dR_ij (K-1, 3, 3); d_bias: d dR / d b_g for the right perturbation dR Exp(d_bias db) (Forster eq. 44);
-    cov: covariance of the rotation-vector error (rad^2); l_inv: L^-1 with cov = L L^T; duration (K-1,) s.
+    cov: covariance of the rotation-vector error (rad^2); l_inv: L^-1 with cov = L L^T; duration (K-1,) s;
+    noise_std: the per-sample gyro noise (rad/s) the covariance stands for.
     """
 
     epochs: FloatArray
@@ -39,11 +40,13 @@ class Preintegrated:
     cov: FloatArray
     l_inv: FloatArray
     duration: FloatArray
+    noise_std: FloatArray
 
     def scaled(self, variance_factor: float) -> Preintegrated:
         """The same preintegration with its noise covariance multiplied by `variance_factor`."""
         return Preintegrated(self.epochs, self.bias, self.delta, self.d_bias, self.cov * variance_factor,
-                             self.l_inv / np.sqrt(variance_factor), self.duration)
+                             self.l_inv / np.sqrt(variance_factor), self.duration,
+                             self.noise_std * np.sqrt(variance_factor))
 
 
 def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray, IntArray]:
@@ -99,7 +102,7 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
         msg = f"{where}: a preintegration interval has no gyro noise (zero-length or degenerate); check the time stamps"
         raise InsufficientDataError(msg) from None
     return Preintegrated(epochs, np.array(bias, dtype=np.float64), delta, d_bias, cov, np.linalg.inv(chol),
-                         np.diff(epochs))
+                         np.diff(epochs), np.array(noise_std, dtype=np.float64))
 
 
 def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_at: int,
@@ -112,7 +115,8 @@ def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_
     """
     db = theta[bias_at:bias_at + 3]
     g_db = pre.d_bias @ db
-    corrected = pre.delta @ so3.exp(g_db)
+    exp_g, jr_g = so3.exp(g_db), so3.right_jacobian(g_db)
+    corrected = pre.delta @ exp_g
     rel = states[:-1].transpose(0, 2, 1) @ states[1:]
     err = corrected.transpose(0, 2, 1) @ rel
     r = so3.log_small(err)
@@ -120,6 +124,6 @@ def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_
     if not jacobians:
         return Factor("gyro", rw)
     a = pre.l_inv @ so3.right_jacobian_inv(r)
-    jt = -a @ err.transpose(0, 2, 1) @ so3.right_jacobian(g_db) @ pre.d_bias
+    jt = -a @ err.transpose(0, 2, 1) @ jr_g @ pre.d_bias
     return Factor("gyro", rw, np.arange(r.shape[0]), -a @ rel.transpose(0, 2, 1), a, jt,
                   np.arange(bias_at, bias_at + 3))

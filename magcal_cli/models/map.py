@@ -49,6 +49,8 @@ NOISE_ROUNDS = 6
 NOISE_TOL = 0.03
 #: without still segments the gyro noise starts at the quietest-window level divided by this
 GYRO_START_DIVISOR = 10.0
+#: slope of the gyro's variance-factor fixed point (d log factor / d log variance) assumed for the first step
+FIRST_GYRO_SLOPE = -0.7
 #: with at least this much still data (s) its noise levels are floors and the gyro level is kept
 MIN_STILL_S = 2.0
 #: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
@@ -69,6 +71,7 @@ class Epochs:
     acc_factor: FloatArray
     scale: float
     notes: tuple[str, ...] = ()
+    index: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))   # readings used
 
 
 @dataclass(frozen=True)
@@ -110,17 +113,18 @@ class MapEstimate:
 def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MAX_EPOCHS) -> Epochs:
     """The magnetometer readings inside the IMU span, with the accelerometer linearly interpolated onto them."""
     t_imu = problem.acc.t
-    keep = (mag.t >= t_imu[0]) & (mag.t <= t_imu[-1])
-    t, y = mag.t[keep], mag.xyz[keep]
+    index = np.flatnonzero((mag.t >= t_imu[0]) & (mag.t <= t_imu[-1]))
     notes = []
     dt = float(np.median(np.diff(t_imu)))
-    distinct = np.concatenate([[True], np.diff(t) > 0.01 * dt]) if t.size else np.zeros(0, bool)
-    t, y = t[distinct], y[distinct]
+    if index.size:
+        index = index[np.concatenate([[True], np.diff(mag.t[index]) > 0.01 * dt])]
+    t = mag.t[index]
     rate = 1.0 / float(np.median(np.diff(t))) if t.size > 1 else 0.0
     step = max(int(np.ceil(t.size / max_epochs)), int(np.ceil(rate / MAX_EPOCH_RATE_HZ))) if t.size else 1
     if step > 1:
         n = t.size
-        t, y = t[::step], y[::step]
+        index = index[::step]
+        t = mag.t[index]
         notes.append(f"{mag.id}: {n} readings at {rate:.0f} Hz; used every {step}th ({t.size} epochs, "
                      f"{rate / step:.0f} Hz) to bound time and memory (the paper decimates too)")
     if t.size < MIN_EPOCHS:
@@ -131,7 +135,7 @@ def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MA
     j = np.clip(np.searchsorted(t_imu, t, side="right") - 1, 0, t_imu.size - 2)
     w = np.clip((t - t_imu[j]) / (t_imu[j + 1] - t_imu[j]), 0.0, 1.0)
     factor = np.sqrt((1.0 - w) ** 2 + w**2)        # std of (1-w) a_j + w a_j+1 relative to one sample's
-    return Epochs(mag.id, t, y / scale, acc, factor, scale, tuple(notes))
+    return Epochs(mag.id, t, mag.xyz[index] / scale, acc, factor, scale, tuple(notes), index)
 
 
 def replace_values(stream: Stream, values: FloatArray) -> Stream:
@@ -212,13 +216,14 @@ def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
 
     The plain update x += f converges linearly with rate 1 + slope, slowly for the weakly determined gyro level;
     a secant step on f(x) = 0 (slope clipped to [-1, -0.1], so at most 10 plain steps) converges in a few rounds.
+    The first step assumes the slope the paper protocol shows from below (about -0.65).
     """
+    slope = FIRST_GYRO_SLOPE
     if history:
         x0, f0 = history[-1]
         if abs(x - x0) > 1e-12:
-            slope = float(np.clip((f - f0) / (x - x0), -1.0, -0.1))
-            return -f / slope
-    return f
+            slope = (f - f0) / (x - x0)
+    return -f / float(np.clip(slope, -1.0, -0.1))
 
 
 def rescaled(noise: Noise, pre: Preintegrated, log_var: FloatArray) -> tuple[Noise, Preintegrated]:
@@ -227,35 +232,49 @@ def rescaled(noise: Noise, pre: Preintegrated, log_var: FloatArray) -> tuple[Noi
     return Noise(noise.acc * f[:3], noise.gyr * f[3], noise.mag * f[4:]), pre.scaled(float(np.exp(log_var[3])))
 
 
+def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
+                   cache: dict[bytes, Preintegrated]) -> Preintegrated:
+    """Preintegrate between the epochs, or rescale a cached preintegration of the same epochs and bias."""
+    key = ep.t.tobytes() + np.asarray(bias, dtype=np.float64).tobytes()
+    hit = cache.get(key)
+    if hit is not None:
+        ratio = noise.gyr / hit.noise_std
+        if np.allclose(ratio, ratio[0], rtol=1e-12):
+            return hit.scaled(float(ratio[0]) ** 2)
+    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}")
+    cache[key] = pre
+    return pre
+
+
 def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise: Noise,
-                   dip_prior: float | None) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
+                   dip_prior: float | None, cache: dict[bytes, Preintegrated]
+                   ) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
     """Start values (states, theta, preintegration) following Sec. III-D; the trajectory that fits better wins."""
     notes = []
-    gyr = problem.gyr
-    where = f"{problem.where}: {ep.mag_id}"
     if problem.still.segments:
         bias = problem.still.gyr_bias
         notes.append(f"{ep.mag_id}: gyro bias started from {len(problem.still.segments)} still segments")
     else:
         bias = np.zeros(3)
-    pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where)
+    pre = _preintegrated(problem, ep, bias, noise, cache)
     h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
-    r_d, db = map_init.wu_luo(h, so3.log(pre.delta), pre.duration, window)
-    if not problem.still.segments:
-        bias = bias + db
-        pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where)
+    r_d, db = map_init.wu_luo(h, so3.log_small(pre.delta), pre.duration, window)
+    db = db if not problem.still.segments else np.zeros(3)
+    if not problem.still.segments:                # the first-order bias correction carries db (no re-integration)
         notes.append(f"{ep.mag_id}: no still segment; gyro bias started from the Wu & Luo alignment "
-                     f"({np.array2string(bias, precision=4)} rad/s)")
+                     f"({np.array2string(bias + db, precision=4)} rad/s)")
     d0 = intr.D0 @ r_d
     m_b = (ep.mag - intr.o0) @ np.linalg.inv(d0).T
     dip = dip_prior if dip_prior is not None else map_init.dip_from_data(m_b, ep.acc)
     theta = np.zeros(P)
+    theta[BG:BG + 3] = db
     theta[LAYOUT.D:LAYOUT.D + 9] = d0.ravel(order="F")
     theta[LAYOUT.o:LAYOUT.o + 3] = intr.o0
     theta[LAYOUT.dip] = dip
     att = map_init.attitudes(m_b, ep.acc, dip)
-    candidates = {"gyro-integrated": map_init.integrated(pre.delta, att), "accelerometer/magnetometer": att}
+    delta = pre.delta @ so3.exp(pre.d_bias @ db)
+    candidates = {"gyro-integrated": map_init.integrated(delta, att), "accelerometer/magnetometer": att}
     lin = make_linearize(ep, pre, noise)
     costs = {k: sum(float(np.sum(f.r**2)) for f in lin(s, theta, False)) for k, s in candidates.items()}
     best = min(costs, key=costs.__getitem__)
@@ -264,13 +283,19 @@ def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise
 
 
 def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | None = None,
-            noise_rounds: int = NOISE_ROUNDS) -> MapEstimate:
-    """The joint MAP calibration of one magnetometer against the problem's IMU."""
+            noise_rounds: int = NOISE_ROUNDS, imu_start: Noise | None = None,
+            cache: dict[bytes, Preintegrated] | None = None) -> MapEstimate:
+    """The joint MAP calibration of one magnetometer against the problem's IMU.
+
+    `imu_start`: accelerometer and gyro noise levels to start from (another magnetometer's fit on the same IMU);
+    `cache`: preintegrations shared between magnetometers with the same epochs.
+    """
     with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
-        return _fit_map(problem, mag, loss, dip_prior, noise_rounds)
+        return _fit_map(problem, mag, loss, dip_prior, noise_rounds, imu_start, {} if cache is None else cache)
 
 
-def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, noise_rounds: int) -> MapEstimate:
+def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, noise_rounds: int,
+             imu_start: Noise | None, cache: dict[bytes, Preintegrated]) -> MapEstimate:
     """`fit_map` without the BLAS thread limit."""
     where = f"{problem.where}: {mag.id}"
     clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
@@ -279,28 +304,32 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
     floor = noise if still_s >= MIN_STILL_S else None
-    # in motion the accelerometer also sees linear acceleration: start from the spread of |a| about g
-    dev = np.linalg.norm(ep.acc, axis=1) - G
-    noise = Noise(np.maximum(noise.acc, 1.4826 * float(np.median(np.abs(dev - np.median(dev))))), noise.gyr,
-                  noise.mag)
-    clean_ep = Epochs(ep.mag_id, ep.t, epochs_for(problem, replace_values(mag, clean), intr.scale).mag, ep.acc,
-                      ep.acc_factor, ep.scale)
-    states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior)
+    if imu_start is not None:
+        noise = Noise(np.maximum(imu_start.acc, noise.acc), np.maximum(imu_start.gyr, noise.gyr), noise.mag)
+    else:
+        # in motion the accelerometer also sees linear acceleration: start from the spread of |a| about g
+        dev = np.linalg.norm(ep.acc, axis=1) - G
+        noise = Noise(np.maximum(noise.acc, 1.4826 * float(np.median(np.abs(dev - np.median(dev))))), noise.gyr,
+                      noise.mag)
+    clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
+    states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache)
     if spikes:
         notes.append(f"{mag.id}: {spikes} isolated spikes in the readings were smoothed for the start values "
                      "only" + ("" if loss != "l2" else "; consider --robust-loss huber"))
-    # a step that lowers the whitened cost by < 1e-3 moved the estimate by ~0.03 sigma: converged. Between noise
-    # rounds two Gauss-Newton steps suffice (the optimum moves little when the weights change by a few per cent)
+    # a step that lowers the whitened cost by < 1e-3 moved the estimate by ~0.03 sigma: converged. After a
+    # noise round the optimum moves little (weights change by a few per cent): 1-2 Gauss-Newton steps
     first = Options(max_iterations=60, abs_cost_tol=1e-3, loss=loss)
+    # the noise levels will change after round 0: a relative cost change of 1e-4 is close enough there
+    start = Options(max_iterations=60, cost_tol=1e-4, abs_cost_tol=1e-3, loss=loss)
     opts_scale = first.loss_scale
-    later = Options(max_iterations=2, abs_cost_tol=1e-3, loss=loss)
+    later = Options(max_iterations=4, abs_cost_tol=1e-3, loss=loss)
     log: list[str] = []
     iters = 0
     sol = None
     history: list[tuple[float, float]] = []      # (gyro log-variance applied so far, log variance factor found)
     applied = 0.0
     for rnd in range(noise_rounds + 1):
-        sol = solve(make_linearize(ep, pre, noise), states, theta, first if rnd == 0 else later)
+        sol = solve(make_linearize(ep, pre, noise), states, theta, (start if noise_rounds else first) if rnd == 0 else later)
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = theta[BG:BG + 3]
@@ -377,7 +406,10 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     ref = reference_for(cfg)
     dip_prior = None if ref is None else ref.dip
     loss = getattr(cfg, "robust_loss", "l2")
-    ests = [fit_map(problem, m, loss, dip_prior) for m in problem.mags]
+    ests: list[MapEstimate] = []
+    cache: dict[bytes, Preintegrated] = {}
+    for m in problem.mags:        # later magnetometers start from the IMU noise levels the first one found
+        ests.append(fit_map(problem, m, loss, dip_prior, imu_start=ests[0].noise if ests else None, cache=cache))
     best = min(ests, key=lambda e: float(np.sum(e.std[:6] / BIAS_SCALE)))
     imu = ImuFit(problem.imu_id, best.theta[BA:BA + 3], best.theta[BG:BG + 3], best.std[BA:BA + 3],
                  best.std[BG:BG + 3])

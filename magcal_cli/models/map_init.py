@@ -52,8 +52,9 @@ def despike(y: FloatArray, width: int = 5, k: float = 6.0, share: float = 0.05) 
 
 
 def intrinsic_fit(y: FloatArray, where: str) -> Intrinsic:
-    """Kok 2012 ellipsoid fit on at most ~5000 evenly spaced readings, normalised so that det(D0) = 1."""
-    ell = fit_ellipsoid(y[:: max(1, len(y) // 5000)], where)
+    """Kok 2012 ellipsoid fit on at most ~2000 evenly spaced readings, normalised so that det(D0) = 1 (the
+    authors' ml_estimate uses 200; this is only a start value)."""
+    ell = fit_ellipsoid(y[:: max(1, len(y) // 2000)], where)
     scale = float(np.cbrt(np.linalg.det(ell.D0)))
     return Intrinsic(ell.D0 / scale, ell.o0 / scale, scale, ell.residual_rms)
 
@@ -95,10 +96,18 @@ def dip_from_data(m_b: FloatArray, up_b: FloatArray) -> float:
 
 
 def attitudes(m_b: FloatArray, up_b: FloatArray, dip: float) -> FloatArray:
-    """Per-epoch body->NED rotations aligning (m_b, up_b) with (m_n(dip), up) (Wahba's problem, equal weights)."""
-    m = m_b / np.linalg.norm(m_b, axis=1, keepdims=True)
-    u = up_b / np.linalg.norm(up_b, axis=1, keepdims=True)
-    return so3.wahba(np.stack([m, u], axis=1), np.stack([field_nav(dip), UP_N]))
+    """Per-epoch body->NED rotations from the vertical and the field (TRIAD: the vertical exactly, the field's
+    horizontal direction for heading) -- closed form, no per-epoch SVD."""
+
+    def triad(first: FloatArray, second: FloatArray) -> FloatArray:
+        a = first / np.linalg.norm(first, axis=-1, keepdims=True)
+        b = np.cross(a, second)
+        b /= np.linalg.norm(b, axis=-1, keepdims=True)
+        return np.stack([a, b, np.cross(a, b)], axis=-1)              # columns: orthonormal frame
+
+    body = triad(up_b, m_b)
+    nav = triad(UP_N, field_nav(dip))
+    return nav @ body.transpose(0, 2, 1)
 
 
 def integrated(delta: FloatArray, anchor: FloatArray) -> FloatArray:

@@ -95,8 +95,8 @@ def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: s
     tilt = tilt_spread_deg(acc)
     flat = f" (the measured vertical stayed within {tilt:.0f} deg of its mean direction)" if tilt < 45.0 else ""
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0.0):
-        msg = (f"{where}: the motion in this log does not determine the calibration (the information matrix is "
-               f"singular){flat}; {ROTATE_ADVICE}")
+        msg = (f"{where}: the motion in this log cannot determine the calibration (the information matrix is "
+               f"singular){flat}. To fix: {_advice(list(GROUPS[2:4]))}")
         raise InsufficientDataError(msg)
     info = scaled_information(cov)
     eig = np.linalg.eigvalsh(info)
