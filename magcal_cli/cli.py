@@ -132,7 +132,8 @@ def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | Non
 @click.option("--method", type=click.Choice(METHOD_CHOICES), default="auto", show_default=True,
               help="Calibration method; auto picks the best one available for the log.")
 @click.option("--outputs", default="json,yaml,report,plots", show_default=True,
-              help="Comma-separated outputs to write: json, yaml, report, plots.")
+              help="Comma-separated outputs to write: json, yaml, report, plots, ardupilot, px4 [the default "
+                   "adds ardupilot.param for ArduPilot logs and px4.params for PX4 ULogs].")
 @click.option("--start", "start_s", type=float, default=None, help="Use data from this time on (s from log start).")
 @click.option("--end", "end_s", type=float, default=None, help="Use data up to this time (s from log start).")
 @click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
@@ -146,27 +147,35 @@ def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | Non
               help="Date for the World Magnetic Model [default: the log's date when known, else today].")
 @click.option("--robust-loss", type=click.Choice(["l2", "huber", "cauchy"]), default="l2", show_default=True,
               help="Joint MAP (--method map): down-weight outlying readings with a Huber or Cauchy loss.")
+@click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: _gates(v, "fit"),
+              help="Exit 3 when a magnetometer meets a condition, e.g. 'heading_std_deg>1,field_norm_rms_pct>2' "
+                   "(METRIC OP NUMBER, comma-separated; see docs/firmware-export.md).")
 @verbosity
 @click.pass_context
 @handle_errors
 def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str | None, method: str, outputs: str,
         start_s: float | None, end_s: float | None, fmt: str | None, allow_truncated: bool, as_json: bool,
-        force: bool, location: tuple[float, float, float] | None, date: str | None, robust_loss: str) -> None:
+        force: bool, location: tuple[float, float, float] | None, date: str | None, robust_loss: str,
+        fail_on: tuple[Any, ...]) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from .document import dumps_json
     from .pipeline import calibrate
-    from .writers import check_targets, get_writer
+    from .writers import FIRMWARE_OUTPUTS, check_targets, get_writer
 
     names = _parse_outputs(outputs)
+    auto = _firmware_output(ctx, log, fmt, names)
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
-    check_targets(outdir, names, force)
+    check_targets(outdir, names + ([auto] if auto else []), force)
     cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=allow_truncated,
                  location=location, date=date, robust_loss=robust_loss)
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
+    if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
+        names.append(auto)
     outdir.mkdir(parents=True, exist_ok=True)
     written = [p for name in names for p in get_writer(name).write(result, outdir)]
     if as_json:
         click.echo(dumps_json(result.calibration), nl=False)
+        _fit_gates(result, fail_on)
         return
     for m in result.calibration.magnetometers:
         q = m.quality
@@ -178,6 +187,51 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
             _stderr(ctx, f"warning: {f.message}")
     for p in written:
         click.echo(f"wrote {p}")
+    _fit_gates(result, fail_on)
+
+
+def _gates(value: str | None, command: str) -> tuple[Any, ...]:
+    """--fail-on parsed against the metrics `command` measures, or a usage error."""
+    from . import gates
+
+    if value is None:
+        return ()
+    if command == "fit":
+        from .firmware.metrics import METRICS
+    else:
+        from .check import METRICS
+    try:
+        return gates.parse(value, METRICS)
+    except MagcalError as exc:
+        raise click.BadParameter(str(exc).split(": ", 1)[-1], param_hint="--fail-on") from None
+
+
+def _firmware_output(ctx: click.Context, log: Path, fmt: str | None, names: list[str]) -> str | None:
+    """The firmware output to add when --outputs was not given: ardupilot for DataFlash, px4 for ULog."""
+    from .readers import sniff
+    from .writers import FIRMWARE_OUTPUTS
+
+    if ctx.get_parameter_source("outputs") is not click.core.ParameterSource.DEFAULT:
+        return None
+    try:
+        auto = FIRMWARE_OUTPUTS.get(fmt or sniff(log))
+    except MagcalError:
+        return None
+    return auto if auto not in names else None
+
+
+def _fit_gates(result: Any, conditions: tuple[Any, ...]) -> None:
+    """Raise QualityGateFailed (exit 3) when a magnetometer meets a --fail-on condition."""
+    from . import gates
+    from .firmware.metrics import fit_metrics
+
+    if not conditions:
+        return
+    failed = [f"{mag}: {f}" for mag, (metrics, why) in fit_metrics(result).items()
+              for f in gates.failures(conditions, metrics, why)]
+    if failed:
+        msg = f"fit --fail-on: {'; '.join(failed)}"
+        raise QualityGateFailed(msg)
 
 
 def _angle_deg(rot: Any) -> float:
@@ -243,6 +297,161 @@ def inspect_cmd(ctx: click.Context, log: Path, as_json: bool, fmt: str | None, r
 
     rec = inspect_log(log, fmt, receive_time)
     click.echo(to_json(rec) if as_json else to_table(rec))
+
+
+def _vehicle_params(ctx: click.Context, params_path: Path | None, source: str) -> dict[str, float]:
+    """--params (a parameter file or a log), else the document's source log when it exists, else none."""
+    from .firmware.flown import load_params
+
+    if params_path is not None:
+        return load_params(params_path)
+    src = Path(source)
+    if source and src.is_file():
+        _stderr(ctx, f"vehicle parameters from the document's source log {src.name}")
+        try:
+            return load_params(src)
+        except MagcalError as exc:
+            _stderr(ctx, f"warning: {exc}")
+    return {}
+
+
+@cli.command("export", epilog=EXIT_CODES)
+@click.argument("calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--ardupilot", "ardupilot_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write ArduPilot COMPASS_* parameters to this file (Mission Planner NAME,VALUE).")
+@click.option("--px4", "px4_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Write PX4 CAL_MAGn_* parameters to this file (QGroundControl .params).")
+@click.option("--style", type=click.Choice(["default", "mavproxy", "nsh"]), default="default", show_default=True,
+              help="default: Mission Planner .param / QGroundControl .params; mavproxy: 'NAME VALUE' lines "
+                   "(ArduPilot); nsh: 'param set NAME VALUE' lines (PX4).")
+@click.option("--mag", "mags", multiple=True, help="Magnetometer id to export; repeatable [default: all].")
+@click.option("--slot", type=int, default=None,
+              help="Parameter slot for one --mag: ArduPilot 1-3, PX4 0-3 [default: from the device ids].")
+@click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), default=None,
+              help="The vehicle's parameters (.param/.params file or a log): slots, orientations, features "
+                   "[default: the document's source log, if it exists].")
+@click.option("--rotation", type=click.Choice(["auto", "enum", "custom"]), default="auto", show_default=True,
+              help="External compasses: the nearest orientation enum, custom Euler angles, or auto (custom when "
+                   "the enum misses by more than --custom-above-deg and the firmware has custom rotations).")
+@click.option("--custom-above-deg", type=float, default=1.0, show_default=True,
+              help="With --rotation auto: use a custom rotation when the nearest enum misses by more than this.")
+@click.option("--external/--internal", default=None,
+              help="Treat the compass as external/internal when the vehicle parameters do not say "
+                   "[default: internal].")
+@click.option("--force", is_flag=True, help="Overwrite existing outputs.")
+@verbosity
+@click.pass_context
+@handle_errors
+def export_cmd(ctx: click.Context, calibration: Path, ardupilot_out: Path | None, px4_out: Path | None, style: str,
+               mags: tuple[str, ...], slot: int | None, params_path: Path | None, rotation: str,
+               custom_above_deg: float, external: bool | None, force: bool) -> None:
+    """Write firmware parameters for the calibration in CALIBRATION (a magcal document)."""
+    from .atomic import write_text
+    from .document import load
+    from .errors import OutputError
+    from .firmware.export import Options, export
+    from .firmware.paramfile import render
+
+    targets = [(fw, out) for fw, out in (("ardupilot", ardupilot_out), ("px4", px4_out)) if out is not None]
+    if not targets:
+        msg = "give --ardupilot OUT.param or --px4 OUT.params"
+        raise click.UsageError(msg)
+    for _, out in targets:
+        if out.exists() and not force:
+            msg = f"{out}: exists already. Pass --force to overwrite it"
+            raise OutputError(msg)
+    cal = load(calibration)
+    params = _vehicle_params(ctx, params_path, cal.source.path)
+    options = Options(rotation, custom_above_deg, external, slot)
+    for firmware, out in targets:
+        exp = export(cal, firmware, params, options, list(mags) or None)
+        kind = {"default": "mission-planner" if firmware == "ardupilot" else "qgc"}.get(style, style)
+        if (firmware, kind) in (("ardupilot", "nsh"), ("px4", "mavproxy")):
+            msg = f"{style} is not a {firmware} parameter format"
+            raise click.BadParameter(msg, param_hint="--style")
+        for line in exp.notes + exp.warnings:
+            _stderr(ctx, line)
+        for m in exp.mags:
+            click.echo(m.lost_text())
+        write_text(out, render(exp.params, kind, exp.header(), exp.integers))
+        click.echo(f"wrote {out}")
+
+
+@cli.command("apply", epilog=EXIT_CODES)
+@click.argument("calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("log", type=click.Path(exists=True, path_type=Path))
+@click.option("-o", "--output", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+              help="CSV file to write: t [s], id, the calibrated field x, y, z and its magnitude.")
+@click.option("--mag", "mags", multiple=True, help="Magnetometer id to apply; repeatable [default: all].")
+@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--force", is_flag=True, help="Overwrite an existing output.")
+@verbosity
+@click.pass_context
+@handle_errors
+def apply_cmd(ctx: click.Context, calibration: Path, log: Path, out: Path, mags: tuple[str, ...], fmt: str | None,
+              force: bool) -> None:
+    """Apply CALIBRATION to LOG and write the calibrated field over time as CSV."""
+    from .apply import apply_to_recording
+    from .atomic import write_text
+    from .document import load
+    from .errors import OutputError
+    from .readers import open_recording
+
+    if out.exists() and not force:
+        msg = f"{out}: exists already. Pass --force to overwrite it"
+        raise OutputError(msg)
+    cal = load(calibration)
+    text, notes = apply_to_recording(cal, open_recording(log, fmt), list(mags) or None)
+    for n in notes:
+        _stderr(ctx, n)
+    write_text(out, text)
+    click.echo(f"wrote {out}")
+
+
+@cli.command("check", epilog=EXIT_CODES)
+@click.argument("log", type=click.Path(exists=True, path_type=Path))
+@click.option("--calibration", "cal_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              default=None, help="The magcal calibration the vehicle flew with [default: the log's parameters].")
+@click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), default=None,
+              help="The parameter file (or another log) the vehicle flew with [default: the log's parameters].")
+@click.option("--max-heading-error-deg", type=float, default=5.0, show_default=True,
+              help="Fail when a compass's estimated heading error exceeds this (inf: no limit).")
+@click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: _gates(v, "check"),
+              help="More failure conditions, e.g. 'interference_pct>30,field_norm_rms_pct>3' (see "
+                   "docs/firmware-export.md).")
+@click.option("--mag", "mags", multiple=True, help="Compass id to check; repeatable [default: all].")
+@click.option("--refit/--no-refit", default=True, show_default=True,
+              help="Also calibrate the log anew and report the heading change that calibration would bring.")
+@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON document.")
+@verbosity
+@click.pass_context
+@handle_errors
+def check_cmd(ctx: click.Context, log: Path, cal_path: Path | None, params_path: Path | None,
+              max_heading_error_deg: float, fail_on: tuple[Any, ...], mags: tuple[str, ...], refit: bool,
+              fmt: str | None, as_json: bool) -> None:
+    """Judge the compass calibration LOG was flown with; exit 3 when a gate fails (post-flight CI)."""
+    from . import gates
+    from .check import run_check
+    from .document import load
+    from .firmware.flown import load_params
+
+    if cal_path is not None and params_path is not None:
+        msg = "give --calibration or --params, not both"
+        raise click.UsageError(msg)
+    if max_heading_error_deg != max_heading_error_deg or max_heading_error_deg < 0:        # NaN or negative
+        msg = "expected a number of degrees >= 0, or inf"
+        raise click.BadParameter(msg, param_hint="--max-heading-error-deg")
+    conditions = () if max_heading_error_deg == float("inf") else (
+        gates.Condition("heading_error_deg", ">", max_heading_error_deg),)
+    report = run_check(log, (*conditions, *fail_on), params=None if params_path is None else load_params(params_path),
+                       calibration=None if cal_path is None else load(cal_path), mags=list(mags) or None,
+                       refit=refit, fmt=fmt, progress=lambda m: _stderr(ctx, m))
+    click.echo(report.to_json() if as_json else report.to_text(), nl=False)
+    if not report.passed:
+        failed = [f"{c.id}: {', '.join(c.failed)}" for c in report.compasses if c.failed and c.gated]
+        msg = f"check: {'; '.join(failed)}"
+        raise QualityGateFailed(msg)
 
 
 def main() -> None:

@@ -29,9 +29,13 @@ WRITERS: dict[str, str | type[Writer]] = {
     "yaml": "magcal_cli.writers.calfile:YamlWriter",
     "report": "magcal_cli.writers.report:TextReport",
     "plots": "magcal_cli.writers.plots:HtmlReport",
+    "ardupilot": "magcal_cli.writers.ardupilot:ArduPilotWriter",
+    "px4": "magcal_cli.writers.px4:Px4Writer",
 }
 
 DEFAULT_OUTPUTS = ("json", "yaml", "report", "plots")
+#: Recording.format -> the firmware output fit adds when --outputs is not given (the vehicle takes these)
+FIRMWARE_OUTPUTS = {"dataflash": "ardupilot", "ulog": "px4"}
 
 
 def get_writer(name: str) -> Writer:

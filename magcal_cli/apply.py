@@ -1,0 +1,58 @@
+"""`magcal apply`: a calibration applied to a log, the calibrated field over time as CSV.
+
+Each row is one magnetometer sample: time (s, the log's stream time), stream id, the calibrated body-frame
+field F A (y - o - c s) in the document's unit and its magnitude. Accepted current/throttle interference is
+subtracted when the log has that signal (calibration-file.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import units
+from .calibration import Calibration
+from .errors import StreamError
+from .firmware.effects import accepted
+from .firmware.flown import signal_at
+from .streams import Kind, Recording
+
+#: how the CSV header names each document unit (the CSV input contract's spellings)
+SHORT = {"tesla": "T", "millitesla": "mT", "microtesla": "uT", "nanotesla": "nT", "gauss": "G",
+         "milligauss": "mG"}
+
+
+def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | None = None) -> tuple[str, list[str]]:
+    """(CSV text, notes) of the calibrated field of every document magnetometer found in `rec`."""
+    mags = [cal.magnetometer(m) for m in mag_ids] if mag_ids else list(cal.magnetometers)
+    have = {s.id for s in rec.of_kind(Kind.MAGNETOMETER)}
+    missing = [m.id for m in mags if m.id not in have]
+    if len(missing) == len(mags):
+        msg = (f"{rec.path.name}: none of the calibration's magnetometers ({', '.join(missing)}) is in the log; "
+               f"it has {', '.join(sorted(have)) or 'none'}. Apply the calibration to the log it was made from")
+        raise StreamError(msg)
+    notes = [f"{m}: not in the log, skipped" for m in missing]
+    unit_names = {SHORT.get(m.unit, m.unit) for m in mags if m.id in have}
+    if len(unit_names) != 1:
+        msg = f"{rec.path.name}: the magnetometers have different units ({', '.join(sorted(unit_names))}); use --mag"
+        raise StreamError(msg)
+    u = unit_names.pop()
+    rows: list[tuple[float, str, np.ndarray]] = []
+    for mag in (m for m in mags if m.id in have):
+        stream = rec.select(Kind.MAGNETOMETER, mag.id)
+        y = stream.xyz * units.from_si(mag.unit)
+        inter, _ = accepted(cal, mag)
+        if inter is not None:
+            kind = Kind.BATTERY_CURRENT if inter.kind == "current" else Kind.THROTTLE
+            s = signal_at(rec, kind, stream.t)
+            if s is None:
+                notes.append(f"{mag.id}: the accepted {inter.kind} interference is not subtracted (no "
+                             f"{kind.value} stream in the log)")
+            else:
+                y = y - (np.abs(s) ** inter.exponent if inter.kind == "throttle" else s)[:, None] * inter.c
+                notes.append(f"{mag.id}: {inter.kind} interference subtracted")
+        b = mag.field_strength * mag.apply(y)
+        rows += [(float(t), mag.id, v) for t, v in zip(stream.t, b, strict=True)]
+    rows.sort(key=lambda r: (r[0], r[1]))
+    lines = [f"t [s],id,mx [{u}],my [{u}],mz [{u}],norm [{u}]"]
+    lines += [f"{t:.6f},{i},{v[0]:.7g},{v[1]:.7g},{v[2]:.7g},{np.linalg.norm(v):.7g}" for t, i, v in rows]
+    return "\n".join(lines) + "\n", notes

@@ -1,0 +1,18 @@
+"""Firmware knowledge: ArduPilot and PX4 rotation enums, the split of a calibration into what each firmware can
+hold, parameter names, limits and file formats, and the post-flight check.
+
+The conventions (correction order, signs, units, frames, slot mapping) are those of
+`../shared/design/firmware-export.md`; docs/firmware-export.md says what magcal writes and what is lost.
+"""
+
+from __future__ import annotations
+
+from ..errors import MagcalError
+
+
+class FirmwareError(MagcalError):
+    """A calibration cannot be written as firmware parameters (slot, rotation, unit or document problem)."""
+
+
+class FirmwareLimitError(FirmwareError):
+    """An exported value lies outside what the firmware accepts; the message names the parameter and limit."""

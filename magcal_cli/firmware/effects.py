@@ -1,0 +1,78 @@
+"""Motor/current interference from a calibration document's accepted effects, in the magnetometer's unit.
+
+calibration-file.md: `current_interference` is y += c I(t) (c in mag unit per ampere), `throttle_interference`
+is y += c u(t)^p (c in mag unit at full throttle). Only `status: accepted` entries are exported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from .. import units
+from ..calibration import Calibration, MagCalibration
+from ..errors import StreamError
+from . import FirmwareError
+
+FloatArray = npt.NDArray[np.float64]
+KINDS = {"current_interference": "current", "throttle_interference": "throttle"}
+
+
+@dataclass(frozen=True, eq=False)
+class Interference:
+    """c (3) in the magnetometer's unit per ampere ("current") or at full throttle ("throttle"), exponent p."""
+
+    kind: str
+    c: FloatArray
+    exponent: float
+    effect_id: str
+
+
+def _c_in_mag_unit(effect: dict[str, Any], mag: MagCalibration, where: str) -> FloatArray:
+    """The effect's c converted to the magnetometer's unit (its `units.c` may name another field unit)."""
+    try:
+        c = np.asarray(effect["params"]["c"], dtype=np.float64).reshape(3)
+    except (KeyError, TypeError, ValueError):
+        msg = f"{where}: params.c is missing or not 3 numbers. Re-create the document with magcal fit"
+        raise FirmwareError(msg) from None
+    unit = str((effect.get("units") or {}).get("c", mag.unit)).split("/")[0].strip()
+    try:
+        canonical = units.canonical(unit)
+    except StreamError:
+        canonical = ""
+    if canonical not in units.MAG_UNITS:
+        msg = f"{where}: units.c {unit!r} is not a magnetic field unit; expected e.g. '{mag.unit}/ampere'"
+        raise FirmwareError(msg)
+    return c * units.to_si(canonical) * units.from_si(mag.unit)
+
+
+def accepted(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None, list[str]]:
+    """The accepted interference effect of `mag` (current preferred over throttle) and notes on what was left."""
+    found: dict[str, Interference] = {}
+    for i, effect in enumerate(cal.effects):
+        kind = KINDS.get(str(effect.get("id")))
+        if kind is None or effect.get("sensor") != mag.id or effect.get("status") != "accepted":
+            continue
+        where = f"calibration: effects[{i}] ({effect.get('id')}, {mag.id})"
+        p = float((effect.get("params") or {}).get("p", 1.0)) if kind == "throttle" else 1.0
+        found[kind] = Interference(kind, _c_in_mag_unit(effect, mag, where), p, str(effect["id"]))
+    notes = []
+    if len(found) == 2:
+        notes.append(f"{mag.id}: both current and throttle interference were accepted; the firmware compensates "
+                     "one signal, so the current term is exported and the throttle term is not")
+    chosen = found.get("current") or found.get("throttle")
+    if chosen is not None and chosen.kind == "throttle" and abs(chosen.exponent - 1.0) > 1e-6:
+        notes.append(f"{mag.id}: the firmware's throttle compensation is linear; the fitted exponent "
+                     f"p={chosen.exponent:.2f} is dropped (largest error at u in [0,1]: "
+                     f"{np.max(np.abs(np.linspace(0, 1, 101) ** chosen.exponent - np.linspace(0, 1, 101))):.2f}"
+                     " x |c|)")
+    return chosen, notes
+
+
+def tested(cal: Calibration, mag_id: str, kind: str) -> bool:
+    """True when the diagnosis tested the interference term of `kind` for `mag_id` (any status but not_testable)."""
+    return any(KINDS.get(str(e.get("id"))) == kind and e.get("sensor") == mag_id
+               and e.get("status") not in (None, "not_testable") for e in cal.effects)

@@ -1,0 +1,156 @@
+"""Exported parameter sets: what both firmware exporters return, and the dispatch from a calibration document.
+
+A calibration document holds D and o in the magnetometer's unit; the firmware should output the body field
+b = A (y - o - c p) with A = F D^-1 (F = field_strength), i.e. a field of strength F in the firmware's unit
+(firmware-export.md section 3). The exporters choose the slot, the rotation and the symmetric factor; the split
+says what is lost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from .. import units
+from ..calibration import Calibration, MagCalibration
+from . import FirmwareError, FirmwareLimitError
+from .split import Split
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Options:
+    """Export choices: rotation policy, the custom-rotation threshold, --external/--internal, --slot."""
+
+    rotation: str = "auto"              # auto: enum unless it misses by more than custom_above_deg; enum; custom
+    custom_above_deg: float = 1.0
+    external: bool | None = None        # used only when the vehicle parameters do not say
+    slot: int | None = None             # ArduPilot 1..3, PX4 0..3; one magnetometer only
+    skip_refused: bool = False          # leave out (and say so) magnetometers beyond the limits, not fail
+
+
+@dataclass(frozen=True, eq=False)
+class MagExport:
+    """One magnetometer's parameters, the split behind them and what the firmware cannot hold."""
+
+    mag_id: str
+    slot: str                           # e.g. "COMPASS_*2" or "CAL_MAG1_*"
+    params: dict[str, float]
+    split: Split
+    dip_deg: float
+    external: bool
+    notes: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+    def lost(self) -> dict[str, float]:
+        """Residual misalignment (deg), largest field error (%) and level heading error (deg) the export keeps."""
+        return {"residual_misalignment_deg": self.split.residual_angle_deg,
+                "max_field_error_pct": self.split.max_error_pct,
+                "heading_error_deg": self.split.heading_error_deg(self.dip_deg)}
+
+    def lost_text(self) -> str:
+        """One line: what the firmware cannot hold of this calibration."""
+        lost = self.lost()
+        how = {"enum": f"orientation {self.split.rotation.enum_id}", "custom": "a custom orientation",
+               "fixed": "the board orientation (internal compass)"}[self.split.rotation.kind]
+        if lost["max_field_error_pct"] < 0.1:
+            return f"{self.mag_id} -> {self.slot}: exported exactly with {how} (field error below 0.1 %)"
+        return (f"{self.mag_id} -> {self.slot}: with {how}, {lost['residual_misalignment_deg']:.2f} deg of "
+                f"misalignment is not representable (field error up to {lost['max_field_error_pct']:.2f} %, "
+                f"level heading error up to {lost['heading_error_deg']:.2f} deg)")
+
+
+@dataclass(frozen=True, eq=False)
+class Export:
+    """A whole parameter file: every magnetometer's parameters plus the global ones."""
+
+    firmware: str
+    mags: tuple[MagExport, ...]
+    params: dict[str, float]
+    integers: frozenset[str] = frozenset()
+    notes: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+    source: str = ""
+
+    def header(self) -> list[str]:
+        """Comment lines for the file: origin, what is lost per magnetometer, warnings."""
+        lines = [f"magcal {self.firmware} compass parameters from {self.source}" if self.source else
+                 f"magcal {self.firmware} compass parameters"]
+        lines += [m.lost_text() for m in self.mags]
+        lines += [f"warning: {w}" for w in self.warnings]
+        return lines
+
+
+def correction(mag: MagCalibration, unit: str) -> tuple[FloatArray, FloatArray, float]:
+    """(A = F D^-1 dimensionless, o in `unit`, factor from the document's unit to `unit`)."""
+    if mag.unit not in units.MAG_UNITS:
+        msg = f"calibration: {mag.id} has unit {mag.unit!r}, not a magnetic field unit. Re-create it with magcal fit"
+        raise FirmwareError(msg)
+    if not np.all(np.isfinite(mag.D)) or abs(np.linalg.det(mag.D)) < 1e-300 or not np.isfinite(mag.field_strength):
+        msg = f"calibration: {mag.id} has a singular or non-finite D. Re-create it with magcal fit"
+        raise FirmwareError(msg)
+    k = units.to_si(mag.unit) * units.from_si(unit)
+    return mag.field_strength * mag.A, mag.o * k, k
+
+
+def check_limits(where: str, errors: list[str]) -> None:
+    """Refuse (FirmwareLimitError) when any value is outside what the firmware accepts."""
+    if errors:
+        msg = f"{where}: {'; '.join(errors)}"
+        raise FirmwareLimitError(msg)
+
+
+def soft_range(name: str, value: float, lo: float, hi: float, why: str) -> list[str]:
+    """A warning when `value` lies outside a typical range (flagged, still written)."""
+    if lo <= value <= hi:
+        return []
+    return [f"{name}={value:.4g} is outside the typical {lo:g}..{hi:g} ({why})"]
+
+
+def select_mags(cal: Calibration, mag_ids: Sequence[str] | None, options: Options) -> list[MagCalibration]:
+    """The magnetometers to export (all by default); --slot needs exactly one."""
+    mags = list(cal.magnetometers) if not mag_ids else [cal.magnetometer(m) for m in mag_ids]
+    if options.slot is not None and len(mags) != 1:
+        msg = (f"export: --slot applies to one magnetometer, but {len(mags)} are selected "
+               f"({', '.join(m.id for m in mags)}). Add --mag ID")
+        raise FirmwareError(msg)
+    return mags
+
+
+def export(cal: Calibration, firmware: str, params: Mapping[str, float], options: Options | None = None,
+           mag_ids: Sequence[str] | None = None) -> Export:
+    """Export a calibration document for `firmware` ("ardupilot" or "px4") given the vehicle's parameters."""
+    options = options or Options()
+    if firmware == "ardupilot":
+        from .ardupilot import export_ardupilot
+
+        return export_ardupilot(cal, params, options, mag_ids)
+    if firmware == "px4":
+        from .px4 import export_px4
+
+        return export_px4(cal, params, options, mag_ids)
+    msg = f"firmware {firmware!r} is not known; use ardupilot or px4"
+    raise FirmwareError(msg)
+
+
+@dataclass
+class Collected:
+    """Accumulates the parameters, notes and warnings of several magnetometers."""
+
+    params: dict[str, float] = field(default_factory=dict)
+    integers: set[str] = field(default_factory=set)
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    mags: list[MagExport] = field(default_factory=list)
+
+    def add(self, m: MagExport, integers: set[str]) -> None:
+        """Add one magnetometer's export."""
+        self.mags.append(m)
+        self.params.update(m.params)
+        self.integers |= integers
+        self.notes += m.notes
+        self.warnings += m.warnings

@@ -1,0 +1,140 @@
+"""What a flown calibration leaves, measured without a new calibration: residual iron and interference.
+
+The field the firmware computed, c (body frame), is modelled as c = Q (I + S) b + c0 + k s(t): b the true Earth
+field, Q = Exp([qx, qy, 0]) a residual tilt of the compass against the IMU, S symmetric and traceless
+(residual soft iron), c0 a residual offset, k the interference per unit of the signal s (battery current or
+throttle) the flown compensation left. Rolled and pitched back to level with the
+log's roll and pitch, b must have a constant horizontal magnitude H and vertical Z; the heading is free, so the
+log's yaw, which the same compass steered, is never used. Heading error and interference follow from the fit;
+their standard deviations from its covariance (the delta method), so a flight with little rotation reports a
+large uncertainty instead of a wrong number. On a level vehicle a tilt qy acts like an offset qy Z along x,
+so tilt, iron and offset separate only through the flight's tilts; the level heading error needs only their
+sum, which level flight determines. A yaw misalignment between compass and IMU (a constant heading offset)
+is invisible without a heading reference and is left out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import least_squares
+
+from .. import so3
+from ..errors import InsufficientDataError
+from .split import heading_error_deg
+
+FloatArray = npt.NDArray[np.float64]
+
+#: weak priors (field-strength units, rad) that keep directions the flight leaves unobserved finite
+PRIOR_S, PRIOR_C0, PRIOR_Q = 0.3, 1.0, 0.2
+MIN_SAMPLES = 50
+
+
+@dataclass(frozen=True, eq=False)
+class Residual:
+    """The fitted residual (field quantities in the stream's unit) and the figures derived from it."""
+
+    S: FloatArray
+    tilt_deg: tuple[float, float]
+    c0: FloatArray
+    k: FloatArray | None
+    H: float
+    Z: float
+    signal_range: tuple[float, float]
+    samples: int
+    rms_pct: float
+    heading_error_deg: float
+    heading_error_std_deg: float
+    interference_pct: float | None
+    interference_std_pct: float | None
+
+    @property
+    def field_strength(self) -> float:
+        """|b| = sqrt(H^2 + Z^2)."""
+        return float(np.hypot(self.H, self.Z))
+
+    @property
+    def dip_deg(self) -> float:
+        """Dip angle of the fitted field (positive down)."""
+        return float(np.rad2deg(np.arctan2(self.Z, self.H)))
+
+
+def _unpack(theta: FloatArray, with_k: bool) -> tuple[FloatArray, FloatArray, FloatArray, float, float]:
+    """(Q (I + S), c0, k, H, Z) from the parameter vector [s11 s22 s12 s13 s23 | qx qy | c0 | k | H Z]."""
+    s11, s22, s12, s13, s23 = theta[:5]
+    S = np.array([[s11, s12, s13], [s12, s22, s23], [s13, s23, -s11 - s22]])
+    E = so3.exp([theta[5], theta[6], 0.0]) @ (np.eye(3) + S)
+    k = theta[10:13] if with_k else np.zeros(3)
+    return E, theta[7:10], k, float(theta[-2]), float(theta[-1])
+
+
+def _residuals(theta: FloatArray, c: FloatArray, lev: FloatArray, s: FloatArray, with_k: bool,
+               sigma: float) -> FloatArray:
+    """Whitened |g_xy| - H and g_z - Z for every sample, then the prior rows."""
+    E, c0, k, H, Z = _unpack(theta, with_k)
+    b = np.linalg.solve(E, (c - c0 - s[:, None] * k).T).T
+    g = np.einsum("nij,nj->ni", lev, b)
+    data = np.concatenate([np.hypot(g[:, 0], g[:, 1]) - H, g[:, 2] - Z]) / sigma
+    prior = np.concatenate([theta[:5] / PRIOR_S, theta[5:7] / PRIOR_Q, c0 / PRIOR_C0])
+    return np.concatenate([data, prior])
+
+
+def _heading(theta: FloatArray, with_k: bool, lo: float, hi: float) -> float:
+    """Worst level heading error over all headings and the signal's range."""
+    E, c0, k, H, Z = _unpack(theta, with_k)
+    f = float(np.hypot(H, Z))
+    dip = float(np.rad2deg(np.arctan2(Z, H)))
+    return max(heading_error_deg(E, (c0 + s * k) / f, dip) for s in {lo, hi})
+
+
+def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike | None = None) -> Residual:
+    """Fit the residual model to the flown field c (N, 3) with levelling rotations (N, 3, 3) = Ry(pitch) Rx(roll).
+
+    `signal` (N,) is battery current (A) or throttle (0..1) at the samples; None leaves interference out.
+    """
+    c = np.asarray(c, dtype=np.float64)
+    lev = np.asarray(level, dtype=np.float64)
+    if c.shape[0] < MIN_SAMPLES:
+        msg = f"{c.shape[0]} samples with attitude; the residual fit needs at least {MIN_SAMPLES}"
+        raise InsufficientDataError(msg)
+    f0 = float(np.median(np.linalg.norm(c, axis=1)))
+    cn = c / f0
+    with_k = signal is not None and float(np.ptp(np.asarray(signal))) > 0.0
+    s = np.asarray(signal, dtype=np.float64) if with_k else np.zeros(c.shape[0])
+    s_scale = float(np.max(np.abs(s))) or 1.0
+    sn = s / s_scale
+    g0 = np.einsum("nij,nj->ni", lev, cn)
+    theta0 = np.concatenate([np.zeros(10), np.zeros(3) if with_k else [],
+                             [np.median(np.hypot(g0[:, 0], g0[:, 1])), np.median(g0[:, 2])]])
+    args = (cn, lev, sn, with_k)
+    first = least_squares(_residuals, theta0, args=(*args, 0.01), loss="soft_l1", f_scale=3.0, x_scale="jac", tr_solver="lsmr")
+    n = c.shape[0]
+    sigma = float(np.sqrt(np.mean(first.fun[: 2 * n] ** 2))) * 0.01 or 1e-6
+    fit = least_squares(_residuals, first.x, args=(*args, sigma), loss="soft_l1", f_scale=3.0, x_scale="jac", tr_solver="lsmr")
+    jac = fit.jac
+    cov = np.linalg.pinv(jac.T @ jac)
+    lo, hi = float(sn.min()), float(sn.max())
+    he = _heading(fit.x, with_k, lo, hi)
+    grad = np.zeros(fit.x.size)
+    for i in range(fit.x.size):
+        step = 1e-6 * max(1.0, abs(fit.x[i]))
+        d = np.zeros_like(fit.x)
+        d[i] = step
+        grad[i] = (_heading(fit.x + d, with_k, lo, hi) - _heading(fit.x - d, with_k, lo, hi)) / (2 * step)
+    he_std = float(np.sqrt(max(float(grad @ cov @ grad), 0.0)))
+    E, c0, k, H, Z = _unpack(fit.x, with_k)
+    F = float(np.hypot(H, Z))
+    inter = inter_std = None
+    if with_k:
+        peak = max(abs(lo), abs(hi))
+        inter = float(100.0 * np.linalg.norm(k) * peak / F)
+        gk = np.zeros(fit.x.size)
+        gk[10:13] = 100.0 * peak / F * k / max(float(np.linalg.norm(k)), 1e-12)
+        inter_std = float(np.sqrt(max(float(gk @ cov @ gk), 0.0)))
+    rms = float(100.0 * np.sqrt(np.mean((fit.fun[: 2 * n] * sigma) ** 2)) / F)
+    S = so3.polar(E)[1] - np.eye(3)
+    tilt = (float(np.rad2deg(fit.x[5])), float(np.rad2deg(fit.x[6])))
+    return Residual(S, tilt, c0 * f0, k * f0 / s_scale if with_k else None, H * f0, Z * f0,
+                    (lo * s_scale, hi * s_scale), n, rms, he, he_std, inter, inter_std)

@@ -1,0 +1,26 @@
+"""px4.params: CAL_MAGn_* parameters in QGroundControl's tab-separated layout (firmware.px4)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+from ..atomic import write_text
+from ..firmware.export import Options, export
+from ..firmware.paramfile import render
+
+if TYPE_CHECKING:
+    from ..pipeline import RunResult
+
+
+class Px4Writer:
+    """px4.params, for the vehicle whose log was calibrated (device ids pick the CAL_MAGn slots)."""
+
+    name: ClassVar[str] = "px4"
+    files: ClassVar[tuple[str, ...]] = ("px4.params",)
+
+    def write(self, result: RunResult, outdir: Path) -> list[Path]:
+        """Export every magnetometer and write the file."""
+        exp = export(result.calibration, "px4", dict(result.recording.params), Options(skip_refused=True))
+        text = render(exp.params, "qgc", exp.header(), exp.integers)
+        return [write_text(outdir / self.files[0], text)]

@@ -1,0 +1,212 @@
+"""`magcal check`: heading error, interference and the new calibration's change against simulated truth; the
+real ArduPilot logs; the command line (exit 3, --json, --params, --calibration); every message."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from magcal_cli import gates, so3
+from magcal_cli.check import check_recording, heading_gap_deg
+from magcal_cli.cli import cli
+from magcal_cli.firmware import FirmwareError
+from magcal_cli.firmware.export import Options, export
+from magcal_cli.firmware.paramfile import render
+from magcal_cli.streams import Kind, Recording
+
+from .firmware.flightsim import flight
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "sample_logs" / "handheld.bin"
+GATE = (gates.Condition("heading_error_deg", ">", 5.0),)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_heading_error_and_interference_match_the_truth(seed: int) -> None:
+    """A flown calibration that misses by 30 mG, a 3.6 deg tilt and soft iron: the heading error it leaves
+    (11.9 deg, level, worst heading and current) is found within 0.3 deg; the interference within 0.3 %."""
+    fl = flight(seed)
+    c = check_recording(fl.recording, GATE).compasses[0]
+    assert c.metrics["heading_error_deg"] == pytest.approx(fl.heading_error_deg(), abs=0.3)
+    assert c.metrics["heading_error_deg"] - fl.heading_error_deg() < 4 * c.metrics["heading_error_std_deg"] + 0.1
+    assert c.metrics["interference_pct"] == pytest.approx(fl.interference_pct(), abs=0.3)
+    assert c.details["dip_deg"] == pytest.approx(65.0, abs=0.3)
+    assert c.failed == [f"heading_error_deg>5 (measured {c.metrics['heading_error_deg']:.3g})"]
+    assert c.verdict == "fail"
+
+
+def test_a_good_calibration_passes() -> None:
+    """Flown with the true offsets and iron, no interference: under 0.3 deg, PASSED, exit-0 report."""
+    fl = flight(2, ofs_miss=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    D = fl.D
+    Ms = np.linalg.inv(D) * np.cbrt(np.linalg.det(D))           # flown iron exactly the inverse of the truth
+    p = dict(fl.recording.params) | {f"COMPASS_DIA_{a}": Ms[i, i] for i, a in enumerate("XYZ")}
+    p |= {"COMPASS_ODI_X": Ms[0, 1], "COMPASS_ODI_Y": Ms[0, 2], "COMPASS_ODI_Z": Ms[1, 2]}
+    report = check_recording(replace(fl.recording, params=p), GATE)
+    assert report.compasses[0].metrics["heading_error_deg"] < 0.3
+    assert report.passed and report.to_text().endswith("PASSED\n")
+
+
+def test_the_change_a_new_calibration_brings_is_the_flown_error_on_each_sample() -> None:
+    """With the truth as the 'new' calibration, the heading change equals the flown field's actual heading
+    error at each sample (levelled with the true roll and pitch) as the firmware would hold the truth."""
+    fl = flight(0)
+    truth = fl.truth()
+    c = check_recording(fl.recording, (), new=truth).compasses[0]
+    rec = fl.recording
+    att = rec.select(Kind.ATTITUDE)
+    rpy = so3.as_rpy(so3.from_quat(att.values))
+    rpy[:, 2] = 0
+    lev = so3.from_rpy(rpy)
+    raw = rec.select(Kind.MAGNETOMETER).xyz * 1e7
+    flown = (raw + fl.ofs) @ fl.M.T
+    held = export(truth, "ardupilot", dict(rec.params), Options()).mags[0].split.held
+    new = (raw - fl.o - fl.current[:, None] * 0) @ held.T
+
+    def heading(v: np.ndarray) -> np.ndarray:
+        g = np.einsum("nij,nj->ni", lev, v)
+        return np.arctan2(-g[:, 1], g[:, 0])
+
+    d = np.rad2deg(np.angle(np.exp(1j * (heading(new) - heading(flown)))))
+    assert c.metrics["heading_change_deg"] == pytest.approx(np.abs(d).max(), rel=1e-9)
+    assert c.details["new_parameters"]["COMPASS_ORIENT"] == 0
+
+
+def test_a_px4_recording_is_checked_with_its_slot() -> None:
+    """PX4: the CAL_MAGn slot whose ID is the sensor's device id corrects the raw field (gauss)."""
+    fl = flight(3, ofs_miss=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    rec = fl.recording
+    mag = rec.select(Kind.MAGNETOMETER)
+    exp = export(replace(fl.truth(), magnetometers=(replace(fl.truth().magnetometers[0], id="sensor_mag[0]",
+                                                            unit="milligauss"),)),
+                 "px4", {"sensor_mag[0].device_id": 42.0, "CAL_MAG1_ID": 42.0, "CAL_MAG1_ROT": 0.0})
+    params = exp.params | {"sensor_mag[0].device_id": 42.0, "CAL_MAG1_PRIO": 50.0}
+    streams = [replace(mag, id="sensor_mag[0]", native_unit="gauss")] + [s for s in rec.streams if s is not mag]
+    report = check_recording(Recording(Path("x.ulg"), "ulog", tuple(streams), 0.0, params), GATE)
+    c = report.compasses[0]
+    assert c.slot == "CAL_MAG1_*" and c.unit == "gauss" and c.used is True
+    assert c.metrics["heading_error_deg"] < 0.3 and report.passed
+
+
+def test_a_document_as_the_flown_calibration() -> None:
+    """--calibration: the flown field is F A (y - o); the truth document leaves no error."""
+    fl = flight(4, c=(0.0, 0.0, 0.0))
+    rec = replace(fl.recording, params={})
+    c = check_recording(rec, GATE, calibration=fl.truth()).compasses[0]
+    assert c.slot == "document" and c.metrics["heading_error_deg"] < 0.3
+
+
+def test_what_cannot_be_measured_fails_a_gate_and_says_why() -> None:
+    """Few headings: no heading error (the gap is named); a gate on it fails as 'not measured'."""
+    fl = flight(5, turns=0.3)
+    c = check_recording(fl.recording, GATE + (gates.Condition("heading_change_deg", ">", 1.0),)).compasses[0]
+    assert c.metrics.get("heading_error_deg") is None
+    assert "fly a slow full turn" in c.missing["heading_error_deg"]
+    assert c.failed[0].startswith("heading_error_deg>5 (not measured: the vehicle's headings leave a")
+    assert c.failed[1] == "heading_change_deg>1 (not measured: no new calibration)"
+
+
+def test_heading_gap() -> None:
+    assert heading_gap_deg(np.deg2rad(np.arange(0, 360, 1.0))) == 0.0
+    assert heading_gap_deg(np.deg2rad(np.repeat([10.0, 100.0, 190.0, 280.0], 5))) == 80.0
+
+
+def test_errors() -> None:
+    fl = flight(0)
+    with pytest.raises(FirmwareError, match=r"sim.bin: no compass calibration known \(the log's parameters "
+                                            r"\(dataflash\) hold no COMPASS_\* or CAL_MAGn_\* parameters\). Pass "
+                                            r"--params"):
+        check_recording(replace(fl.recording, params={}), GATE)
+    no_att = replace(fl.recording, streams=tuple(s for s in fl.recording.streams
+                                                 if s.kind not in (Kind.ATTITUDE, Kind.ACCELEROMETER)))
+    with pytest.raises(FirmwareError, match="no attitude and no accelerometer stream, so the field cannot be "
+                                            "levelled"):
+        check_recording(no_att, GATE)
+    short = flight(0, n=40, rate=2.0, turns=1.0)
+    c = check_recording(short.recording, GATE).compasses[0]
+    assert "40 samples with attitude; the residual fit needs at least 50" in c.missing["heading_error_deg"]
+
+
+def test_gravity_levels_when_there_is_no_attitude() -> None:
+    """Without ATT the accelerometer's gravity levels the field (here the vehicle does not accelerate)."""
+    fl = flight(0)
+    rec = replace(fl.recording, streams=tuple(s for s in fl.recording.streams if s.kind is not Kind.ATTITUDE))
+    report = check_recording(rec, GATE)
+    assert report.levelling.startswith("gravity from IMU[0]")
+    assert report.compasses[0].metrics["heading_error_deg"] == pytest.approx(fl.heading_error_deg(), abs=0.5)
+
+
+# --- command line ------------------------------------------------------------------------------------------
+
+def test_check_cli_on_the_sample_log(tmp_path: Path) -> None:
+    """sample_logs/handheld.bin: --json parses, exit 3 (its flown calibration leaves > 5 deg), --params with the
+    log's own parameters gives the same numbers, an infinite limit passes."""
+    runner = CliRunner()
+    result = runner.invoke(cli, ["check", str(SAMPLE), "--json", "--no-refit", "-q"])
+    assert result.exit_code == 3, result.output
+    doc = json.loads(result.stdout)
+    assert doc["schema"] == "magcal.check/1" and doc["passed"] is False
+    [c] = doc["compasses"]
+    assert c["id"] == "MAG[0]" and c["verdict"] == "fail" and c["metrics"]["heading_error_deg"] > 5
+    assert result.stderr.startswith("Error: check: MAG[0]: heading_error_deg>5 (measured")
+    params = tmp_path / "vehicle.param"
+    from magcal_cli.readers import open_recording
+
+    params.write_text(render(dict(open_recording(SAMPLE).params), "mission-planner"))
+    again = runner.invoke(cli, ["check", str(SAMPLE), "--json", "--no-refit", "-q", "--params", str(params)])
+    assert json.loads(again.stdout)["compasses"][0]["metrics"]["heading_error_deg"] == pytest.approx(
+        c["metrics"]["heading_error_deg"], rel=1e-5)
+    ok = runner.invoke(cli, ["check", str(SAMPLE), "--no-refit", "-q", "--max-heading-error-deg", "inf"])
+    assert ok.exit_code == 0 and ok.stdout.endswith("PASSED\n")
+
+
+def test_check_cli_refit_and_calibration(tmp_path: Path) -> None:
+    """With the refit, the new calibration's change and parameters are reported; --calibration with the truth
+    file of the sample log (the field as simulated) leaves a heading error below 1 deg."""
+    runner = CliRunner()
+    result = runner.invoke(cli, ["check", str(SAMPLE), "--json", "-q", "--max-heading-error-deg", "inf"])
+    assert result.exit_code == 0, result.output
+    c = json.loads(result.stdout)["compasses"][0]
+    assert c["metrics"]["heading_change_deg"] > 1 and "COMPASS_OFS_X" in c["details"]["new_parameters"]
+    truth = SAMPLE.with_name(SAMPLE.name + ".truth.json")
+    result = runner.invoke(cli, ["check", str(SAMPLE), "--json", "--no-refit", "-q", "--calibration", str(truth)])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["compasses"][0]["metrics"]["heading_error_deg"] < 1.0
+
+
+def test_check_cli_usage_errors() -> None:
+    runner = CliRunner()
+    result = runner.invoke(cli, ["check", str(SAMPLE), "--params", str(SAMPLE), "--calibration", str(SAMPLE)])
+    assert result.exit_code == 2 and "give --calibration or --params, not both" in result.output
+    result = runner.invoke(cli, ["check", str(SAMPLE), "--max-heading-error-deg", "nan"])
+    assert result.exit_code == 2 and "expected a number of degrees >= 0, or inf" in result.output
+    result = runner.invoke(cli, ["check", str(SAMPLE), "--fail-on", "coverage_pct<50"])
+    assert result.exit_code == 2 and "unknown metric 'coverage_pct'; this command measures" in result.output
+
+
+# --- real logs ---------------------------------------------------------------------------------------------
+
+#: WMM dip at each log's median GPS position and date (pygeomag): Canberra 2015, Massachusetts 2015-10-11
+WMM_DIP = {"log171.bin": -65.96, "2015-10-11_19-53-46.log": 66.6, "2015-10-11_19-59-09.log": 66.6,
+           "2015-10-11_20-17-22.log": 66.6}
+
+
+@pytest.mark.parametrize("name", sorted(WMM_DIP))
+def test_check_on_real_ardupilot_logs(realdata: Path, name: str) -> None:
+    """A verdict per compass with numbers; the fitted field's dip agrees with the World Magnetic Model at the
+    primary (external) compass, and every gated compass that fails names its measurement."""
+    result = CliRunner().invoke(cli, ["check", str(realdata / "ardupilot" / name), "--json", "--no-refit", "-q"])
+    assert result.exit_code in (0, 3), result.output
+    doc = json.loads(result.stdout)
+    assert [c["id"] for c in doc["compasses"]][:2] == ["MAG[0]", "MAG[1]"]
+    for c in doc["compasses"]:
+        assert c["verdict"].split()[0] in ("pass", "fail")
+        assert 0 < c["metrics"]["field_norm_rms_pct"] < 20
+    primary = doc["compasses"][0]
+    assert primary["details"]["dip_deg"] == pytest.approx(WMM_DIP[name], abs=2.5)
+    assert doc["passed"] == (result.exit_code == 0)
