@@ -17,7 +17,7 @@ from .errors import MagcalError, MissingDependencyError
 
 @dataclass(frozen=True)
 class ReferenceField:
-    """WMM at a place and date: dip (rad, positive down), total intensity (T), declination (rad), model name."""
+    """WMM at a place and date: dip (rad, down positive), total intensity (T), declination (rad), model."""
 
     dip: float
     intensity: float
@@ -35,7 +35,7 @@ class ReferenceField:
 
 
 def parse_location(text: str) -> tuple[float, float, float]:
-    """'LAT,LON[,ALT]' (degrees, degrees, metres) -> (lat, lon, alt); raises MagcalError with the expected form."""
+    """'LAT,LON[,ALT]' (deg, deg, m) -> (lat, lon, alt); a MagcalError showing the expected form otherwise."""
     try:
         parts = [float(p) for p in text.split(",")]
     except ValueError:
@@ -73,7 +73,8 @@ def reference_field(lat: float, lon: float, alt_m: float, date: dt.date) -> Refe
     base = min(max(int(year // 5 * 5), 2010), 2025)
     geomag = GeoMag(base_year=base)
     lon = lon - 360.0 if lon > 180.0 else lon
-    res = geomag.calculate(glat=lat, glon=lon, alt=alt_m / 1000.0, time=year, allow_date_outside_lifespan=True)
+    res = geomag.calculate(glat=lat, glon=lon, alt=alt_m / 1000.0, time=year,
+                           allow_date_outside_lifespan=True)
     return ReferenceField(float(np.radians(res.i)), float(res.f) * 1e-9, float(np.radians(res.d)),
                           str(geomag.model), lat, lon, alt_m, date)
 

@@ -28,9 +28,9 @@ IntArray = npt.NDArray[np.int64]
 class Preintegrated:
     """Relative rotations between consecutive epochs (K-1 intervals), integrated with the gyro bias `bias`.
 
-    delta: dR_ij (K-1, 3, 3); d_bias: d dR / d b_g for the right perturbation dR Exp(d_bias db) (Forster eq. 44);
-    cov: covariance of the rotation-vector error (rad^2); l_inv: L^-1 with cov = L L^T; duration (K-1,) s;
-    noise_std: the per-sample gyro noise (rad/s) the covariance stands for.
+    delta: dR_ij (K-1, 3, 3); d_bias: d dR / d b_g for the right perturbation dR Exp(d_bias db) (Forster
+    eq. 44); cov: covariance of the rotation-vector error (rad^2); l_inv: L^-1 with cov = L L^T; duration
+    (K-1,) s; noise_std: the per-sample gyro noise (rad/s) the covariance stands for.
     """
 
     epochs: FloatArray
@@ -50,7 +50,7 @@ class Preintegrated:
 
 
 def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray, IntArray]:
-    """Cut [epochs[0], epochs[-1]] at IMU stamps and epochs: the IMU sample, duration (s) and interval of each piece."""
+    """Cut [epochs[0], epochs[-1]] at IMU stamps and epochs: IMU sample, duration (s), interval per piece."""
     inner = t_imu[(t_imu > epochs[0]) & (t_imu < epochs[-1])]
     cuts = np.unique(np.concatenate([epochs, inner]))
     start, dur = cuts[:-1], np.diff(cuts)
@@ -63,17 +63,17 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
                  noise_std: FloatArray, where: str = "gyro") -> Preintegrated:
     """Preintegrate gyro samples gyr (N, 3) rad/s at t_imu (N,) between consecutive epochs (K,) s.
 
-    noise_std (3,) is the per-sample white-noise std (rad/s) at the nominal IMU period dt; a piece of duration d
-    adds diag(noise_std^2) dt d to the rate-integral covariance (noise density^2 x d), which is the discrete
-    sigma^2 dt^2 for a whole sample and scales with time for partial pieces and gaps. (The authors' code passes
-    sigma where sigma^2 belongs; this is the variance.)
+    noise_std (3,) is the per-sample white-noise std (rad/s) at the nominal IMU period dt; a piece of
+    duration d adds diag(noise_std^2) dt d to the rate-integral covariance (noise density^2 x d), which is
+    the discrete sigma^2 dt^2 for a whole sample and scales with time for partial pieces and gaps. (The
+    authors' code passes sigma where sigma^2 belongs; this is the variance.)
 
     The pieces are laid out as (K-1, Lmax) with zero-duration padding (an identity step), and Forster's
     recursions (eqs. 35, 44, 63) run over the Lmax piece slots, vectorised over all intervals at once.
     """
     if epochs.size < 2 or epochs[0] < t_imu[0] or np.any(np.diff(epochs) <= 0.0):
-        msg = (f"{where}: preintegration needs at least two increasing magnetometer epochs inside the IMU time "
-               "span; check the log's time stamps")
+        msg = (f"{where}: preintegration needs at least two increasing magnetometer epochs inside the IMU "
+               "time span; check the log's time stamps")
         raise InsufficientDataError(msg)
     sample, dur, interval = pieces(t_imu, epochs)
     k = epochs.size - 1
@@ -99,7 +99,8 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
     try:
         chol = np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
-        msg = f"{where}: a preintegration interval has no gyro noise (zero-length or degenerate); check the time stamps"
+        msg = (f"{where}: a preintegration interval has no gyro noise (zero-length or degenerate); check the "
+               "time stamps")
         raise InsufficientDataError(msg) from None
     return Preintegrated(epochs, np.array(bias, dtype=np.float64), delta, d_bias, cov, np.linalg.inv(chol),
                          np.diff(epochs), np.array(noise_std, dtype=np.float64))

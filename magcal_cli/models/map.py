@@ -1,4 +1,4 @@
-"""Huang et al. 2025: joint MAP calibration of magnetometer, accelerometer bias and gyro bias (`--method map`).
+"""Huang et al. 2025: joint MAP calibration of magnetometer, accelerometer and gyro biases (`--method map`).
 
 Unknowns (methods.md section 3): theta = (b_a, db_g, vec D, o, dip) (19) and the orientations R_k at the
 magnetometer epochs. Factors: accelerometer and magnetometer at every epoch, gyro preintegration between
@@ -76,7 +76,7 @@ class Epochs:
 
 @dataclass(frozen=True)
 class Noise:
-    """Per-sample standard deviations per axis: accelerometer (m/s^2), gyro (rad/s), magnetometer (scaled units)."""
+    """Per-sample standard deviations per axis: accelerometer (m/s^2), gyro (rad/s), magnetometer (scaled)."""
 
     acc: FloatArray
     gyr: FloatArray
@@ -111,7 +111,7 @@ class MapEstimate:
 
 
 def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MAX_EPOCHS) -> Epochs:
-    """The magnetometer readings inside the IMU span, with the accelerometer linearly interpolated onto them."""
+    """The magnetometer readings inside the IMU span, the accelerometer linearly interpolated onto them."""
     t_imu = problem.acc.t
     index = np.flatnonzero((mag.t >= t_imu[0]) & (mag.t <= t_imu[-1]))
     notes = []
@@ -168,7 +168,7 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise) -> Linearize:
 
 
 def initial_noise(problem: Problem, mag: Stream, scale: float, fit_rms: float) -> Noise:
-    """Starting noise levels: IMU from its quietest windows, magnetometer from still segments or the ellipsoid fit."""
+    """Start noise levels: IMU from its quietest windows, magnetometer from still data or the ellipsoid."""
     still = problem.still
     m = pooled_std(mag, still.segments) / scale if still.segments else np.full(3, fit_rms)
     m = np.where(np.isfinite(m), m, fit_rms)
@@ -179,7 +179,7 @@ def initial_noise(problem: Problem, mag: Stream, scale: float, fit_rms: float) -
 
 
 def variance_ratios(sol: Solution, loss: str = "l2", c: float = 3.0) -> FloatArray:
-    """Variance factors sum(r^2) / (rows - leverage) of the accelerometer (3 axes), gyro (1), magnetometer (3).
+    """Variance factors sum(r^2) / (rows - leverage): accelerometer (3 axes), gyro (1), magnetometer (3).
 
     The leverage (trace of the hat matrix over a group's rows) counts the degrees of freedom the unknowns take
     from that group (Foerstner's variance-component estimation); a factor of 1 means the assumed noise level
@@ -214,8 +214,9 @@ def _levels(noise: Noise) -> FloatArray:
 def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
     """Next step for the gyro log-variance x whose fixed-point residual is f (the log variance factor).
 
-    The plain update x += f converges linearly with rate 1 + slope, slowly for the weakly determined gyro level;
-    a secant step on f(x) = 0 (slope clipped to [-1, -0.1], so at most 10 plain steps) converges in a few rounds.
+    The plain update x += f converges linearly with rate 1 + slope, slowly for the weakly determined gyro
+    level; a secant step on f(x) = 0 (slope clipped to [-1, -0.1], so at most 10 plain steps) converges in a
+    few rounds.
     The first step assumes the slope the paper protocol shows from below (about -0.65).
     """
     slope = FIRST_GYRO_SLOPE
@@ -229,7 +230,8 @@ def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
 def rescaled(noise: Noise, pre: Preintegrated, log_var: FloatArray) -> tuple[Noise, Preintegrated]:
     """Noise levels (and the preintegration whitening) with variances multiplied by exp(log_var) (7,)."""
     f = np.exp(0.5 * log_var)
-    return Noise(noise.acc * f[:3], noise.gyr * f[3], noise.mag * f[4:]), pre.scaled(float(np.exp(log_var[3])))
+    new = Noise(noise.acc * f[:3], noise.gyr * f[3], noise.mag * f[4:])
+    return new, pre.scaled(float(np.exp(log_var[3])))
 
 
 def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
@@ -249,7 +251,7 @@ def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
 def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise: Noise,
                    dip_prior: float | None, cache: dict[bytes, Preintegrated]
                    ) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
-    """Start values (states, theta, preintegration) following Sec. III-D; the trajectory that fits better wins."""
+    """Start values (states, theta, preintegration) as in Sec. III-D; the trajectory that fits better wins."""
     notes = []
     if problem.still.segments:
         bias = problem.still.gyr_bias
@@ -261,7 +263,7 @@ def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
     r_d, db = map_init.wu_luo(h, so3.log_small(pre.delta), pre.duration, window)
     db = db if not problem.still.segments else np.zeros(3)
-    if not problem.still.segments:                # the first-order bias correction carries db (no re-integration)
+    if not problem.still.segments:           # the first-order bias correction carries db (no re-integration)
         notes.append(f"{ep.mag_id}: no still segment; gyro bias started from the Wu & Luo alignment "
                      f"({np.array2string(bias + db, precision=4)} rad/s)")
     d0 = intr.D0 @ r_d
@@ -287,11 +289,12 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
             cache: dict[bytes, Preintegrated] | None = None) -> MapEstimate:
     """The joint MAP calibration of one magnetometer against the problem's IMU.
 
-    `imu_start`: accelerometer and gyro noise levels to start from (another magnetometer's fit on the same IMU);
+    `imu_start`: accelerometer and gyro noise levels to start from (another magnetometer's fit, same IMU);
     `cache`: preintegrations shared between magnetometers with the same epochs.
     """
     with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
-        return _fit_map(problem, mag, loss, dip_prior, noise_rounds, imu_start, {} if cache is None else cache)
+        return _fit_map(problem, mag, loss, dip_prior, noise_rounds, imu_start,
+                        {} if cache is None else cache)
 
 
 def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, noise_rounds: int,
@@ -309,8 +312,8 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     else:
         # in motion the accelerometer also sees linear acceleration: start from the spread of |a| about g
         dev = np.linalg.norm(ep.acc, axis=1) - G
-        noise = Noise(np.maximum(noise.acc, 1.4826 * float(np.median(np.abs(dev - np.median(dev))))), noise.gyr,
-                      noise.mag)
+        spread = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
+        noise = Noise(np.maximum(noise.acc, spread), noise.gyr, noise.mag)
     clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
     states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache)
     if spikes:
@@ -326,10 +329,11 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     log: list[str] = []
     iters = 0
     sol = None
-    history: list[tuple[float, float]] = []      # (gyro log-variance applied so far, log variance factor found)
+    history: list[tuple[float, float]] = []      # (gyro log-variance applied so far, log factor found there)
     applied = 0.0
     for rnd in range(noise_rounds + 1):
-        sol = solve(make_linearize(ep, pre, noise), states, theta, (start if noise_rounds else first) if rnd == 0 else later)
+        opts = (start if noise_rounds else first) if rnd == 0 else later
+        sol = solve(make_linearize(ep, pre, noise), states, theta, opts)
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = theta[BG:BG + 3]
@@ -381,7 +385,7 @@ def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, so
 
 def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: FloatArray,
                    noise_si: Noise) -> FloatArray:
-    """Inverse Fisher information of theta (SI, total gyro bias) at given states and theta: the Cramer-Rao bound."""
+    """Inverse Fisher information of theta (SI, total gyro bias) at given states and theta: the CRLB."""
     scale = float(np.cbrt(abs(np.linalg.det(LAYOUT.unpack(theta_si)[0]))))
     ep = epochs_for(problem, mag, scale)
     pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, theta_si[BG:BG + 3], noise_si.gyr)
@@ -395,12 +399,13 @@ def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: 
 def to_fits(est: MapEstimate, stream: Stream) -> MagFit:
     """The magnetometer part of an estimate as a MagFit (D, o in tesla; covariance of vec D, o, dip)."""
     d, o, dip = LAYOUT.unpack(est.theta)
-    return MagFit(est.mag_id, d, o, dip, est.cov[6:, 6:], est.residual_rms, int(est.epochs.size), est.iterations,
-                  est.converged, est.log)
+    return MagFit(est.mag_id, d, o, dip, est.cov[6:, 6:], est.residual_rms, int(est.epochs.size),
+                  est.iterations, est.converged, est.log)
 
 
 def run(problem: Problem, cfg: Config) -> MethodResult:
-    """Joint MAP for every magnetometer of the problem, each against the IMU (the paper's 30-magnetometer setup)."""
+    """Joint MAP for every magnetometer of the problem, each against the IMU (the paper's 30-magnetometer
+    setup)."""
     from ..wmm import reference_for
 
     ref = reference_for(cfg)
@@ -409,7 +414,8 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     ests: list[MapEstimate] = []
     cache: dict[bytes, Preintegrated] = {}
     for m in problem.mags:        # later magnetometers start from the IMU noise levels the first one found
-        ests.append(fit_map(problem, m, loss, dip_prior, imu_start=ests[0].noise if ests else None, cache=cache))
+        start = ests[0].noise if ests else None
+        ests.append(fit_map(problem, m, loss, dip_prior, imu_start=start, cache=cache))
     best = min(ests, key=lambda e: float(np.sum(e.std[:6] / BIAS_SCALE)))
     imu = ImuFit(problem.imu_id, best.theta[BA:BA + 3], best.theta[BG:BG + 3], best.std[BA:BA + 3],
                  best.std[BG:BG + 3])
@@ -420,7 +426,8 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     for est, stream in zip(ests, problem.mags, strict=True):
         notes.extend(est.notes)
         findings.extend(est.findings)
-        noise[f"magnetometer_std[{est.mag_id}]"] = (est.noise.mag * units.from_si(stream.native_unit)).tolist()
+        factor = units.from_si(stream.native_unit)
+        noise[f"magnetometer_std[{est.mag_id}]"] = (est.noise.mag * factor).tolist()
     if ref is not None:
         notes.append(f"dip initialised from the {ref.model} at the log's position ({ref.dip_deg:.2f} deg); "
                      f"field strength {ref.intensity * 1e6:.2f} uT")

@@ -28,7 +28,7 @@ ALIGNMENT_WINDOW_S = 0.5
 
 @dataclass(frozen=True, eq=False)
 class Intrinsic:
-    """Ellipsoid fit in units of its own scale: |D0^-1 (y/scale - o0)| ~ 1, D0 known up to a rotation; scale in T."""
+    """Ellipsoid fit in units of its scale (T): |D0^-1 (y/scale - o0)| ~ 1, D0 known up to a rotation."""
 
     D0: FloatArray
     o0: FloatArray
@@ -59,7 +59,8 @@ def intrinsic_fit(y: FloatArray, where: str) -> Intrinsic:
     return Intrinsic(ell.D0 / scale, ell.o0 / scale, scale, ell.residual_rms)
 
 
-def wu_luo(h: FloatArray, phi: FloatArray, duration: FloatArray, window: int) -> tuple[FloatArray, FloatArray]:
+def wu_luo(h: FloatArray, phi: FloatArray, duration: FloatArray, window: int
+           ) -> tuple[FloatArray, FloatArray]:
     """Misalignment R_D (h = R_D m_b, possibly improper) and gyro bias correction from the field kinematics.
 
     In a homogeneous field the body-frame field obeys dm_b/dt = -w x m_b, so h = R_D m_b changes by
@@ -80,8 +81,8 @@ def wu_luo(h: FloatArray, phi: FloatArray, duration: FloatArray, window: int) ->
     m = x[:9].reshape(3, 3, order="F")
     det = np.linalg.det(m)
     if not np.isfinite(det) or abs(det) < 1e-6:
-        msg = ("map: the gyro and magnetometer do not determine their relative orientation (too little rotation); "
-               "rotate the sensor about at least two different axes")
+        msg = ("map: the gyro and magnetometer do not determine their relative orientation (too little "
+               "rotation); rotate the sensor about at least two different axes")
         raise InsufficientDataError(msg)
     sign = float(np.sign(det))
     r_d = sign * so3.project(sign * m)
@@ -113,9 +114,9 @@ def attitudes(m_b: FloatArray, up_b: FloatArray, dip: float) -> FloatArray:
 def integrated(delta: FloatArray, anchor: FloatArray) -> FloatArray:
     """Gyro-integrated trajectory R_k = R_0 dR_0 ... dR_k-1, with R_0 chosen to best match `anchor` (K, 3, 3).
 
-    The paper starts from a fixed attitude; aligning the whole integrated trajectory to the per-epoch attitudes
-    (one Wahba problem over all epochs) starts it from the data instead.
+    The paper starts from a fixed attitude; aligning the whole integrated trajectory to the per-epoch
+    attitudes (one Wahba problem over all epochs) starts it from the data instead.
     """
     rel = np.concatenate([np.eye(3)[None], so3.cumulative_product(delta, reproject=False)])  # R_0^T R_k
-    r0 = so3.project(np.einsum("kij,klj->il", anchor, rel))                   # argmin sum |anchor_k - R_0 rel_k|
-    return r0 @ rel
+    r0 = so3.project(np.einsum("kij,klj->il", anchor, rel))           # argmin sum |anchor_k - R_0 rel_k|
+    return np.asarray(r0 @ rel, dtype=np.float64)

@@ -1,5 +1,6 @@
 """What a log leaves undetermined: Fisher-information condition number, poorly observable parameters and the
-manoeuvre that would fix them (findings), or an InsufficientDataError when the motion determines nothing useful.
+manoeuvre that would fix them (findings), or an InsufficientDataError when the motion determines nothing
+useful.
 
 Works on the marginal covariance of theta = (b_a, b_g, vec D, o, dip) in SI (the joint MAP layout).
 """
@@ -24,13 +25,14 @@ SINGULAR_CONDITION = 1e14
 #: a parameter whose variance correlation inflates more than this (std x ~30) is confounded with others
 CONFOUNDED_VIF = 1e3
 
-TILT_ADVICE = ("tilt the vehicle through large pitch and roll angles -- on each side and, if possible, upside "
-               "down -- so that gravity and the field are seen along every body axis")
+TILT_ADVICE = ("tilt the vehicle through large pitch and roll angles -- on each side and, if possible, "
+               "upside down -- so that gravity and the field are seen along every body axis")
 ROTATE_ADVICE = ("rotate the vehicle about all three axes so that the field sweeps the whole sphere of body "
-                 "directions; a flat, yaw-only recording cannot separate the hard-iron offset along the vertical "
-                 "axis from the soft-iron column of that axis")
+                 "directions; a flat, yaw-only recording cannot separate the hard-iron offset along the "
+                 "vertical axis from the soft-iron column of that axis")
 GYRO_ADVICE = "record for longer, or hold the vehicle still for a few seconds at the start and at the end"
-DIP_ADVICE = "tilt the vehicle, or give --location and --date so that the dip starts from the World Magnetic Model"
+DIP_ADVICE = ("tilt the vehicle, or give --location and --date so that the dip starts from the World "
+              "Magnetic Model")
 
 
 class Group(NamedTuple):
@@ -51,10 +53,11 @@ class Group(NamedTuple):
 GROUPS = (
     Group(slice(0, 3), "accelerometer bias", 0.05, 2.0, False, TILT_ADVICE, "m/s^2", 1.0),
     Group(slice(3, 6), "gyroscope bias", 1e-3, 0.05, False, GYRO_ADVICE, "deg/s", float(np.degrees(1.0))),
-    Group(slice(6, 15), "soft-iron/misalignment matrix D", 0.02, 0.5, True, ROTATE_ADVICE, "% of the field", 100.0),
+    Group(slice(6, 15), "soft-iron/misalignment matrix D", 0.02, 0.5, True, ROTATE_ADVICE, "% of the field",
+          100.0),
     Group(slice(15, 18), "hard-iron offset o", 0.02, 0.5, True, ROTATE_ADVICE, "% of the field", 100.0),
-    Group(slice(18, 19), "dip angle", float(np.deg2rad(1.0)), float(np.deg2rad(20.0)), False, DIP_ADVICE, "deg",
-          float(np.degrees(1.0))),
+    Group(slice(18, 19), "dip angle", float(np.deg2rad(1.0)), float(np.deg2rad(20.0)), False, DIP_ADVICE,
+          "deg", float(np.degrees(1.0))),
 )
 
 
@@ -90,10 +93,11 @@ def _advice(groups: list[Group]) -> str:
     return "; ".join(a for a in order if any(g.advice == a for g in groups)) + "."
 
 
-def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: str) -> tuple[float, list[Finding]]:
+def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: str
+                        ) -> tuple[float, list[Finding]]:
     """Condition number and findings for a 19x19 covariance; raises when the log cannot determine theta."""
     tilt = tilt_spread_deg(acc)
-    flat = f" (the measured vertical stayed within {tilt:.0f} deg of its mean direction)" if tilt < 45.0 else ""
+    flat = f" (the measured vertical stayed within {tilt:.0f} deg of its mean direction)" if tilt < 45 else ""
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0.0):
         msg = (f"{where}: the motion in this log cannot determine the calibration (the information matrix is "
                f"singular){flat}. To fix: {_advice(list(GROUPS[2:4]))}")
@@ -121,13 +125,14 @@ def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: s
         f"{where}: the Fisher information of the 19 calibration parameters has condition number "
         f"{condition:.3g} (scaled to unit diagonal); the most confounded parameter is {NAMES[worst]} "
         f"(variance inflation {vif[worst]:.3g}).",
-        {"condition_number": condition, "max_variance_inflation": float(vif[worst]), "parameter": NAMES[worst],
-         "tilt_spread_deg": tilt})]
+        {"condition_number": condition, "max_variance_inflation": float(vif[worst]),
+         "parameter": NAMES[worst], "tilt_spread_deg": tilt})]
     for g, rel in poor:
         names = list(NAMES[g.sl])
         findings.append(Finding(
             Severity.WARNING, "poorly_observable",
-            f"{where}: this log leaves the {g.label} poorly determined{flat}: std {_fmt(rel, names, g.unit, g.display)}"
+            f"{where}: this log leaves the {g.label} poorly determined{flat}: std "
+            f"{_fmt(rel, names, g.unit, g.display)}"
             f", variance inflated up to {vif[g.sl].max():.3g}x by correlation with other parameters. "
             f"To fix: {g.advice}.",
             {"parameters": names, "std": [float(x) for x in std[g.sl]], "threshold": g.poor,

@@ -164,13 +164,12 @@ def selected_inverse(diag: FloatArray, off: FloatArray) -> tuple[FloatArray, Flo
 
     The forward pivots F_k (A_kk minus what states < k contribute) are the Gram matrices of the diagonal
     blocks of A's banded Cholesky factor; the backward pivots G_k come from factoring A with its block order
-    reversed. The
-    marginal of states (k, k+1) is then [[F_k, A_k,k+1], [A_k+1,k, G_k+1]]^-1 (a 6x6 inverse per pair), and a
-    single state's is (F_k + G_k - A_kk)^-1 -- two LAPACK factorisations, no sequential Python loop.
+    reversed. The marginal of states (k, k+1) is then [[F_k, A_k,k+1], [A_k+1,k, G_k+1]]^-1 (a 6x6 inverse per
+    pair): two LAPACK factorisations, no sequential Python loop.
     """
     n = diag.shape[0]
     if n == 1:
-        return np.linalg.inv(diag), np.zeros((0, 3, 3))
+        return np.asarray(np.linalg.inv(diag), dtype=np.float64), np.zeros((0, 3, 3))
     fwd = _pivots(diag, off)
     bwd = _pivots(diag[::-1], off[::-1].transpose(0, 2, 1))[::-1]
     pair = np.empty((n - 1, 6, 6))

@@ -50,7 +50,7 @@ def _load_mat(path: Path) -> dict[str, Any]:
 
 
 class BroadReader:
-    """Reads a BROAD trial: IMU `imu` (accelerometer + gyro), magnetometer `mag`, mocap attitude `opt_quat`."""
+    """Reads a BROAD trial: IMU `imu` (accelerometer + gyro), magnetometer `mag`, mocap `opt_quat`."""
 
     name: ClassVar[str] = "broad"
 
@@ -59,12 +59,13 @@ class BroadReader:
         try:
             data = _load_hdf5(path) if path.read_bytes()[:8] == b"\x89HDF\r\n\x1a\n" else _load_mat(path)
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            msg = f"{path}: cannot read it as a BROAD HDF5/MAT trial ({type(exc).__name__}: {exc}). Re-copy the file"
+            msg = (f"{path}: cannot read it as a BROAD HDF5/MAT trial ({type(exc).__name__}: {exc}). "
+                   "Re-copy the file")
             raise LogReadError(msg) from None
         missing = [k for k in REQUIRED if k not in data]
         if missing:
-            msg = (f"{path}: an HDF5/MAT file without the BROAD datasets {', '.join(missing)}; magcal reads HDF5 "
-                   "and MAT files only in the BROAD layout (imu_acc, imu_gyr, imu_mag, sampling_rate)")
+            msg = (f"{path}: an HDF5/MAT file without the BROAD datasets {', '.join(missing)}; magcal reads "
+                   "HDF5 and MAT files only in the BROAD layout (imu_acc, imu_gyr, imu_mag, sampling_rate)")
             raise UnsupportedFormatError(msg)
         rate = float(data.get("sampling_rate", 0.0))
         if not rate > 0.0:
@@ -81,8 +82,8 @@ class BroadReader:
             tt, vv, nn = clean_time(t, values, f"{path.name}#{key}")
             notes += nn
             if kind is Kind.MAGNETOMETER:
-                # BROAD resampled the slower magnetometer onto the IMU clock, repeating readings: a repeat is a
-                # stale value stamped late, so keep only readings that changed
+                # BROAD resampled the slower magnetometer onto the IMU clock, repeating readings: a repeat
+                # is a stale value stamped late, so keep only readings that changed
                 fresh = np.concatenate([[True], np.any(vv[1:] != vv[:-1], axis=1)])
                 if not fresh.all():
                     notes.append(f"{path.name}#{key}: dropped {int((~fresh).sum())} readings that repeat the "
@@ -97,6 +98,6 @@ class BroadReader:
                 streams.append(Stream(Kind.ATTITUDE, "opt_quat", t[ok], so3.as_quat(rot),
                                       f"{path.name}#opt_quat", "1"))
                 if not ok.all():
-                    notes.append(f"{path.name}#opt_quat: motion capture lost the board in {int((~ok).sum())} of "
-                                 f"{n} samples")
+                    notes.append(f"{path.name}#opt_quat: motion capture lost the board in "
+                                 f"{int((~ok).sum())} of {n} samples")
         return Recording(path, "broad", tuple(streams), 0.0, {}, tuple(notes))
