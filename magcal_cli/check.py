@@ -201,7 +201,7 @@ def _residual_metrics(c: CompassCheck, f: Flown, rec: Recording, mask: npt.NDArr
 
 
 def _change(c: CompassCheck, f: Flown, cal: Calibration, vehicle: dict[str, float], mask: npt.NDArray[np.bool_],
-            lev: FloatArray) -> None:
+            lev: FloatArray, keep: npt.NDArray[np.bool_]) -> None:
     """Heading change a new calibration brings, as the firmware would hold it (its export split)."""
     new = cal.magnetometer(f.id)
     to_flown = units.to_si(new.unit) * units.from_si(f.unit)
@@ -211,7 +211,11 @@ def _change(c: CompassCheck, f: Flown, cal: Calibration, vehicle: dict[str, floa
         c.details |= {"new_parameters": m.params, "new_export_lost": m.lost()}
     else:
         field_new = new.field_strength * to_flown * new.apply(f.raw / to_flown)
-    d = np.angle(np.exp(1j * (_headings(field_new[mask], lev) - _headings(f.field[mask], lev))))
+    # slow samples whose levelled field keeps a horizontal part: elsewhere a heading is not defined well
+    g = np.einsum("nij,nj->ni", lev, f.field[mask])
+    h = np.hypot(g[:, 0], g[:, 1])
+    use = keep & (h > 0.5 * np.median(h))
+    d = np.angle(np.exp(1j * (_headings(field_new[mask][use], lev[use]) - _headings(f.field[mask][use], lev[use]))))
     norm = np.linalg.norm(field_new, axis=1)
     c.metrics["heading_change_deg"] = float(np.rad2deg(np.max(np.abs(d))))
     c.details |= {"heading_change_rms_deg": float(np.rad2deg(np.sqrt(np.mean(d**2)))),
@@ -239,7 +243,7 @@ def check_recording(rec: Recording, conditions: tuple[gates.Condition, ...], *,
         _residual_metrics(c, f, rec, mask, lev)
         if new is not None and any(m.id == f.id for m in new.magnetometers):
             try:
-                _change(c, f, new, vehicle, mask, lev)
+                _change(c, f, new, vehicle, mask, lev, slow(rec, f.t[mask], MAX_RATE_DPS))
             except FirmwareError as exc:
                 c.missing["heading_change_deg"] = str(exc)
         else:

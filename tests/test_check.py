@@ -191,9 +191,10 @@ def test_check_cli_usage_errors() -> None:
 
 # --- real logs ---------------------------------------------------------------------------------------------
 
-#: WMM dip at each log's median GPS position and date (pygeomag): Canberra 2015, Massachusetts 2015-10-11
-WMM_DIP = {"log171.bin": -65.96, "2015-10-11_19-53-46.log": 66.6, "2015-10-11_19-59-09.log": 66.6,
-           "2015-10-11_20-17-22.log": 66.6}
+#: WMM dip at each log's median GPS position (pygeomag): Canberra (log171, 2015-06-01 assumed: no date in the
+#: log), Massachusetts on 2015-10-11
+WMM_DIP = {"log171.bin": -65.96, "2015-10-11_19-53-46.log": 67.36, "2015-10-11_19-59-09.log": 67.36,
+           "2015-10-11_20-17-22.log": 67.36}
 
 
 @pytest.mark.parametrize("name", sorted(WMM_DIP))

@@ -74,9 +74,15 @@ def _ardupilot(rec: Recording, mag: Stream, index: int, params: Mapping[str, flo
 
 
 def _px4(rec: Recording, mag: Stream, index: int, params: Mapping[str, float]) -> Flown:
-    """A sensor_mag[i] stream corrected with the CAL_MAGn_* slot whose ID is its device id."""
-    n, dev, _ = px4.slot_of(mag.id, index, params, None)
+    """A sensor_mag[i] stream corrected with the CAL_MAGn_* slot whose ID is its device id.
+
+    Other streams (sensor_combined, vehicle_magnetometer, legacy px4log IMU.Mag) hold the field the firmware
+    already corrected (docs/readers-px4.md, readers-ardupilot.md): they are taken as flown.
+    """
     raw = mag.xyz * units.from_si(px4.UNIT)
+    if rec.format == "px4log" or not re.fullmatch(r"sensor_mag\[\d\]", mag.id):
+        return Flown(mag.id, px4.UNIT, mag.t, raw, raw, "as logged (firmware-corrected)", None, None)
+    n, dev, _ = px4.slot_of(mag.id, index, params, None)
     typ = int(params.get("CAL_MAG_COMP_TYP", 0))
     signal = signal_at(rec, Kind.THROTTLE if typ == 1 else Kind.BATTERY_CURRENT, mag.t) if typ else None
     prio = params.get(f"CAL_MAG{n}_PRIO")

@@ -30,6 +30,7 @@ FloatArray = npt.NDArray[np.float64]
 #: weak priors (field-strength units, rad) that keep directions the flight leaves unobserved finite
 PRIOR_S, PRIOR_C0, PRIOR_Q = 0.3, 1.0, 0.2
 MIN_SAMPLES = 50
+MAX_SAMPLES = 3000
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,6 +97,10 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
     """
     c = np.asarray(c, dtype=np.float64)
     lev = np.asarray(level, dtype=np.float64)
+    step = max(1, c.shape[0] // MAX_SAMPLES)          # long logs: every step-th sample keeps the fit fast
+    c, lev = c[::step], lev[::step]
+    if signal is not None:
+        signal = np.asarray(signal, dtype=np.float64)[::step]
     if c.shape[0] < MIN_SAMPLES:
         msg = f"{c.shape[0]} samples with attitude; the residual fit needs at least {MIN_SAMPLES}"
         raise InsufficientDataError(msg)
@@ -109,10 +114,12 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
     theta0 = np.concatenate([np.zeros(10), np.zeros(3) if with_k else [],
                              [np.median(np.hypot(g0[:, 0], g0[:, 1])), np.median(g0[:, 2])]])
     args = (cn, lev, sn, with_k)
-    first = least_squares(_residuals, theta0, args=(*args, 0.01), loss="soft_l1", f_scale=3.0, x_scale="jac", tr_solver="lsmr")
+    first = least_squares(_residuals, theta0, args=(*args, 0.01), loss="soft_l1", f_scale=3.0, x_scale="jac",
+                          tr_solver="lsmr", max_nfev=200)
     n = c.shape[0]
     sigma = float(np.sqrt(np.mean(first.fun[: 2 * n] ** 2))) * 0.01 or 1e-6
-    fit = least_squares(_residuals, first.x, args=(*args, sigma), loss="soft_l1", f_scale=3.0, x_scale="jac", tr_solver="lsmr")
+    fit = least_squares(_residuals, first.x, args=(*args, sigma), loss="soft_l1", f_scale=3.0, x_scale="jac",
+                          tr_solver="lsmr", max_nfev=200)
     jac = fit.jac
     cov = np.linalg.pinv(jac.T @ jac)
     lo, hi = float(sn.min()), float(sn.max())
