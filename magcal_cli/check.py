@@ -234,6 +234,9 @@ def check_recording(rec: Recording, conditions: tuple[gates.Condition, ...], *,
         raise FirmwareError(msg)
     vehicle = dict(rec.params) if params is None else params
     report = CheckReport(str(rec.path), source, "", conditions, [])
+    if params is None and calibration is None and any("changed during the log" in n for n in rec.notes):
+        report.notes.append("compass parameters changed during the log; the check applies their last values to "
+                            "every sample (cut the log with the reader's notes in mind)")
     for f in flown:
         c = CompassCheck(f.id, f.unit, f.slot, f.used, len(f.t))
         norm = np.linalg.norm(f.field, axis=1)

@@ -111,6 +111,14 @@ def test_what_cannot_be_measured_fails_a_gate_and_says_why() -> None:
     assert c.failed[1] == "heading_change_deg>1 (not measured: no new calibration)"
 
 
+def test_a_parameter_change_during_the_log_is_said() -> None:
+    fl = flight(0)
+    rec = replace(fl.recording, notes=("MAG[0]: ...; OFS changed during the log; the values in force ...",))
+    assert check_recording(rec, GATE).notes == [
+        "compass parameters changed during the log; the check applies their last values to every sample (cut the "
+        "log with the reader's notes in mind)"]
+
+
 def test_heading_gap() -> None:
     assert heading_gap_deg(np.deg2rad(np.arange(0, 360, 1.0))) == 0.0
     assert heading_gap_deg(np.deg2rad(np.repeat([10.0, 100.0, 190.0, 280.0], 5))) == 80.0

@@ -14,5 +14,9 @@ class FirmwareError(MagcalError):
     """A calibration cannot be written as firmware parameters (slot, rotation, unit or document problem)."""
 
 
-class FirmwareLimitError(FirmwareError):
+class NotExportableError(FirmwareError):
+    """One magnetometer cannot be exported (its values or its data); `fit`'s writers leave it out and say so."""
+
+
+class FirmwareLimitError(NotExportableError):
     """An exported value lies outside what the firmware accepts; the message names the parameter and limit."""

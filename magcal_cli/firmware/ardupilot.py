@@ -18,7 +18,7 @@ import numpy.typing as npt
 from .. import so3
 from ..calibration import Calibration, MagCalibration
 from ..readers.dataflash_mag import param_suffix
-from . import FirmwareError, FirmwareLimitError, rotations
+from . import FirmwareError, NotExportableError, rotations
 from .effects import accepted
 from .export import Collected, Export, MagExport, Options, check_limits, correction, select_mags, soft_range
 from .split import choose_rotation, split_rotation_first
@@ -205,7 +205,7 @@ def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Opt
     for i, mag in enumerate(mags):
         try:
             exp, integers, kind = _export_one(cal, mag, i, params, options, custom_free)
-        except FirmwareLimitError as exc:
+        except NotExportableError as exc:
             if not options.skip_refused or len(mags) == 1:
                 raise
             acc.warnings.append(f"{mag.id} not exported: {exc}")
@@ -215,7 +215,7 @@ def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Opt
             kinds[mag.id] = kind
     if not acc.mags:
         msg = "; ".join(acc.warnings)
-        raise FirmwareLimitError(msg)
+        raise NotExportableError(msg)
     if kinds:
         kind = "current" if "current" in kinds.values() else "throttle"
         dropped = [m for m, k in kinds.items() if k != kind]

@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from .. import so3
 from ..calibration import Calibration, MagCalibration
-from . import FirmwareError, FirmwareLimitError, rotations
+from . import FirmwareError, NotExportableError, rotations
 from .effects import accepted
 from .export import Collected, Export, MagExport, Options, check_limits, correction, select_mags, soft_range
 from .split import choose_rotation, split_symmetric_first
@@ -90,6 +90,11 @@ def slot_of(mag_id: str, position: int, params: Mapping[str, float], requested: 
 def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Mapping[str, float],
                 options: Options) -> tuple[MagExport, set[str], str | None]:
     """One magnetometer: its parameters, the integer-valued names and the interference kind it needs."""
+    if cal.source.format in ("ulog", "px4log") and not re.fullmatch(r"sensor_mag\[\d\]", mag.id):
+        msg = (f"export {mag.id} (PX4): this field was already corrected by the firmware (no raw sensor_mag in the "
+               "log), so its calibration is relative to the parameters flown and cannot be written as CAL_MAG "
+               "parameters. Log sensor_mag (SDLOG_PROFILE) and calibrate again")
+        raise NotExportableError(msg)
     n, dev, notes = slot_of(mag.id, position, params, options.slot)
     A, o, k = correction(mag, UNIT)
     p = f"CAL_MAG{n}_"
@@ -157,7 +162,7 @@ def export_px4(cal: Calibration, params: Mapping[str, float], options: Options |
     for i, mag in enumerate(mags):
         try:
             exp, integers, kind = _export_one(cal, mag, i, params, options)
-        except FirmwareLimitError as exc:
+        except NotExportableError as exc:
             if not options.skip_refused or len(mags) == 1:
                 raise
             acc.warnings.append(f"{mag.id} not exported: {exc}")
@@ -173,7 +178,7 @@ def export_px4(cal: Calibration, params: Mapping[str, float], options: Options |
             kinds[mag.id] = kind
     if not acc.mags:
         msg = "; ".join(acc.warnings)
-        raise FirmwareLimitError(msg)
+        raise NotExportableError(msg)
     if kinds:
         kind = "current" if "current" in kinds.values() else "throttle"
         for mag_id, n in slots.items():

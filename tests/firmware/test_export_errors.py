@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Source
-from magcal_cli.firmware import FirmwareError, FirmwareLimitError
+from magcal_cli.firmware import FirmwareError, FirmwareLimitError, NotExportableError
 from magcal_cli.firmware.export import Options, export
 
 F = 500.0
@@ -100,7 +100,7 @@ def test_fit_writers_leave_out_refused_compasses_and_say_so() -> None:
     exp = export(cal, "ardupilot", {}, Options(skip_refused=True))
     assert [m.mag_id for m in exp.mags] == ["MAG[0]"]
     assert any(w.startswith("MAG[1] not exported: export MAG[1] (ArduPilot)") for w in exp.warnings)
-    with pytest.raises(FirmwareLimitError, match=r"MAG\[1\] not exported: .*; MAG\[2\] not exported"):
+    with pytest.raises(NotExportableError, match=r"MAG\[1\] not exported: .*; MAG\[2\] not exported"):
         export(doc("MAG[1]", "MAG[2]", o=(2500.0, 0, 0)), "ardupilot", {}, Options(skip_refused=True))
 
 
@@ -180,3 +180,15 @@ def test_effect_units_are_converted() -> None:
          "units": {"c": "microtesla/ampere"}}
     exp = export(doc("MAG[0]", effects=(e,)), "ardupilot", {"COMPASS_EXTERNAL": 1})
     assert exp.params["COMPASS_MOT_X"] == pytest.approx(-10.0)
+
+
+def test_a_field_px4_already_corrected_is_not_exported() -> None:
+    """sensor_combined in a ULog (or a legacy .px4log) holds the corrected field: no CAL_MAG parameters."""
+    from dataclasses import replace
+
+    cal = replace(doc("sensor_combined", "sensor_mag[1]"), source=Source("f.ulg", "ulog", "", 0, 1))
+    with pytest.raises(NotExportableError, match=r"export sensor_combined \(PX4\): this field was already "
+                                                 r"corrected by the firmware \(no raw sensor_mag in the log\)"):
+        export(cal, "px4", {}, Options(), ["sensor_combined"])
+    exp = export(cal, "px4", {}, Options(skip_refused=True))
+    assert [m.mag_id for m in exp.mags] == ["sensor_mag[1]"]
