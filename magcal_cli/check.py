@@ -215,6 +215,9 @@ def _change(c: CompassCheck, f: Flown, cal: Calibration, vehicle: dict[str, floa
     g = np.einsum("nij,nj->ni", lev, f.field[mask])
     h = np.hypot(g[:, 0], g[:, 1])
     use = keep & (h > 0.5 * np.median(h))
+    if not use.any():
+        c.missing["heading_change_deg"] = f"no samples turning slower than {MAX_RATE_DPS:g} deg/s"
+        return
     d = np.angle(np.exp(1j * (_headings(field_new[mask][use], lev[use]) - _headings(f.field[mask][use], lev[use]))))
     norm = np.linalg.norm(field_new, axis=1)
     c.metrics["heading_change_deg"] = float(np.rad2deg(np.max(np.abs(d))))

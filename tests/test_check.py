@@ -137,7 +137,8 @@ def test_errors() -> None:
         check_recording(no_att, GATE)
     short = flight(0, n=40, rate=2.0, turns=1.0)
     c = check_recording(short.recording, GATE).compasses[0]
-    assert "40 samples with attitude; the residual fit needs at least 50" in c.missing["heading_error_deg"]
+    assert "40 usable samples (with attitude, turning slowly); the residual fit needs at least 50" in c.missing[
+        "heading_error_deg"]
 
 
 def test_gravity_levels_when_there_is_no_attitude() -> None:

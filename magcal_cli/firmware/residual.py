@@ -102,7 +102,8 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
     if signal is not None:
         signal = np.asarray(signal, dtype=np.float64)[::step]
     if c.shape[0] < MIN_SAMPLES:
-        msg = f"{c.shape[0]} samples with attitude; the residual fit needs at least {MIN_SAMPLES}"
+        msg = (f"{c.shape[0]} usable samples (with attitude, turning slowly); the residual fit needs at least "
+               f"{MIN_SAMPLES}")
         raise InsufficientDataError(msg)
     f0 = float(np.median(np.linalg.norm(c, axis=1)))
     cn = c / f0
