@@ -374,12 +374,21 @@ def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, so
     theta = sol.theta * jac
     theta[BG:BG + 3] += pre.bias
     cov = sol.cov_theta * np.outer(jac, jac)
+    states = sol.states
+    dip = float(theta[LAYOUT.dip])
+    if abs(dip) > np.pi / 2:
+        # (dip, R_k) and (pi - dip, Rz(pi) R_k) explain the data alike (north is only fixed by m_n): report
+        # the representative with |dip| <= 90 deg; d dip'/d dip = -1 flips the dip's covariances
+        theta[LAYOUT.dip] = float(np.angle(np.exp(1j * (np.pi - dip))))
+        states = so3.exp([0.0, 0.0, np.pi]) @ states
+        cov[LAYOUT.dip, :] *= -1.0
+        cov[:, LAYOUT.dip] *= -1.0
     fm = sol.factors[1]
     resid = fm.r * noise.mag * s
     noise_si = Noise(noise.acc, noise.gyr, noise.mag * s)
     where = f"{problem.where}: {ep.mag_id}"
     condition, findings = check_observability(cov, s, ep.acc, where)
-    return MapEstimate(ep.mag_id, theta, cov, noise_si, sol.states, ep.t, sol.cost, iters, sol.converged,
+    return MapEstimate(ep.mag_id, theta, cov, noise_si, states, ep.t, sol.cost, iters, sol.converged,
                        float(np.sqrt(np.mean(resid**2))), log, tuple(findings), notes, condition)
 
 

@@ -51,11 +51,11 @@ class Group(NamedTuple):
 
 
 GROUPS = (
-    Group(slice(0, 3), "accelerometer bias", 0.05, 2.0, False, TILT_ADVICE, "m/s^2", 1.0),
+    Group(slice(0, 3), "accelerometer bias", 0.05, 1.0, False, TILT_ADVICE, "m/s^2", 1.0),
     Group(slice(3, 6), "gyroscope bias", 1e-3, 0.05, False, GYRO_ADVICE, "deg/s", float(np.degrees(1.0))),
-    Group(slice(6, 15), "soft-iron/misalignment matrix D", 0.02, 0.5, True, ROTATE_ADVICE, "% of the field",
+    Group(slice(6, 15), "soft-iron/misalignment matrix D", 0.02, 0.1, True, ROTATE_ADVICE, "% of the field",
           100.0),
-    Group(slice(15, 18), "hard-iron offset o", 0.02, 0.5, True, ROTATE_ADVICE, "% of the field", 100.0),
+    Group(slice(15, 18), "hard-iron offset o", 0.02, 0.1, True, ROTATE_ADVICE, "% of the field", 100.0),
     Group(slice(18, 19), "dip angle", float(np.deg2rad(1.0)), float(np.deg2rad(20.0)), False, DIP_ADVICE,
           "deg", float(np.degrees(1.0))),
 )
