@@ -122,13 +122,22 @@ def _fmt(value: float | None, std: float | None = None, digits: int = 2) -> str:
     return f"{value:.{digits}f}" + (f" +- {std:.{digits}f}" if std is not None else "")
 
 
+def _typical(c: CompassCheck) -> str:
+    """' (x at the median current)' when interference was fitted, else nothing."""
+    at = c.details.get("interference_at")
+    if at is None:
+        return ""
+    what = "current" if at.endswith(" A") else "throttle"
+    return f" ({c.details['heading_error_at_median_signal_deg']:.2f} at the median {what})"
+
+
 def _describe(c: CompassCheck) -> list[str]:
     """Human lines for one compass's numbers."""
     m, d = c.metrics, c.details
     out = [f"field-norm consistency {_fmt(m.get('field_norm_rms_pct'))} % RMS over {c.samples} samples"]
     if m.get("heading_error_deg") is not None:
         out.append(f"heading error (level, worst heading) {_fmt(m['heading_error_deg'], m['heading_error_std_deg'])}"
-                   f" deg; residual offset {_fmt(m.get('residual_offset_pct'))} % of the field "
+                   f" deg{_typical(c)}; residual offset {_fmt(m.get('residual_offset_pct'))} % of the field "
                    f"{d.get('field_strength', float('nan')):.4g} {c.unit}, dip {d.get('dip_deg', float('nan')):.1f}"
                    " deg")
     else:
@@ -189,7 +198,8 @@ def _residual_metrics(c: CompassCheck, f: Flown, rec: Recording, mask: npt.NDArr
     c.metrics |= {"heading_error_deg": r.heading_error_deg, "heading_error_std_deg": r.heading_error_std_deg,
                   "residual_offset_pct": float(100.0 * np.linalg.norm(r.c0) / r.field_strength),
                   "interference_pct": r.interference_pct}
-    c.details |= {"field_strength": r.field_strength, "dip_deg": r.dip_deg, "residual_offset": r.c0.tolist(),
+    c.details |= {"heading_error_at_median_signal_deg": r.heading_error_median_deg, "residual_tilt_deg": r.tilt_deg,
+                  "field_strength": r.field_strength, "dip_deg": r.dip_deg, "residual_offset": r.c0.tolist(),
                   "residual_soft_iron": r.S.tolist(), "residual_fit_rms_pct": r.rms_pct}
     if r.interference_pct is None:
         c.missing["interference_pct"] = "no battery current or throttle that varies in the log"

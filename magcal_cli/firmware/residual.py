@@ -48,6 +48,7 @@ class Residual:
     rms_pct: float
     heading_error_deg: float
     heading_error_std_deg: float
+    heading_error_median_deg: float             # at the median current or throttle of the samples
     interference_pct: float | None
     interference_std_pct: float | None
 
@@ -144,5 +145,7 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
     rms = float(100.0 * np.sqrt(np.mean((fit.fun[: 2 * n] * sigma) ** 2)) / F)
     S = so3.polar(E)[1] - np.eye(3)
     tilt = (float(np.rad2deg(fit.x[5])), float(np.rad2deg(fit.x[6])))
+    typical = float(np.median(sn))
     return Residual(S, tilt, c0 * f0, k * f0 / s_scale if with_k else None, H * f0, Z * f0,
-                    (lo * s_scale, hi * s_scale), n, rms, he, he_std, inter, inter_std)
+                    (lo * s_scale, hi * s_scale), n, rms, he, he_std, _heading(fit.x, with_k, typical, typical),
+                    inter, inter_std)
