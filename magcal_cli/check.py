@@ -34,7 +34,7 @@ METRICS = {
     "field_norm_rms_pct": "RMS deviation of the flown field's magnitude from its median, in %",
     "heading_error_deg": "worst level heading error the flown calibration leaves (residual iron and interference)",
     "heading_error_std_deg": "standard deviation of heading_error_deg",
-    "interference_pct": "residual interference at the log's peak current (or full throttle), % of the field",
+    "interference_pct": "residual interference at the log's peak current (or throttle), % of the field",
     "residual_offset_pct": "residual hard iron left by the flown calibration, % of the field",
     "heading_change_deg": "largest heading change over the flight a new magcal calibration would bring",
 }
@@ -201,13 +201,13 @@ def _residual_metrics(c: CompassCheck, f: Flown, rec: Recording, mask: npt.NDArr
     c.details |= {"heading_error_at_median_signal_deg": r.heading_error_median_deg, "residual_tilt_deg": r.tilt_deg,
                   "field_strength": r.field_strength, "dip_deg": r.dip_deg, "residual_offset": r.c0.tolist(),
                   "residual_soft_iron": r.S.tolist(), "residual_fit_rms_pct": r.rms_pct}
+    peak = max(abs(v) for v in r.signal_range)
     if r.interference_pct is None:
         c.missing["interference_pct"] = "no battery current or throttle that varies in the log"
     else:
         c.details |= {"interference_std_pct": r.interference_std_pct,
                       "interference_per_unit": None if r.k is None else r.k.tolist(),
-                      "interference_at": (f"{max(abs(v) for v in r.signal_range):.1f} A" if what == "A"
-                                          else "full throttle")}
+                      "interference_at": (f"{peak:.1f} A" if what == "A" else f"throttle {peak:.2f}")}
 
 
 def _change(c: CompassCheck, f: Flown, cal: Calibration, vehicle: dict[str, float], mask: npt.NDArray[np.bool_],

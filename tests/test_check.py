@@ -111,6 +111,20 @@ def test_what_cannot_be_measured_fails_a_gate_and_says_why() -> None:
     assert c.failed[1] == "heading_change_deg>1 (not measured: no new calibration)"
 
 
+def test_throttle_stands_in_for_a_missing_current() -> None:
+    """No battery current but throttle proportional to it: the same interference, reported at that throttle."""
+    from magcal_cli.streams import Stream
+
+    fl = flight(0)
+    bat = fl.recording.select(Kind.BATTERY_CURRENT)
+    thr = Stream(Kind.THROTTLE, "CTUN", bat.t, bat.values[:, 0] / 20.0, "sim#CTUN", "1")
+    rec = replace(fl.recording, streams=tuple(s for s in fl.recording.streams if s is not bat) + (thr,))
+    c = check_recording(rec, GATE).compasses[0]
+    assert c.metrics["interference_pct"] == pytest.approx(fl.interference_pct(), abs=0.3)
+    assert c.details["interference_at"] == f"throttle {bat.values.max() / 20:.2f}"
+    assert "at the median throttle" in check_recording(rec, GATE).to_text()
+
+
 def test_a_parameter_change_during_the_log_is_said() -> None:
     fl = flight(0)
     rec = replace(fl.recording, notes=("MAG[0]: ...; OFS changed during the log; the values in force ...",))
