@@ -102,7 +102,6 @@ class MapEstimate:
     findings: tuple[Finding, ...] = ()
     notes: tuple[str, ...] = ()
     condition: float = float("nan")
-    extra: dict[str, float] = field(default_factory=dict)
 
     @property
     def std(self) -> FloatArray:
@@ -136,11 +135,6 @@ def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MA
     w = np.clip((t - t_imu[j]) / (t_imu[j + 1] - t_imu[j]), 0.0, 1.0)
     factor = np.sqrt((1.0 - w) ** 2 + w**2)        # std of (1-w) a_j + w a_j+1 relative to one sample's
     return Epochs(mag.id, t, mag.xyz[index] / scale, acc, factor, scale, tuple(notes), index)
-
-
-def replace_values(stream: Stream, values: FloatArray) -> Stream:
-    """The stream with other values (same times, id and provenance)."""
-    return Stream(stream.kind, stream.id, stream.t, values, stream.source, stream.native_unit)
 
 
 def _scaled(f: Factor, s: FloatArray) -> Factor:
@@ -216,8 +210,7 @@ def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
 
     The plain update x += f converges linearly with rate 1 + slope, slowly for the weakly determined gyro
     level; a secant step on f(x) = 0 (slope clipped to [-1, -0.1], so at most 10 plain steps) converges in a
-    few rounds.
-    The first step assumes the slope the paper protocol shows from below (about -0.65).
+    few rounds. The first step assumes the slope the paper protocol shows from below (FIRST_GYRO_SLOPE).
     """
     slope = FIRST_GYRO_SLOPE
     if history:
