@@ -71,6 +71,40 @@ def common_window(*streams: Stream) -> tuple[float, float]:
     return start, end
 
 
+#: a time step larger than this many median sample periods (and than JUMP_MIN_S) is a jump, not jitter
+JUMP_PERIODS, JUMP_MIN_S = 100.0, 1.0
+
+
+def _time_faults(t: FloatArray, values: FloatArray, where: str) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Drop lone samples whose stamp lies far from both neighbours' (corrupt stamps), then, if the clock jumps
+    back (a reboot or clock reset), keep the longest part: sorting would interleave two recordings."""
+    if t.size < 3:
+        return t, values, []
+    d = np.diff(t)
+    pos = d[d > 0]
+    jump = max(JUMP_MIN_S, JUMP_PERIODS * float(np.median(pos))) if pos.size else JUMP_MIN_S
+    notes = []
+    far_prev = np.concatenate([[np.abs(t[1] - t[0]) > jump and np.abs(t[2] - t[1]) <= jump], np.abs(d) > jump])
+    far_next = np.concatenate([np.abs(d) > jump, [np.abs(t[-1] - t[-2]) > jump and np.abs(t[-2] - t[-3]) <= jump]])
+    bridged = np.concatenate([[True], np.abs(t[2:] - t[:-2]) <= jump, [True]])
+    lone = far_prev & far_next & bridged
+    if lone.any():
+        notes.append(f"{where}: dropped {int(lone.sum())} samples whose time stamp lies far from both neighbours' "
+                     "(corrupt time stamps)")
+        t, values = t[~lone], values[~lone]
+        d = np.diff(t)
+    back = np.flatnonzero(d < -jump)
+    if back.size:
+        bounds = np.concatenate([[0], back + 1, [t.size]])
+        k = int(np.argmax(np.diff(bounds)))
+        lo, hi = int(bounds[k]), int(bounds[k + 1])
+        notes.append(f"{where}: the clock jumps back {back.size} time{'s' * (back.size > 1)} (by up to "
+                     f"{float(-d[back].min()):.3g} s: a reboot or clock reset); kept the longest part, {hi - lo} of "
+                     f"{t.size} samples")
+        t, values = t[lo:hi], values[lo:hi]
+    return t, values, notes
+
+
 def clean_time(t: npt.ArrayLike, values: npt.ArrayLike, where: str) -> tuple[FloatArray, FloatArray, list[str]]:
     """Sort samples by time, drop exact duplicate stamps (keeping the first) and non-finite rows; say what was done.
 
@@ -84,6 +118,8 @@ def clean_time(t: npt.ArrayLike, values: npt.ArrayLike, where: str) -> tuple[Flo
     if not finite.all():
         notes.append(f"{where}: dropped {int((~finite).sum())} samples with NaN or inf")
         tt, values2 = tt[finite], values2[finite]
+    tt, values2, jumped = _time_faults(tt, values2, where)
+    notes += jumped
     if tt.size > 1 and np.any(np.diff(tt) < 0):
         notes.append(f"{where}: {int(np.sum(np.diff(tt) < 0))} timestamps went backwards; samples were sorted by time")
         order = np.argsort(tt, kind="stable")

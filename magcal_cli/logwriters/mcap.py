@@ -38,8 +38,8 @@ def _vec(v: np.ndarray) -> dict[str, float]:
     return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
 
 
-def write_mcap(sim: Simulation, path: Path) -> None:
-    """Write the simulation's IMU and magnetometer streams as ROS 2 CDR messages, zstd-compressed."""
+def write_mcap(sim: Simulation, path: Path, chunk_size: int = 1 << 20) -> None:
+    """Write the simulation's IMU and magnetometer streams as ROS 2 CDR messages in zstd chunks of `chunk_size` bytes."""
     from mcap_ros2.writer import Writer
 
     rec = sim.recording
@@ -50,7 +50,7 @@ def write_mcap(sim: Simulation, path: Path) -> None:
     events = [(t, 0, i) for i, t in enumerate(acc.t)] + [(t, 1, i) for i, t in enumerate(mag.t)]
     events.sort()
     with atomic_path(path) as tmp, tmp.open("wb") as fh:
-        writer = Writer(fh)
+        writer = Writer(fh, chunk_size=chunk_size)
         imu_schema = writer.register_msgdef("sensor_msgs/msg/Imu", IMU_MSGDEF)
         mag_schema = writer.register_msgdef("sensor_msgs/msg/MagneticField", MAG_MSGDEF)
         for seq, (t, which, i) in enumerate(events):

@@ -117,8 +117,8 @@ def messages(rec: Recording, builder: Builder) -> Iterator[tuple[int, str, str, 
         yield base + ns, topic, msgtype, builder.message(msgtype, parts, i, base + ns, seq)
 
 
-def write_bag(sim: Simulation, path: Path) -> None:
-    """ROS 1 bag (LZ4 chunks) of the simulation's streams; header stamp = receive time."""
+def write_bag(sim: Simulation, path: Path, chunk_size: int = 1 << 20) -> None:
+    """ROS 1 bag (LZ4 chunks of about `chunk_size` bytes) of the simulation's streams; header stamp = receive time."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -128,6 +128,7 @@ def write_bag(sim: Simulation, path: Path) -> None:
         tmp.unlink()                                      # rosbags refuses to overwrite the placeholder
         writer = Writer(tmp)
         writer.set_compression(Writer.CompressionFormat.LZ4)
+        writer.chunk_threshold = chunk_size
         with writer:
             conns = {top: writer.add_connection(top, mt, typestore=store) for top, mt, _ in topics(sim.recording)}
             for ns, top, mt, msg in messages(sim.recording, builder):

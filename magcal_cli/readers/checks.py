@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from ..streams import Kind
+
 FloatArray = npt.NDArray[np.float64]
 
 #: relative spread of |m| below which the field was normalised upstream; real sensors show >= 0.1 % noise
@@ -46,7 +48,75 @@ def drop_held(t: FloatArray, xyz: FloatArray, where: str) -> tuple[FloatArray, F
     same = np.concatenate([[False], np.all(xyz[1:] == xyz[:-1], axis=1)])
     if same.mean() < HELD_SHARE:
         return t, xyz, []
+    if same[1:].all():
+        return t, xyz, [f"{where}: all {len(t)} readings are identical; the sensor is stuck, disconnected or not "
+                        "sampled"]
     keep = ~same
     note = (f"{where}: {int(same.sum())} of {len(t)} readings repeat the previous one exactly (the source holds "
             f"its last value between updates); kept the {int(keep.sum())} that changed")
     return t[keep], xyz[keep], [note]
+
+
+#: readings beyond these magnitudes (SI) are not physical, so they are corrupt (e.g. a bit flip in a float's
+#: exponent): 10 T keeps fields normalised to 1 "tesla"; 2000 m/s^2 is 200 g; 200 rad/s is 11,000 deg/s
+PLAUSIBLE_SI = {Kind.MAGNETOMETER: 10.0, Kind.ACCELEROMETER: 2000.0, Kind.GYROSCOPE: 200.0}
+#: a range wall holds at least this many readings (and this share of them) to count as saturation
+SATURATED_MIN, SATURATED_SHARE = 10, 0.005
+#: ... and more than this many times the readings in the band just inside it (a pile-up, not a tail)
+SATURATED_PILEUP = 3.0
+
+
+def _walls(x: FloatArray) -> list[float]:
+    """The ends of one axis's range where readings pile up: the sensor's saturation values."""
+    lo, hi = float(np.min(x)), float(np.max(x))
+    span = hi - lo
+    if not span > 0:
+        return []
+    distinct = np.unique(x)
+    band = max(0.02 * span, 5.0 * float(np.min(np.diff(distinct))))
+    out = []
+    for wall, inside in ((hi, (x < hi) & (x >= hi - band)), (lo, (x > lo) & (x <= lo + band))):
+        at = int(np.count_nonzero(x == wall))
+        if at >= max(SATURATED_MIN, SATURATED_SHARE * x.size) and at > SATURATED_PILEUP * np.count_nonzero(inside):
+            out.append(wall)
+    return out
+
+
+def sensor_checks(kinds: tuple[Kind, ...], t: FloatArray, values: FloatArray,
+                  where: str) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Drop rows where a magnetometer, accelerometer or gyro (3 columns each, in `kinds` order) reads beyond
+    physical limits (corrupt values) or sits at a wall of its range (saturated: the true value is beyond it)."""
+    notes: list[str] = []
+    blocks = []
+    col = 0
+    for kind in kinds:
+        if kind in PLAUSIBLE_SI:
+            blocks.append((kind, slice(col, col + 3)))
+        col += kind.width
+    if not blocks or not len(t):
+        return t, values, notes
+    with np.errstate(all="ignore"):
+        bad = np.zeros(len(t), dtype=bool)
+        for kind, sl in blocks:
+            bad |= ~(np.abs(values[:, sl]) <= PLAUSIBLE_SI[kind]).all(axis=1)
+    if bad.any():
+        names = "/".join(k.value for k, _ in blocks)
+        notes.append(f"{where}: dropped {int(bad.sum())} {names} samples beyond physical limits (corrupt values)")
+        t, values = t[~bad], values[~bad]
+    if len(t) < 2 * SATURATED_MIN:
+        return t, values, notes
+    clipped = np.zeros(len(t), dtype=bool)
+    for kind, sl in blocks:
+        hits = []
+        for axis in range(3):
+            x = values[:, sl][:, axis]
+            for wall in _walls(x):
+                clipped |= x == wall
+                hits.append(f"{'xyz'[axis]} = {wall:.6g} {kind.si_unit}")
+        if hits:
+            notes.append(f"{where}: {kind.value} readings sit at the limit of the sensor's range ({', '.join(hits)}):"
+                         " it saturated there, so the true value is unknown")
+    if clipped.any():
+        notes.append(f"{where}: dropped the {int(clipped.sum())} saturated samples")
+        t, values = t[~clipped], values[~clipped]
+    return t, values, notes

@@ -19,7 +19,7 @@ from ..align import clean_time
 from ..errors import LogReadError, StreamError
 from ..streams import Kind, Recording, Stream
 from . import ReadOptions
-from .checks import drop_held, normalised_field, normalised_note
+from .checks import drop_held, normalised_field, normalised_note, sensor_checks
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -50,6 +50,8 @@ STREAMS: dict[str, tuple[Kind, str]] = {
     "current": (Kind.BATTERY_CURRENT, "battery"), "voltage": (Kind.BATTERY_VOLTAGE, "battery"),
     "throttle": (Kind.THROTTLE, "throttle"),
 }
+#: above this share of rows that do not parse, the file is malformed rather than damaged here and there
+BAD_ROW_SHARE = 0.01
 CANONICAL_HEADER = "t [s],gx [rad/s],gy [rad/s],gz [rad/s],ax [m/s^2],ay [m/s^2],az [m/s^2],mx [uT],my [uT],mz [uT]"
 _CELL = re.compile(r"\s*(?P<name>.*?)\s*(?:[\[(]\s*(?P<unit>[^\])]*?)\s*[\])])?\s*")
 
@@ -146,19 +148,64 @@ def fill_empty(body: str) -> str:
     return body + "nan" if body.endswith(",") else body
 
 
-def parse_table(body: str, first_line: int, where: str) -> FloatArray:
-    """The numeric rows; a bad cell or a short row is an error naming its line."""
+def parse_table(body: str, first_line: int, where: str, width: int, notes: list[str]) -> FloatArray:
+    """The numeric rows. Rows that do not parse (a cell that is not a number, a wrong number of cells) are
+    skipped and counted when they are few (corrupt data); when more than BAD_ROW_SHARE are, the file is not in
+    the expected form and the error names the first such line."""
     if not body.strip():
         return np.zeros((0, 0))
+    lines = fill_empty(body).splitlines()
     try:
-        return np.loadtxt(fill_empty(body).splitlines(), delimiter=",", ndmin=2, dtype=np.float64)
-    except ValueError as exc:
-        text = str(exc)
-        row = re.search(r"at row (\d+)", text)
-        line = f"line {first_line + int(row.group(1)) - ('columns changed' in text)}" if row else "a row"
-        what = text.split(" at row")[0].replace("float64", "a number")
-        msg = f"{where}: {line}: {what}. Fix or delete that row"
-        raise LogReadError(msg) from None
+        return np.loadtxt(lines, delimiter=",", ndmin=2, dtype=np.float64)
+    except ValueError:
+        pass
+    rows: list[list[float]] = []
+    bad: list[tuple[int, str]] = []
+    for k, line in enumerate(lines):              # only for a damaged file: find the rows that do not parse
+        if not line.strip():
+            continue
+        cells = line.split(",")
+        if len(cells) != width:
+            bad.append((k, f"the number of columns changed from {width} to {len(cells)}"))
+            continue
+        try:
+            rows.append([float(c) for c in cells])
+        except ValueError:
+            cell = next(c for c in cells if not _is_number(c))
+            bad.append((k, f"could not convert string {cell.strip()!r} to a number"))
+    if len(bad) > BAD_ROW_SHARE * (len(rows) + len(bad)):
+        msg = f"{where}: line {first_line + bad[0][0]}: {bad[0][1]}. Fix or delete that row"
+        raise LogReadError(msg)
+    notes.append(f"skipped {len(bad)} rows that do not parse (corrupt data; the first is line "
+                 f"{first_line + bad[0][0]}: {bad[0][1]})")
+    return np.array(rows, dtype=np.float64).reshape(-1, width)
+
+
+def _is_number(cell: str) -> bool:
+    """Whether float() reads the cell."""
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _cut_last_row(body: str, width: int, last_line: int, where: str, options: ReadOptions, notes: list[str]) -> str:
+    """The body without a last row cut off by the end of the file (no newline, too few cells): an error unless
+    --allow-truncated, as for every format (a cut inside the last number cannot be seen, as in any text log)."""
+    if not body or body.endswith("\n"):
+        return body
+    head, _, last = body.rpartition("\n")
+    cells = last.rstrip("\r").count(",") + 1
+    if cells >= width or not last.strip():
+        return body
+    if not options.allow_truncated:
+        msg = (f"{where}: the file ends inside a row (line {last_line} has {cells} of {width} cells): the log is "
+               "truncated. Re-copy the log, or pass --allow-truncated to use the complete rows")
+        raise LogReadError(msg)
+    notes.append(f"the file ends inside a row (line {last_line} has {cells} of {width} cells): the log is truncated; "
+                 "read the complete rows")
+    return head + "\n"
 
 
 class CsvReader:
@@ -170,10 +217,17 @@ class CsvReader:
         """Parse the header, the table, and build one stream per sensor (empty cells are no sample)."""
         where = str(path)
         try:
-            text = path.read_text(encoding="utf-8-sig")
-        except (OSError, UnicodeDecodeError) as exc:
-            msg = f"{where}: cannot read the CSV file ({exc}). Save it as UTF-8 text"
+            data = path.read_bytes()
+        except OSError as exc:
+            msg = f"{where}: cannot read the CSV file ({exc.strerror or exc}). Check the path and its permissions"
             raise LogReadError(msg) from None
+        try:
+            text = data.decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            text = data.decode("utf-8-sig", errors="replace")      # corrupt bytes: their rows will not parse
+            if "\ufffd" in text.split("\n", 1)[0] or text.count("\ufffd") > BAD_ROW_SHARE * text.count("\n"):
+                msg = f"{where}: cannot read the CSV file ({exc}). Save it as UTF-8 text"
+                raise LogReadError(msg) from None
         line_no, body = 1, text
         while True:
             header, sep, body = body.partition("\n")
@@ -189,7 +243,10 @@ class CsvReader:
             raise LogReadError(msg)
         cols, ignored = parse_header(header, where)
         by = _check_columns(cols, where)
-        table = parse_table(body, line_no + 1, where)
+        notes: list[str] = []
+        width = header.count(",") + 1
+        body = _cut_last_row(body, width, line_no + 1 + body.count("\n"), where, options, notes)
+        table = parse_table(body, line_no + 1, where, width, notes)
         if table.shape[0] == 0:
             msg = f"{where}: the CSV file has a header but no rows"
             raise LogReadError(msg)
@@ -197,7 +254,7 @@ class CsvReader:
             msg = (f"{where}: rows have {table.shape[1]} cells but the header names {header.count(',') + 1} "
                    "columns; make the header and the rows agree")
             raise LogReadError(msg)
-        notes = [f"ignored columns: {', '.join(ignored)}"] if ignored else []
+        notes[:0] = [f"ignored columns: {', '.join(ignored)}"] if ignored else []
         return self._recording(path, table, by, notes)
 
     @staticmethod
@@ -206,26 +263,36 @@ class CsvReader:
         tcol = by["time"][0]
         t_abs = table[:, tcol.index] * units.to_si(tcol.unit)
         t0 = float(np.nanmin(t_abs)) if np.isfinite(t_abs).any() else 0.0
+        imu = [f for f in by if f in ("accelerometer", "gyroscope")]         # one IMU: rows kept or dropped together
+        groups = ([imu] if imu else []) + [[f] for f in by if f != "time" and f not in imu]
         streams = []
-        for family, cs in by.items():
-            if family == "time":
-                continue
-            kind, sid = STREAMS[family]
-            vals = table[:, [c.index for c in cs]] * units.to_si(cs[0].unit)
-            where = f"{sid} {family}" if sid in ("imu", "battery") else sid
-            finite = np.isfinite(vals)
-            complete = np.all(finite, axis=1) & np.isfinite(t_abs)
-            partial = np.any(finite, axis=1) & ~complete
+        for families in groups:
+            kinds = tuple(STREAMS[f][0] for f in families)
+            sid = STREAMS[families[0]][1]
+            names = "/".join(families)
+            vals = np.concatenate([table[:, [c.index for c in by[f]]] * units.to_si(by[f][0].unit)
+                                   for f in families], axis=1)
+            where = f"{sid} {names}" if sid in ("imu", "battery") else sid
+            given = ~np.isnan(vals)                      # an empty cell (NaN) is "no sample"; inf is a bad value
+            complete = np.all(given, axis=1) & ~np.isnan(t_abs)
+            partial = np.any(given, axis=1) & ~complete
             if partial.any():
-                notes.append(f"{where}: dropped {int(partial.sum())} rows with some {family} cells or the time empty")
+                notes.append(f"{where}: dropped {int(partial.sum())} rows with some {names} cells or the time empty")
             t, v, cleaned = clean_time(t_abs[complete] - t0, vals[complete], where)
             notes += cleaned
-            if kind is Kind.MAGNETOMETER:
+            if kinds == (Kind.MAGNETOMETER,):
                 t, v, held = drop_held(t, v, where)
                 notes += held
-                if normalised_field(v):
-                    notes.append(normalised_note(sid, v, "T"))
-            if len(t):
+            t, v, checked = sensor_checks(kinds, t, v, where)
+            notes += checked
+            if kinds == (Kind.MAGNETOMETER,) and normalised_field(v):
+                notes.append(normalised_note(sid, v, "T"))
+            if not len(t):
+                continue
+            col = 0
+            for f in families:
+                cs = by[f]
                 src = f"{path.name}#{', '.join(c.cell for c in cs)}"
-                streams.append(Stream(kind, sid, t, v, src, cs[0].unit))
+                streams.append(Stream(STREAMS[f][0], sid, t, v[:, col:col + len(cs)], src, cs[0].unit))
+                col += len(cs)
         return Recording(path, "csv", tuple(streams), t0=t0, notes=tuple(notes))

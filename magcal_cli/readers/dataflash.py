@@ -29,6 +29,8 @@ IMU_NAMES = ("IMU", "IMU2", "IMU3")
 WANTED = frozenset({*MAG_NAMES, *IMU_NAMES, "PARM", "MSG", "VER", "ATT", "AHR2", "BAT", "BAT2", "CURR",
                     "CTUN", "RCOU", "GPS", "GPS2", "TIME", "IMU1", "BATT", "ATTC"})
 MG_TO_T = 1e-7
+#: above this share of unreadable bytes a log is an error for `fit` unless --allow-truncated (issue 6)
+MOSTLY_CORRUPT = 0.5
 Series = tuple[FloatArray, FloatArray]
 
 
@@ -77,6 +79,12 @@ class DataflashReader:
     def read(self, path: Path, options: ReadOptions) -> Recording:
         """Every stream magcal uses; a truncated log is an error unless allowed (then its complete messages)."""
         raw = load(path)
+        if raw.skipped_bytes > MOSTLY_CORRUPT * raw.size and not options.allow_truncated:
+            kept = sum(v for k, v in raw.counts.items() if k != "FMT")
+            msg = (f"{path}: {raw.skipped_bytes} of {raw.size} bytes are not complete records (the log is mostly "
+                   f"corrupt, or its FMT records are damaged). Re-copy the log, or pass --allow-truncated to use "
+                   f"the {kept} messages that could be read")
+            raise LogReadError(msg)
         if raw.truncated_bytes and not options.allow_truncated:
             msg = (f"{path}: the log is truncated (the file ends inside a record, {raw.truncated_bytes} bytes "
                    "from its end). Re-copy the log, or pass --allow-truncated to use the complete messages")
@@ -169,8 +177,9 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
     version = firmware_version(raw)
     after = version is None or version >= (3, 6)
     params = hist.last()
-    out = []
-    for inst, table in instances(raw, MAG_NAMES):
+    out: list[MagReconstruction] = []
+    bad_instances: list[str] = []
+    for inst, table in instances(raw, MAG_NAMES, notes=bad_instances, limit=3):
         f = table.fmt
         if not f.has("MagX", "MagY", "MagZ"):
             continue
@@ -203,7 +212,8 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
             notes.append(f"MAG[{inst}]: firmware version unknown; motor offsets taken as added after the "
                          "iron matrix")
         src = f"{path.name}#{f.name}{_inst(f, inst)}.MagX/MagY/MagZ (raw, reconstructed)"
-        out.append(MagReconstruction(inst, src, t, logged, undo_correction(logged, corr), corr, tuple(notes)))
+        out.append(MagReconstruction(inst, src, t, logged, undo_correction(logged, corr), corr,
+                                     tuple(bad_instances * (not out) + notes)))
     return out
 
 
@@ -226,7 +236,7 @@ def _motor_signals(throttle: list[Pending], battery: list[Pending]) -> tuple[Ser
 def _imu_streams(path: Path, raw: RawLog, clock: Clock, notes: list[str]) -> list[Pending]:
     """IMU[i]: accelerometer (m/s^2) and gyroscope (rad/s) sharing one id, and the IMU temperature (degC)."""
     out = []
-    for inst, table in instances(raw, IMU_NAMES):
+    for inst, table in instances(raw, IMU_NAMES, notes=notes, limit=3):
         f = table.fmt
         if not f.has("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ"):
             continue

@@ -36,6 +36,9 @@ META_TYPES = ("FMTU", "UNIT", "MULT")
 #: (offset of the FMT record, the format it defines)
 Placed = tuple[int, MessageFormat]
 CHUNK = 1 << 23
+#: bytes parsed at a time, and the overlap that lets a record near a window's end be confirmed by the next two
+WINDOW = 1 << 24
+OVERLAP = 1024
 
 
 def header_candidates(buf: np.ndarray) -> IntArray:
@@ -77,10 +80,11 @@ def _fmt_candidates(buf: np.ndarray, heads: IntArray) -> list[tuple[int, Message
     return out
 
 
-def follow_chain(heads: IntArray, lengths: IntArray, size: int) -> tuple[IntArray, IntArray]:
+def follow_chain(heads: IntArray, lengths: IntArray, size: int, trusted_start: bool = False) -> tuple[IntArray, IntArray]:
     """Offsets of the records on the chain from the first confirmed header, and their lengths.
 
-    `size` is where the data end (the file size less a trailing partial header).
+    `size` is where the data end (the file size less a trailing partial header). With `trusted_start` a
+    candidate at offset 0 starts the chain even unconfirmed (the previous window's chain leads to it).
 
     A candidate is confirmed when the next two records start exactly where their predecessors end (or the file
     ends), so a stray `A3 95` inside corrupt bytes is not taken for a record. succ[i] is the candidate at the
@@ -98,14 +102,14 @@ def follow_chain(heads: IntArray, lengths: IntArray, size: int) -> tuple[IntArra
     last = ends >= size
     nxt_c = np.minimum(nxt, m - 1)
     confirmed = np.flatnonzero(last | (exact & (exact[nxt_c] | last[nxt_c])))     # two records line up
-    if confirmed.size == 0:
+    if confirmed.size == 0 and not (trusted_start and heads[0] == 0):
         return heads[:0], lengths[:0]
     resync = np.searchsorted(heads[confirmed], ends, side="left")
     succ = np.where(exact, nxt, np.append(confirmed, m)[resync])
     succ = np.append(succ, m)
     on = np.zeros(m + 1, dtype=bool)
-    on[confirmed[0]] = True
-    reached = confirmed[:1]
+    reached = np.zeros(1, dtype=np.int64) if trusted_start and heads[0] == 0 else confirmed[:1]
+    on[reached] = True
     jump = succ
     while True:
         step = jump[reached]
@@ -128,18 +132,6 @@ def _choose_formats(cands: list[tuple[int, MessageFormat]], banned: set[int]) ->
         if off not in banned and f.type_id not in chosen:
             chosen[f.type_id] = (off, f)
     return chosen
-
-
-def decode(buf: np.ndarray, offsets: IntArray, fmt: MessageFormat) -> Table:
-    """Decode the records of one type at `offsets` in one structured-dtype view."""
-    width = fmt.length - 3
-    if width <= 0 or offsets.size == 0:
-        return Table(fmt, offsets, {c: np.zeros(0) for c in fmt.columns})
-    recs = sliding_window_view(buf, width)[offsets + 3].view(fmt.dtype())[:, 0]
-    cols: dict[str, np.ndarray] = {}
-    for col, name in zip(fmt.columns, recs.dtype.names or (), strict=False):
-        cols.setdefault(col, recs[name])
-    return Table(fmt, offsets, cols)
 
 
 def attach_units(formats: dict[str, MessageFormat], fmtu: Table | None, unit: Table | None,
@@ -165,73 +157,156 @@ def attach_units(formats: dict[str, MessageFormat], fmtu: Table | None, unit: Ta
     return formats
 
 
-def parse_buffer(buf: np.ndarray, wanted: Collection[str] | None = None) -> RawLog:
-    """Parse a whole binary log held in a uint8 array; decode the types in `wanted` (all when None)."""
-    heads = header_candidates(buf)
-    cands = _fmt_candidates(buf, heads)
-    banned: set[int] = set()
-    for _ in range(8):              # a bogus FMT inside corrupt bytes is dropped and the chain redone
-        chosen = _choose_formats(cands, banned)
-        table = np.zeros(256, dtype=np.int64)
-        table[FMT_ID] = FMT_LENGTH
-        for tid, (_, f) in chosen.items():
-            table[tid] = f.length
-        lens = table[buf[heads + 2]]
-        keep = lens > 0
-        offs, lengths = follow_chain(heads[keep], lens[keep], buf.size - _header_prefix(buf))
-        used = np.array(sorted(o for o, _ in chosen.values()), dtype=np.int64)
-        at = np.minimum(np.searchsorted(offs, used), max(offs.size - 1, 0))
-        off_chain = set(used[(offs[at] != used) if offs.size else slice(None)].tolist())
-        if not off_chain:
-            break
-        banned |= off_chain
-    return _assemble(buf, offs, lengths, chosen, wanted)
+class _ChainParser:
+    """Follows the record chain window by window, keeping only the decoded records of the wanted types.
 
+    Formats found in earlier windows are fixed; a window's own FMT candidates are tried, and one that lies off
+    the chain (a bogus FMT inside corrupt bytes) is dropped and the window redone. Records of the wanted types
+    are copied out of the window, so memory holds one window plus what the caller asked for.
+    """
 
-def _assemble(buf: np.ndarray, offs: IntArray, lengths: IntArray, chosen: dict[int, Placed],
-              wanted: Collection[str] | None) -> RawLog:
-    """Split the chain by type, decode the wanted types and account for skipped and truncated bytes."""
-    size = int(buf.size)
-    truncated = 0
-    notes: list[str] = []
-    formats = {f.name: f for _, f in chosen.values()}
-    formats.setdefault("FMT", FMT_SELF)
-    if offs.size and offs[-1] + lengths[-1] > size:
-        truncated = size - int(offs[-1])
-        last = int(buf[offs[-1] + 2])
-        name = chosen[last][1].name if last in chosen else "FMT"
-        notes.append(f"the file ends inside a {name} record ({truncated} of {int(lengths[-1])} bytes): the "
-                     f"log is truncated; read the {offs.size - 1} complete messages")
-        offs, lengths = offs[:-1], lengths[:-1]
-    else:
+    def __init__(self, wanted: Collection[str] | None) -> None:
+        self.want = None if wanted is None else set(wanted) | set(META_TYPES)
+        self.known: dict[int, Placed] = {}
+        self.counts: dict[int, int] = {}
+        self.parts: dict[int, list[tuple[IntArray, np.ndarray]]] = {}
+        self.used = 0
+        self.truncated = 0
+        self.notes: list[str] = []
+        self.complete = 0
+        self.trusted = False
+
+    def window(self, buf: np.ndarray, base: int, at_end: bool) -> int:
+        """Parse buf (the file from byte `base`); return where the next window starts (the file size at the end).
+
+        When the chain runs on past the window's committed part, the next window trusts its first record."""
+        heads = header_candidates(buf)
+        cands = [(o + base, f) for o, f in _fmt_candidates(buf, heads) if f.type_id not in self.known]
+        banned: set[int] = set()
+        data_end = buf.size - _header_prefix(buf) if at_end else buf.size
+        cutoff = buf.size if at_end else buf.size - OVERLAP
+        for _ in range(8):          # a bogus FMT inside corrupt bytes is dropped and the chain redone
+            chosen = {**_choose_formats(cands, banned), **self.known}
+            table = np.zeros(256, dtype=np.int64)
+            table[FMT_ID] = FMT_LENGTH
+            for tid, (_, f) in chosen.items():
+                table[tid] = f.length
+            lens = table[buf[heads + 2]]
+            keep = lens > 0
+            offs, lengths = follow_chain(heads[keep], lens[keep], data_end, self.trusted)
+            inside = offs < cutoff
+            ahead = offs[~inside]
+            offs, lengths = offs[inside], lengths[inside]
+            new = np.array(sorted(o - base for tid, (o, _) in chosen.items()
+                                  if tid not in self.known and o - base < cutoff), dtype=np.int64)
+            at = np.minimum(np.searchsorted(offs, new), max(offs.size - 1, 0))
+            off_chain = set((new[(offs[at] != new) if offs.size else slice(None)] + base).tolist())
+            if not off_chain:
+                break
+            banned |= off_chain
+        self.known.update({tid: pl for tid, pl in chosen.items() if pl[0] - base < cutoff})
+        if at_end:
+            offs, lengths = self._trim_end(buf, base, offs, lengths)
+        self._take(buf, base, offs, lengths)
+        if at_end:
+            return base + buf.size
+        nxt = int(offs[-1] + lengths[-1]) if offs.size else cutoff
+        self.trusted = bool(ahead.size) and int(ahead[0]) == nxt
+        return base + nxt
+
+    def _trim_end(self, buf: np.ndarray, base: int, offs: IntArray,
+                  lengths: IntArray) -> tuple[IntArray, IntArray]:
+        """Drop a last record cut off by the end of the file and note the truncation."""
+        size = int(buf.size)
+        if offs.size and offs[-1] + lengths[-1] > size:
+            self.truncated = size - int(offs[-1])
+            last = int(buf[offs[-1] + 2])
+            name = self.known[last][1].name if last in self.known else "FMT"
+            self.notes.append(f"the file ends inside a {name} record ({self.truncated} of {int(lengths[-1])} bytes): "
+                              f"the log is truncated; read the {self.complete + offs.size - 1} complete messages")
+            return offs[:-1], lengths[:-1]
         tail = buf[int(offs[-1] + lengths[-1]) if offs.size else 0:]
         if 0 < tail.size < 3 and tail[0] == HEAD1 and (tail.size == 1 or tail[1] == HEAD2):
-            truncated = int(tail.size)
-            notes.append(f"the file ends inside a record header ({truncated} bytes): the log is truncated; "
-                         f"read the {offs.size} complete messages")
-    used = int(lengths.sum()) + truncated
-    skipped = size - used
-    ids = buf[offs + 2].astype(np.int64)
-    order = np.argsort(ids, kind="stable")
-    bounds = np.searchsorted(ids[order], np.arange(257))
-    counts: dict[str, int] = {}
-    tables: dict[str, Table] = {}
-    want = None if wanted is None else set(wanted) | set(META_TYPES)
-    by_id = {tid: f for tid, (_, f) in chosen.items()}
-    by_id.setdefault(FMT_ID, FMT_SELF)
-    for tid in np.flatnonzero(bounds[1:] > bounds[:-1]).tolist():
-        f = by_id[tid]
-        counts[f.name] = counts.get(f.name, 0) + int(bounds[tid + 1] - bounds[tid])
-        if want is None or f.name in want:
-            tables[f.name] = decode(buf, offs[order[bounds[tid]:bounds[tid + 1]]], f)
-    formats = attach_units(formats, tables.get("FMTU"), tables.get("UNIT"), tables.get("MULT"))
-    tables = {k: dataclasses.replace(t, fmt=formats.get(k, t.fmt)) for k, t in tables.items()}
-    if skipped:
-        notes.append(f"skipped {skipped} bytes that are not complete records (corrupt data or padding); "
-                     "reading resynchronised on the next message header")
-    return RawLog(formats, tables, counts, size, skipped, truncated, notes)
+            self.truncated = int(tail.size)
+            self.notes.append(f"the file ends inside a record header ({self.truncated} bytes): the log is "
+                              f"truncated; read the {self.complete + offs.size} complete messages")
+        return offs, lengths
+
+    def _take(self, buf: np.ndarray, base: int, offs: IntArray, lengths: IntArray) -> None:
+        """Count the chain's records by type and copy out those of the wanted types."""
+        self.used += int(lengths.sum())
+        self.complete += int(offs.size)
+        ids = buf[offs + 2].astype(np.int64)
+        order = np.argsort(ids, kind="stable")
+        bounds = np.searchsorted(ids[order], np.arange(257))
+        for tid in np.flatnonzero(bounds[1:] > bounds[:-1]).tolist():
+            at = offs[order[bounds[tid]:bounds[tid + 1]]]
+            self.counts[tid] = self.counts.get(tid, 0) + int(at.size)
+            f = self.known[tid][1] if tid in self.known else FMT_SELF
+            if self.want is None or f.name in self.want:
+                width = f.length - 3
+                recs = (sliding_window_view(buf, width)[at + 3].copy() if width > 0
+                        else np.zeros((at.size, 0), dtype=np.uint8))
+                self.parts.setdefault(tid, []).append((at + base, recs))
+
+    def result(self, size: int) -> RawLog:
+        """The RawLog of everything parsed so far (call after the last window)."""
+        by_id = {tid: f for tid, (_, f) in self.known.items()}
+        by_id.setdefault(FMT_ID, FMT_SELF)
+        formats = {f.name: f for f in by_id.values()}
+        counts: dict[str, int] = {}
+        tables: dict[str, Table] = {}
+        for tid, n in self.counts.items():
+            counts[by_id[tid].name] = counts.get(by_id[tid].name, 0) + n
+        for tid, parts in self.parts.items():
+            f = by_id[tid]
+            pos = np.concatenate([p for p, _ in parts])
+            raw = np.concatenate([r for _, r in parts])
+            tables[f.name] = decode_records(raw, pos, f)
+        try:
+            formats = attach_units(formats, tables.get("FMTU"), tables.get("UNIT"), tables.get("MULT"))
+        except (ValueError, KeyError, TypeError, IndexError):
+            self.notes.append("ignored FMTU/UNIT/MULT records that do not decode (corrupt data)")
+        tables = {k: dataclasses.replace(t, fmt=formats.get(k, t.fmt)) for k, t in tables.items()}
+        skipped = size - self.used - self.truncated
+        notes = list(self.notes)
+        if skipped:
+            notes.append(f"skipped {skipped} bytes that are not complete records (corrupt data or padding); "
+                         "reading resynchronised on the next message header")
+        return RawLog(formats, tables, counts, size, skipped, self.truncated, notes)
 
 
-def parse_binary(path: Path, wanted: Collection[str] | None = None) -> RawLog:
-    """Parse a binary DataFlash file; decode the types in `wanted` (all when None)."""
-    return parse_buffer(np.fromfile(path, dtype=np.uint8), wanted)
+def decode_records(raw: np.ndarray, pos: IntArray, fmt: MessageFormat) -> Table:
+    """A Table from copied record payloads (N, length - 3) uint8 of one type at file offsets `pos`."""
+    if fmt.length - 3 <= 0 or pos.size == 0:
+        return Table(fmt, pos, {c: np.zeros(0) for c in fmt.columns})
+    recs = np.ascontiguousarray(raw).view(fmt.dtype())[:, 0]
+    cols: dict[str, np.ndarray] = {}
+    for col, name in zip(fmt.columns, recs.dtype.names or (), strict=False):
+        cols.setdefault(col, recs[name])
+    return Table(fmt, pos, cols)
+
+
+def parse_buffer(buf: np.ndarray, wanted: Collection[str] | None = None) -> RawLog:
+    """Parse a whole binary log held in a uint8 array; decode the types in `wanted` (all when None)."""
+    parser = _ChainParser(wanted)
+    parser.window(buf, 0, True)
+    return parser.result(int(buf.size))
+
+
+def parse_binary(path: Path, wanted: Collection[str] | None = None, window: int = WINDOW) -> RawLog:
+    """Parse a binary DataFlash file window by window (bounded memory); decode the types in `wanted`."""
+    parser = _ChainParser(wanted)
+    with path.open("rb") as fh:
+        size = fh.seek(0, 2)
+        buf = np.empty(min(size, window + OVERLAP), dtype=np.uint8)
+        pos = 0
+        while pos < size or size == 0:
+            fh.seek(pos)
+            n = fh.readinto(buf.data)
+            at_end = pos + n >= size
+            nxt = parser.window(buf[:n], pos, at_end)
+            if at_end:
+                break
+            pos = max(nxt, pos + 1)
+    return parser.result(size)

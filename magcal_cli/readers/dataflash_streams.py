@@ -10,7 +10,7 @@ import numpy as np
 from .. import so3
 from ..align import clean_time
 from ..streams import Kind, Recording, Stream
-from .checks import drop_held
+from .checks import drop_held, sensor_checks
 from .dataflash_format import FloatArray, IntArray, RawLog, Table
 
 
@@ -63,9 +63,16 @@ def clock_from(raw: RawLog) -> Clock:
     return Clock(np.concatenate(pos), np.concatenate(ts))
 
 
-def instances(raw: RawLog, names: tuple[str, ...],
-              columns: tuple[str, ...] = ("I", "Inst")) -> list[tuple[int, Table]]:
-    """(instance, messages) of a sensor logged as NAME, NAME2, NAME3 or one NAME with an instance column."""
+#: ArduPilot logs at most this many instances of a sensor (COMPASS/INS/GPS_MAX_INSTANCES; BATT up to 16)
+MAX_INSTANCES = 16
+
+
+def instances(raw: RawLog, names: tuple[str, ...], columns: tuple[str, ...] = ("I", "Inst"),
+              notes: list[str] | None = None, limit: int = MAX_INSTANCES) -> list[tuple[int, Table]]:
+    """(instance, messages) of a sensor logged as NAME, NAME2, NAME3 or one NAME with an instance column.
+
+    Records whose instance is outside 0..limit-1 are corrupt: dropped, and counted in `notes`.
+    """
     out: list[tuple[int, Table]] = []
     for k, name in enumerate(names):
         table = raw.table(name)
@@ -75,8 +82,12 @@ def instances(raw: RawLog, names: tuple[str, ...],
         if col is None:
             out.append((k, table))
             continue
-        inst = table.num(col).astype(np.int64)
-        out += [(k + int(i), table.where(inst == i)) for i in np.unique(inst).tolist()]
+        inst = np.nan_to_num(table.num(col), nan=-1.0).astype(np.int64)
+        bad = (inst < 0) | (k + inst >= limit)
+        if bad.any() and notes is not None:
+            notes.append(f"{name}: dropped {int(bad.sum())} records with instance {col} outside 0..{limit - 1} "
+                         "(corrupt data)")
+        out += [(k + int(i), table.where(inst == i)) for i in np.unique(inst[~bad]).tolist()]
     return sorted(out, key=lambda x: x[0])
 
 
@@ -113,6 +124,8 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
         if p.kinds == (Kind.MAGNETOMETER,):
             t, values, held = drop_held(t, values, p.id)
             cleaned += held
+        t, values, checked = sensor_checks(p.kinds, t, values, where)
+        cleaned += checked
         notes.extend(cleaned)
         if t.size == 0:
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")

@@ -8,7 +8,6 @@ name is the ROS type, the message object has the ROS field names.
 from __future__ import annotations
 
 import json
-import struct
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -17,6 +16,7 @@ from typing import Any, ClassVar
 from ..errors import LogReadError
 from ..streams import Recording
 from . import ReadOptions
+from .mcap_stream import Damage, iter_messages
 from .rosbag import ignored_note
 from .rosmsg import Collector, normalise_type, wanted
 
@@ -72,67 +72,64 @@ def decoder(schema: Any, channel: Any) -> tuple[Decode | None, str]:
     return None, f"{channel.topic} ({schema.name} in {enc or 'no'} encoding)"
 
 
-def _why(exc: BaseException) -> str:
-    """Why reading stopped, in words (a cut file ends inside a record; anything else names the library error)."""
-    from mcap.exceptions import EndOfFile
-
-    if isinstance(exc, (EndOfFile, EOFError, struct.error)):
-        return "it ends inside a record"
-    return f"{type(exc).__name__}: {str(exc).splitlines()[0][:80] if str(exc) else 'no detail'}"
-
-
 class McapReader:
     """Reads Imu, MagneticField, Vector3Stamped (field), BatteryState, Temperature and NavSatFix channels."""
 
     name: ClassVar[str] = "mcap"
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
-        """Decode every channel magcal reads; a truncated file is an error unless allowed."""
-        from mcap.exceptions import McapError
-        from mcap.reader import NonSeekingReader
-        from rosbags.serde import SerdeError
-        from zstandard import ZstdError
-
-        collector, notes = Collector(), []
-        decoders: dict[int, Decode | None] = {}
-        skipped: list[str] = []
-        try:
-            with path.open("rb") as fh:
-                try:
-                    for schema, channel, message in NonSeekingReader(fh, validate_crcs=True).iter_messages(
-                            log_time_order=False):
-                        if channel.id not in decoders:
-                            decoders[channel.id], why = decoder(schema, channel)
-                            skipped += [why] if why else []
-                        decode = decoders[channel.id]
-                        if decode is not None and schema is not None:
-                            self._add(path, collector, schema.name, channel, message, decode)
-                except (McapError, SerdeError, EOFError, KeyError, struct.error, UnicodeDecodeError,
-                        IndexError, ValueError, RuntimeError, ZstdError) as exc:
-                    where = f"after {len(collector)} complete messages"
-                    if not options.allow_truncated:
-                        msg = (f"{path}: the MCAP file is truncated or corrupt ({_why(exc)}) {where}. "
-                               "Re-copy the log, or pass --allow-truncated to use the complete part")
-                        raise LogReadError(msg) from None
-                    notes.append(f"truncated or corrupt: read {len(collector)} complete messages")
-        except OSError as exc:
-            msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
-            raise LogReadError(msg) from None
-        if skipped:
-            notes.append(ignored_note(sorted(set(skipped))))
+        """Decode every channel magcal reads; corrupt chunks are skipped, a truncated file is an error unless allowed."""
+        collector, notes = Collector(), list[str]()
+        collect(path, collector, options, notes)
         return collector.recording(path, "mcap", options, notes)
 
-    @staticmethod
-    def _add(path: Path, collector: Collector, msgtype: str, channel: Any, message: Any, decode: Decode) -> None:
-        """Decode one message; one without the type's ROS fields is an error naming the channel."""
-        is_json = channel.message_encoding == "json"
-        try:
-            collector.add(channel.topic, msgtype, message.log_time, decode(message.data))
-        except (AttributeError, TypeError, ValueError) as exc:
-            if isinstance(exc, ValueError) and not is_json:
-                raise                                   # a corrupt CDR/ROS 1 message: handled as corruption
-            hint = " See docs/readers-ros-csv.md for the JSON layout magcal reads" if is_json else ""
-            msg = (f"{path}: channel {channel.topic} ({msgtype}, {channel.message_encoding}): the message at log "
-                   f"time {message.log_time} ns does not have the ROS fields of {msgtype} "
-                   f"({type(exc).__name__}: {exc}).{hint}")
-            raise LogReadError(msg) from None
+
+def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[str]) -> None:
+    """Add the messages of one MCAP file to `collector` and its remarks to `notes` (also for ROS 2 bags)."""
+    decoders: dict[int, Decode | None] = {}
+    skipped: list[str] = []
+    damage = Damage()
+    bad = 0
+    try:
+        with path.open("rb") as fh:
+            size = fh.seek(0, 2)
+            for schema, channel, message in iter_messages(fh, size, damage):
+                if channel.id not in decoders:
+                    decoders[channel.id], why = decoder(schema, channel)
+                    skipped += [why] if why else []
+                decode = decoders[channel.id]
+                if decode is not None and schema is not None:
+                    bad += not _add(path, collector, schema.name, channel, message, decode)
+    except OSError as exc:
+        msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
+        raise LogReadError(msg) from None
+    if damage.truncated_at is not None:
+        where = f"after {len(collector)} complete messages"
+        if not options.allow_truncated:
+            msg = (f"{path}: the MCAP file is truncated or corrupt ({damage.why}) {where}. "
+                   "Re-copy the log, or pass --allow-truncated to use the complete part")
+            raise LogReadError(msg)
+        notes.append(f"truncated or corrupt: read {len(collector)} complete messages (the file is damaged from "
+                     f"byte {damage.truncated_at} of {size} on: {damage.why})")
+    if damage.note():
+        notes.append(damage.note())
+    if bad:
+        notes.append(f"skipped {bad} messages that do not decode (corrupt data)")
+    if skipped:
+        notes.append(ignored_note(sorted(set(skipped))))
+
+
+def _add(path: Path, collector: Collector, msgtype: str, channel: Any, message: Any, decode: Decode) -> bool:
+    """Decode one message (False when its bytes are corrupt); one without the type's ROS fields is an error."""
+    is_json = channel.message_encoding == "json"
+    try:
+        collector.add(channel.topic, msgtype, message.log_time, decode(message.data))
+    except Exception as exc:  # noqa: BLE001 - rosbags' deserializers raise anything on corrupt bytes
+        if not is_json or not isinstance(exc, (AttributeError, TypeError, ValueError)) or isinstance(
+                exc, json.JSONDecodeError):
+            return False
+        msg = (f"{path}: channel {channel.topic} ({msgtype}, {channel.message_encoding}): the message at log "
+               f"time {message.log_time} ns does not have the ROS fields of {msgtype} "
+               f"({type(exc).__name__}: {exc}). See docs/readers-ros-csv.md for the JSON layout magcal reads")
+        raise LogReadError(msg) from None
+    return True

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import struct
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from ..errors import LogReadError
 from ..streams import Recording
@@ -12,6 +14,9 @@ from .rosmsg import Collector, wanted
 
 #: how many ignored topics a note names before it says "and N more"
 IGNORED_LISTED = 5
+#: first step (ns) past a corrupt chunk when resuming; it doubles until a message reads (1 ms .. ~18 min)
+RESUME_STEP_NS = 1_000_000
+RESUME_PROBES = 40
 
 
 def bag_path(path: Path) -> Path:
@@ -50,8 +55,8 @@ class RosbagReader:
         from rosbags.serde import SerdeError
         from rosbags.typesys import Stores, TypesysError, get_typestore
 
-        errors = (AnyReaderError, Reader1Error, Reader2Error, SerdeError, TypesysError, KeyError, ValueError,
-                  EOFError, OSError)
+        errors = (AnyReaderError, Reader1Error, Reader2Error, SerdeError, TypeError, TypesysError, KeyError,
+                  ValueError, EOFError, OSError, MemoryError, OverflowError, struct.error)
         bag = bag_path(path)
         fmt = "rosbag" if bag.is_file() else "rosbag2"
         collector, notes = Collector(), []
@@ -59,25 +64,86 @@ class RosbagReader:
             reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
         except errors as exc:
-            msg = f"{path}: cannot open the {fmt} ({_reason(exc)}). {_advice(exc)}"
-            raise LogReadError(msg) from None
+            storage = sorted(bag.glob("*.mcap")) if bag.is_dir() else []
+            if not storage:
+                msg = f"{path}: cannot open the {fmt} ({_reason(exc)}). {_advice(exc)}"
+                raise LogReadError(msg) from None
+            return _read_mcap_storage(path, storage, options, _reason(exc))
         try:
             conns = [c for c in reader.connections if wanted(c.topic, c.msgtype)]
             ignored = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections if c not in conns})
             if ignored:
                 notes.append(ignored_note(ignored))
-            try:
-                for conn, recv_ns, raw in reader.messages(connections=conns) if conns else ():  # () means all
-                    collector.add(conn.topic, conn.msgtype, recv_ns, reader.deserialize(raw, conn.msgtype))
-            except errors as exc:
-                if not options.allow_truncated:
-                    msg = (f"{path}: the {fmt} is truncated or corrupt ({_reason(exc)}) after {len(collector)} "
-                           "messages. Re-copy the log, or pass --allow-truncated to use the complete part")
-                    raise LogReadError(msg) from None
-                notes.append(f"truncated or corrupt: read {len(collector)} complete messages")
+            why = _read_messages(reader, conns, collector, notes) if conns else ""
+            if why and not options.allow_truncated:
+                msg = (f"{path}: the {fmt} is truncated or corrupt to its end ({why}) after {len(collector)} "
+                       "messages. Re-copy the log, or pass --allow-truncated to use the complete part")
+                raise LogReadError(msg)
+            if why:
+                notes.append(f"truncated or corrupt to its end ({why}): read {len(collector)} complete messages")
         finally:
-            reader.close()
+            with contextlib.suppress(*errors):
+                reader.close()
         return collector.recording(path, fmt, options, notes)
+
+
+def _read_mcap_storage(path: Path, storage: list[Path], options: ReadOptions, why: str) -> Recording:
+    """A ROS 2 bag whose index rosbags cannot open, read from its MCAP storage files by streaming."""
+    from .mcap import collect
+
+    collector = Collector()
+    notes = [f"rosbags cannot open the bag ({why}); read its MCAP storage file{'s' * (len(storage) > 1)} "
+             "record by record instead"]
+    for f in storage:
+        collect(f, collector, options, notes)
+    return collector.recording(path, "rosbag2", options, notes)
+
+
+def _read_messages(reader: Any, conns: list[Any], collector: Collector, notes: list[str]) -> str:
+    """Decode every message on `conns`, skipping (and noting) corrupt chunks and messages in the middle.
+
+    rosbags stops at the first corrupt chunk, raising whatever its parsers hit (ReaderError, AssertionError,
+    RuntimeError from lz4, ZstdError, MemoryError, ...), so reading resumes after it, as pymavlink does.
+    Returns why reading stopped early when nothing after the damage could be read (a truncated bag), else "".
+    """
+    expected = sum(int(c.msgcount) for c in conns)
+    last, start, regions, bad_msgs, why = int(reader.start_time) - 1, None, 0, 0, ""
+    while True:
+        try:
+            for conn, recv_ns, raw in reader.messages(connections=conns, start=start):
+                last = max(last, int(recv_ns))
+                try:
+                    collector.add(conn.topic, conn.msgtype, recv_ns, reader.deserialize(raw, conn.msgtype))
+                except Exception:  # noqa: BLE001 - a message that does not decode is corrupt: skipped, counted
+                    bad_msgs += 1
+            break
+        except Exception as exc:  # noqa: BLE001 - anything rosbags raises while reading a chunk is corrupt data
+            start = _resume_after(reader, conns, last)
+            if start is None:
+                why = _reason(exc)
+                break
+            regions += 1
+    if regions or bad_msgs:
+        notes.append(f"corrupt data: skipped {regions} unreadable chunks and {bad_msgs} messages that did not "
+                     f"decode ({expected - len(collector)} of {expected} messages lost); reading resumed after "
+                     "each")
+    return why
+
+
+def _resume_after(reader: Any, conns: list[Any], last: int) -> int | None:
+    """The earliest probed time after `last` (ns) from which messages read again, or None (nothing readable)."""
+    step = RESUME_STEP_NS
+    for _ in range(RESUME_PROBES):
+        start = last + step
+        if start > int(reader.end_time):
+            return None
+        try:
+            next(iter(reader.messages(connections=conns, start=start)), None)
+        except Exception:  # noqa: BLE001 - still inside the corrupt chunk: step further
+            step *= 2
+            continue
+        return start
+    return None
 
 
 def _reason(exc: BaseException) -> str:

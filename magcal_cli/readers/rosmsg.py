@@ -18,7 +18,7 @@ from .. import units
 from ..align import clean_time
 from ..streams import Kind, Recording, Stream
 from . import ReadOptions
-from .checks import drop_held, field_spread, normalised_field, normalised_note
+from .checks import drop_held, field_spread, normalised_field, normalised_note, sensor_checks
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -78,8 +78,9 @@ class Collector:
     def add(self, topic: str, msgtype: str, recv_ns: int, msg: Any) -> None:
         """Keep one decoded message of a type in ROS_TYPES."""
         key = (topic, normalise_type(msgtype))
-        self.values[key].append(ROS_TYPES[key[1]][2](msg))
-        self.stamps[key].append(stamp_ns(msg))
+        values, stamp = ROS_TYPES[key[1]][2](msg), stamp_ns(msg)       # both first: a bad message adds nothing
+        self.values[key].append(values)
+        self.stamps[key].append(stamp)
         self.recv[key].append(recv_ns)
 
     def __len__(self) -> int:
@@ -139,6 +140,8 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
         notes.append(f"{topic}: no valid samples")
         return []
     if group == "imu":
+        t, values, checked = sensor_checks((Kind.ACCELEROMETER, Kind.GYROSCOPE), t, values, topic)
+        notes += checked
         return [Stream(Kind.ACCELEROMETER, topic, t, values[:, :3], src, "m/s^2"),
                 Stream(Kind.GYROSCOPE, topic, t, values[:, 3:], src, "rad/s")]
     if group == "temperature":
@@ -153,7 +156,8 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
                      f"(median magnitude {median:.4g}; old drivers publish gauss)")
         values = values * units.to_si(unit)
     t, values, held = drop_held(t, values, topic)
-    notes += held
+    t, values, checked = sensor_checks((Kind.MAGNETOMETER,), t, values, topic)
+    notes += held + checked
     if normalised_field(values):
         notes.append(normalised_note(topic, values, "T"))
     return [Stream(Kind.MAGNETOMETER, topic, t, values, src, unit)]

@@ -19,7 +19,7 @@ from ..align import clean_time, onto
 from ..errors import LogReadError, StreamError
 from ..streams import Kind, Recording, Stream
 from . import ReadOptions
-from .checks import normalised_field, normalised_note
+from .checks import normalised_field, normalised_note, sensor_checks
 from .ulog_load import Loaded, load_ulog
 
 FloatArray = npt.NDArray[np.float64]
@@ -284,14 +284,29 @@ def _gps_piece(tp: _Topics) -> Piece | None:
     return None
 
 
+def _number(value: Any) -> float | None:
+    """A parameter value as a float, or None when it is not a number."""
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):
+        return None
+
+
 def _params(ulog: Any, notes: list[str]) -> dict[str, float]:
     """Initial parameters updated by every change logged during the flight (last value wins)."""
-    params = {str(k): float(v) for k, v in ulog.initial_parameters.items()}
+    params = {str(k): v for k, v in ((k, _number(v)) for k, v in ulog.initial_parameters.items()) if v is not None}
     changed: set[str] = set()
-    for _, name, value in ulog.changed_parameters:
-        if str(name).startswith("CAL_MAG") and params.get(str(name)) != float(value):
+    bad = len(ulog.initial_parameters) - len(params)
+    for _, name, raw in ulog.changed_parameters:
+        value = _number(raw)
+        if value is None:                     # a parameter message found while resynchronising on corrupt bytes
+            bad += 1
+            continue
+        if str(name).startswith("CAL_MAG") and params.get(str(name)) != value:
             changed.add(str(name))
-        params[str(name)] = float(value)
+        params[str(name)] = value
+    if bad:
+        notes.append(f"ignored {bad} parameter values that are not numbers (corrupt data)")
     if changed:
         names = ", ".join(sorted(changed))
         notes.append(f"magnetometer calibration parameters changed during the log ({names}); params hold the "
@@ -351,17 +366,16 @@ class UlogReader:
                 msg = (f"{path}: no data messages could be decoded after the ULog header (the file is "
                        "corrupt or not a PX4 log). Re-copy the log from the vehicle")
             raise LogReadError(msg)
-        damage = []
-        if ulog.file_corruption:
-            damage.append("corrupt (pyulog skipped damaged bytes and resynchronised)")
         if loaded.cut_at is not None:
-            damage.append(f"truncated (the last message is cut off at byte {loaded.cut_at} of {loaded.size})")
-        if damage and not options.allow_truncated:
-            msg = (f"{path}: the ULog is {' and '.join(damage)}; {kept} samples of the topics magcal reads "
-                   "are complete. Re-copy the log, or pass --allow-truncated to use them")
-            raise LogReadError(msg)
-        if damage:
-            notes.append(f"the ULog is {' and '.join(damage)}; read {kept} complete samples")
+            cut = f"truncated (the last message is cut off at byte {loaded.cut_at} of {loaded.size})"
+            if not options.allow_truncated:
+                msg = (f"{path}: the ULog is {cut}; {kept} samples of the topics magcal reads are complete. "
+                       "Re-copy the log, or pass --allow-truncated to use them")
+                raise LogReadError(msg)
+            notes.append(f"the ULog is {cut}; read {kept} complete samples")
+        if ulog.file_corruption:          # corrupt bytes in the middle: skipped, as pymavlink does (issue 6)
+            notes.append(f"corrupt data: pyulog skipped damaged bytes and resynchronised on the next message; "
+                         f"read {kept} complete samples")
         notes.extend(f"pyulog: {line}" for line in loaded.printed[:3])
 
 
@@ -369,7 +383,8 @@ def _stream(p: Piece, t0_us: int, notes: list[str]) -> Stream | None:
     """Sort, de-duplicate and clean one piece into a Stream relative to t0; None when nothing is left."""
     label = p.source.split("#", 1)[-1].split(":", 1)[0]
     t, values, cleaned = clean_time((p.t_us - t0_us) * 1e-6, p.values, label)
-    notes.extend(cleaned)
+    t, values, checked = sensor_checks((p.kind,), t, values, label)
+    notes.extend(cleaned + checked)
     if not len(t):
         notes.append(f"{label}: no valid {p.kind.value} samples")
         return None

@@ -18,11 +18,15 @@ from typing import IO, Any
 
 from ..errors import LogReadError
 
-#: reads that may start at or before the furthest position read so far before the parser counts as stuck;
-#: a healthy parse re-reads at most a few bytes (resynchronising steps back one byte per message)
+#: message-header reads that may start at or before the furthest header read so far before the parser counts
+#: as stuck; a healthy parse never re-reads a header (resynchronising steps forward one byte per header)
 STUCK_READS = 1000
 #: header reads are 3 bytes (uint16 size, uint8 type; ULog spec "Message Header")
 HEADER_SIZE = 3
+#: the longest message payload a uint16 size allows
+MAX_MESSAGE = 0xFFFF
+#: the message types of the ULog spec (B F I M P Q A R D L C S O)
+MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")
 
 
 class _StuckError(Exception):
@@ -36,23 +40,42 @@ class GuardFile:
         self._fh = fh
         self.size = size
         self.cut_at: int | None = None
-        self._furthest = -1
+        self._furthest_start = -1
         self._idle = 0
+        self.corrupt_headers = 0
+        self._header: tuple[int, int] | None = None
 
     def read(self, n: int = -1) -> bytes:
         """Read like the wrapped file; a short read of a message (not a clean end of file) marks the cut."""
         pos = self._fh.tell()
-        if pos > self._furthest:
-            self._furthest, self._idle = pos, 0
-        else:
-            self._idle += 1
-            if self._idle > STUCK_READS:
-                raise _StuckError(pos)
+        if n == HEADER_SIZE:                 # message headers only: sync searches read ahead, then seek back
+            if pos > self._furthest_start:   # resynchronising byte by byte starts each header further on
+                self._furthest_start, self._idle = pos, 0
+            else:
+                self._idle += 1
+                if self._idle > STUCK_READS:
+                    raise _StuckError(pos)
         data = self._fh.read(n)
+        if n == HEADER_SIZE and len(data) == n and self._corrupt_header(pos, data):
+            # show pyulog a header of type 0, which it treats as corruption and passes byte by byte until
+            # messages line up again, instead of stopping for good at a short read as if the file ended here
+            self.corrupt_headers += 1
+            data = bytes(HEADER_SIZE)
+        payload = self._header is not None and pos == self._header[0] + HEADER_SIZE and n == self._header[1]
+        self._header = (pos, int.from_bytes(data[:2], "little")) if n == HEADER_SIZE else None
         clean_end = not data and n == HEADER_SIZE          # a header would start at the end: the log is whole
-        if n > 0 and len(data) < n and not clean_end and self.cut_at is None:
-            self.cut_at = pos
+        if (payload or n == HEADER_SIZE) and len(data) < n and not clean_end and self.cut_at is None:
+            self.cut_at = pos                              # sync searches read ahead in blocks: not a cut
         return data
+
+    def _corrupt_header(self, pos: int, header: bytes) -> bool:
+        """True for a header of no ULog message type whose message would end past the end of the file, or of a
+        message that would end there although the file goes on for longer than any message (a log cut off
+        inside its last message ends closer)."""
+        size = int.from_bytes(header[:2], "little")
+        if pos + HEADER_SIZE + size <= self.size:
+            return False
+        return header[2] not in MESSAGE_TYPES or self.size - pos > HEADER_SIZE + MAX_MESSAGE
 
     def seek(self, offset: int, whence: int = 0) -> int:
         """Seek the wrapped file."""
@@ -64,7 +87,7 @@ class GuardFile:
 
     def tell_safe(self) -> int:
         """The furthest position read so far (valid after the file is closed)."""
-        return max(self._furthest, 0)
+        return max(self._furthest_start, 0)
 
     def close(self) -> None:
         """Close the wrapped file (pyulog closes it when done)."""

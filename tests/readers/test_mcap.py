@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -177,13 +178,32 @@ def test_real_phidgets_mcap_storage_file(realdata: Path) -> None:
 
 
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
-def test_corrupt_chunk_is_an_error_not_garbage(tmp_path: Path, sim: Simulation, compression: str) -> None:
-    """Zeroed bytes inside a chunk fail its CRC (or decompression): a clean error, never wrong samples."""
+def test_corrupt_chunk_is_skipped_and_counted_never_garbage(tmp_path: Path, sim: Simulation, compression: str) -> None:
+    """Zeroed bytes inside a chunk fail its CRC (or decompression): that chunk is skipped and counted, every
+    sample read is exact, and reading goes on with the next chunk (issue 6: skip corrupt records, as pymavlink)."""
     write_mcap(sim, tmp_path / "x.mcap", "cdr", compression, chunk_size=32_000)
     data = bytearray((tmp_path / "x.mcap").read_bytes())
     mid = len(data) // 2
     data[mid:mid + 64] = bytes(64)
     (tmp_path / "bad.mcap").write_bytes(bytes(data))
-    with pytest.raises(LogReadError, match=r"bad.mcap: the MCAP file is truncated or corrupt \(.+\) after \d+ "
-                                           r"complete messages"):
-        open_recording(tmp_path / "bad.mcap")
+    rec = open_recording(tmp_path / "bad.mcap")
+    assert rec.notes[0] == ("corrupt data: skipped 1 chunks that fail their CRC or do not decompress; reading "
+                            "resumed after each")
+    got, want = rec.select(Kind.MAGNETOMETER), sim.recording.select(Kind.MAGNETOMETER)
+    assert 0.5 * len(want) < len(got) < len(want)
+    idx = np.searchsorted(want.t, got.t + (rec.t0 - sim.recording.t0) - 1e-6)
+    np.testing.assert_array_equal(got.values, want.values[idx])
+
+
+def test_broken_record_framing_resynchronises_on_the_next_chunk(tmp_path: Path, sim: Simulation) -> None:
+    """Bytes inserted inside a chunk break the record lengths: the reader finds the next chunk header."""
+    write_mcap(sim, tmp_path / "x.mcap", "cdr", "zstd", chunk_size=32_000)
+    data = (tmp_path / "x.mcap").read_bytes()
+    mid = len(data) // 3
+    (tmp_path / "bad.mcap").write_bytes(data[:mid] + b"\x01" * 37 + data[mid:])
+    rec = open_recording(tmp_path / "bad.mcap")
+    assert re.fullmatch(r"corrupt data: skipped \d+ bytes with broken record framing; reading resumed after each",
+                        rec.notes[0])
+    got, want = rec.select(Kind.MAGNETOMETER), sim.recording.select(Kind.MAGNETOMETER)
+    assert 0 < len(got) <= len(want)
+    assert got.t[-1] + rec.t0 == pytest.approx(want.t[-1] + sim.recording.t0, abs=1e-6)   # read on to the end

@@ -333,8 +333,8 @@ def test_no_topic_magcal_reads(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("seed", "size", "message"), [
-    (0, 100, r"the ULog is corrupt near byte 19 \(a message size points outside the file\)\. Re-copy the log "
-             "from the vehicle$"),
+    (0, 100, r"the ULog sets a format flag this pyulog cannot parse \(a newer PX4 log format, or a "
+             r"corrupt header\)\. Update pyulog \(pip install --upgrade pyulog\) or re-copy the log$"),
     (0, 200_000, r"the ULog sets a format flag this pyulog cannot parse \(a newer PX4 log format, or a "
                  r"corrupt header\)\. Update pyulog \(pip install --upgrade pyulog\) or re-copy the log$"),
     (1, 200_000, r"no data messages could be decoded after the ULog header \(the file is corrupt or not a "

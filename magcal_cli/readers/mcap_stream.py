@@ -1,0 +1,167 @@
+"""Stream an MCAP file's messages in bounded memory, skipping (and counting) corrupt chunks.
+
+mcap's own readers stop at the first bad chunk (CRC, zstd/lz4 error) or broken record length. Here a chunk
+that fails its CRC or does not decompress is skipped and counted, and when the record framing itself is
+broken the reader resynchronises on the next chunk header whose lengths agree, as pymavlink does for
+DataFlash. Only a file whose damage reaches its end (or that ends inside a record) counts as truncated.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import IO, Any
+
+#: MCAP opcodes (spec: Records)
+CHUNK_OPCODE, FOOTER_OPCODE = 0x06, 0x02
+#: the footer record (opcode, length, summary start, summary offset start, summary CRC) and the closing magic
+_FOOTER = struct.Struct("<BQQQI")
+FOOTER_BYTES = _FOOTER.size + 8
+#: a chunk header: opcode, record length, start/end time, uncompressed size, crc, then the compression name
+_CHUNK_HEAD = struct.Struct("<BQQQQII")
+#: compressions a chunk may name, as the length-prefixed string that follows the fixed header
+COMPRESSIONS = (b"zstd", b"lz4", b"")
+#: block size of the resynchronisation scan (bytes)
+SCAN_BLOCK = 1 << 22
+#: a chunk claiming to decompress to more than this is corrupt (writers use chunks of a few MB)
+MAX_CHUNK_BYTES = 1 << 30
+
+
+@dataclass
+class Damage:
+    """What the stream skipped: corrupt chunks, bytes passed over while resynchronising, undecodable records."""
+
+    chunks: int = 0
+    bytes_skipped: int = 0
+    orphans: int = 0
+    truncated_at: int | None = None
+    why: str = ""
+
+    def note(self) -> str:
+        """The reader note for damage in the middle of the file, or "" when there was none."""
+        parts = []
+        if self.chunks:
+            parts.append(f"{self.chunks} chunks that fail their CRC or do not decompress")
+        if self.bytes_skipped:
+            parts.append(f"{self.bytes_skipped} bytes with broken record framing")
+        if self.orphans:
+            parts.append(f"{self.orphans} messages of channels whose definition was lost")
+        return f"corrupt data: skipped {', '.join(parts)}; reading resumed after each" if parts else ""
+
+
+def _chunk_at(buf: bytes, i: int, size_left: int) -> bool:
+    """True when a plausible chunk record starts at buf[i] (lengths consistent, known compression)."""
+    if i + _CHUNK_HEAD.size > len(buf):
+        return False
+    op, length, start, end, _, _, name_len = _CHUNK_HEAD.unpack_from(buf, i)
+    if op != CHUNK_OPCODE or end < start or length > size_left or name_len > 4:
+        return False
+    j = i + _CHUNK_HEAD.size
+    name = buf[j:j + name_len]
+    if name not in COMPRESSIONS or j + name_len + 8 > len(buf):
+        return False
+    (records_len,) = struct.unpack_from("<Q", buf, j + name_len)
+    return bool(length == 8 * 3 + 4 + 4 + name_len + 8 + records_len)
+
+
+def resync(fh: IO[bytes], start: int, size: int) -> int | None:
+    """Offset of the next plausible chunk record at or after `start`, scanning in bounded blocks, or None."""
+    pos = start
+    overlap = _CHUNK_HEAD.size + 4 + 8
+    while pos < size:
+        fh.seek(pos)
+        buf = fh.read(SCAN_BLOCK + overlap)
+        i = buf.find(bytes([CHUNK_OPCODE]))
+        while 0 <= i < min(len(buf), SCAN_BLOCK):
+            if _chunk_at(buf, i, size - (pos + i)):
+                return pos + i
+            i = buf.find(bytes([CHUNK_OPCODE]), i + 1)
+        if len(buf) <= SCAN_BLOCK:
+            return None
+        pos += SCAN_BLOCK
+    return None
+
+
+def summary_definitions(fh: IO[bytes], size: int) -> tuple[dict[int, Any], dict[int, Any]]:
+    """Schemas and channels repeated in the summary section (empty when the footer or summary is damaged)."""
+    from mcap.records import Channel, Footer, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, Any] = {}
+    channels: dict[int, Any] = {}
+    try:
+        fh.seek(size - FOOTER_BYTES)
+        op, _, summary_start, _, crc = _FOOTER.unpack(fh.read(_FOOTER.size))
+        if op != FOOTER_OPCODE or not 0 < summary_start < size - FOOTER_BYTES or size - summary_start > SCAN_BLOCK:
+            return schemas, channels
+        fh.seek(summary_start)
+        if crc and zlib.crc32(fh.read(size - 8 - 4 - summary_start)) != crc:    # CRC up to the CRC field itself
+            return schemas, channels
+        fh.seek(summary_start)
+        for rec in StreamReader(fh, skip_magic=True, record_size_limit=size).records:
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Footer):
+                break
+    except Exception:  # noqa: BLE001 - a damaged summary only means no head start: stream as usual
+        return {}, {}
+    return schemas, channels
+
+
+def iter_messages(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Any, Any, Any]]:
+    """(schema or None, channel, message) of every readable message, in file order; damage is recorded."""
+    from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
+    from mcap.records import Channel, Chunk, Footer, Message, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    schemas, channels = summary_definitions(fh, size)      # so a lost chunk does not orphan later messages
+    base, skip_magic = 0, False
+    while True:
+        fh.seek(base)
+        reader = StreamReader(fh, skip_magic=skip_magic, emit_chunks=True, record_size_limit=size)
+        stream = reader._stream                                     # noqa: SLF001 - its byte count locates damage
+        records = reader.records
+        while True:
+            at = base + stream.count
+            try:
+                rec = next(records, None)
+            except EndOfFile:
+                damage.truncated_at, damage.why = at, "it ends inside a record"
+                return
+            except Exception as exc:  # noqa: BLE001 - any parse failure of the framing: resynchronise
+                nxt = resync(fh, at + 1, size)
+                if nxt is None:
+                    damage.truncated_at = at
+                    cut = isinstance(exc, (struct.error, RecordLengthLimitExceeded))   # a length past the end
+                    damage.why = ("it ends inside a record" if cut else
+                                  f"the record framing is broken at byte {at}: {type(exc).__name__}")
+                    return
+                damage.bytes_skipped += nxt - at
+                base, skip_magic = nxt, True
+                break
+            if rec is None or isinstance(rec, Footer):
+                return
+            inner: list[Any] = [rec]
+            if isinstance(rec, Chunk):
+                try:
+                    if rec.uncompressed_size > MAX_CHUNK_BYTES:
+                        raise ValueError(rec.uncompressed_size)
+                    inner = breakup_chunk(rec, validate_crc=True)
+                except Exception:  # noqa: BLE001 - a chunk that fails its CRC or does not decompress: skipped
+                    damage.chunks += 1
+                    continue
+            for r in inner:
+                if isinstance(r, Schema):
+                    schemas[r.id] = r
+                elif isinstance(r, Channel):
+                    channels[r.id] = r
+                elif isinstance(r, Message):
+                    ch = channels.get(r.channel_id)
+                    if ch is None:
+                        damage.orphans += 1
+                        continue
+                    yield schemas.get(ch.schema_id), ch, r
