@@ -160,7 +160,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from .document import dumps_json
     from .pipeline import calibrate
-    from .writers import FIRMWARE_OUTPUTS, check_targets, get_writer
+    from .writers import FIRMWARE_OUTPUTS, check_targets, write_outputs
 
     names = _parse_outputs(outputs)
     auto = _firmware_output(ctx, log, fmt, names)
@@ -171,8 +171,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
         names.append(auto)
-    outdir.mkdir(parents=True, exist_ok=True)
-    written = [p for name in names for p in get_writer(name).write(result, outdir)]
+    written = write_outputs(result, outdir, names)
     if as_json:
         click.echo(dumps_json(result.calibration), nl=False)
         _fit_gates(result, fail_on)

@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import shutil
+import signal
+import tempfile
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
@@ -64,3 +70,52 @@ def check_targets(outdir: Path, names: list[str], force: bool) -> None:
             if (outdir / f).exists():
                 msg = f"{outdir / f}: exists already. Pass --force to overwrite it, or choose another -o"
                 raise OutputError(msg)
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) back while the block runs; it is delivered, as KeyboardInterrupt, right after."""
+    main = threading.current_thread() is threading.main_thread() and hasattr(signal, "pthread_sigmask")
+    if main:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        if main:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+def write_outputs(result: RunResult, outdir: Path, names: list[str]) -> list[Path]:
+    """Write every output named in `names` to `outdir` all together or not at all.
+
+    Files are written into a staging directory inside `outdir` and renamed into place in one step with Ctrl-C
+    held back, so an error or an interrupt leaves `outdir` as it was (a directory created for the run is
+    removed again when it stays empty).
+    """
+    created = not outdir.exists()
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".magcal-", suffix=".part", dir=outdir))
+    except OSError as exc:
+        msg = f"{outdir}: cannot create the output directory ({exc.strerror or exc}). Choose another -o"
+        raise OutputError(msg) from None
+    done = False
+    try:
+        staged = [p for name in names for p in get_writer(name).write(result, stage)]
+        with _sigint_deferred():
+            final = []
+            for p in staged:
+                target = outdir / p.relative_to(stage)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                p.replace(target)
+                final.append(target)
+            done = True
+        return final
+    except OSError as exc:
+        msg = f"{outdir}: cannot write the outputs ({exc.strerror or exc}). Check the directory's permissions"
+        raise OutputError(msg) from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created and not done:
+            with contextlib.suppress(OSError):
+                outdir.rmdir()                   # only when empty: nothing of ours or anyone else's is lost
