@@ -13,7 +13,7 @@ import numpy.typing as npt
 from scipy import stats
 
 from .config import StillConfig
-from .errors import StreamError
+from .errors import InsufficientDataError, StreamError
 from .models.accel import G
 from .streams import Stream
 
@@ -116,9 +116,13 @@ def _steady_parts(sig: list[_Signal], t_imu: FloatArray, i0: int, i1: int, n: in
             c = np.concatenate([np.zeros((1, 3)), np.cumsum(s.x, axis=0)])
             cnt = (hi - lo).astype(np.float64)
             ok = cnt > 0
+            if not ok.any():                            # this signal has no samples in the run (a dropout)
+                continue
             means = (c[hi[ok]] - c[lo[ok]]) / cnt[ok, None]
             centre = np.sum(means * cnt[ok, None], axis=0) / cnt[ok].sum()
-            dev[ok] = np.maximum(dev[ok], np.sum((means - centre) ** 2 / (s.sd**2 / cnt[ok, None]), axis=1))
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                chi = np.nan_to_num(np.sum((means - centre) ** 2 / (s.sd**2 / cnt[ok, None]), axis=1), posinf=1e300)
+            dev[ok] = np.maximum(dev[ok], chi)
         worst = int(np.argmax(dev))
         if dev[worst] <= stats.chi2.ppf(1.0 - alpha / (blocks * len(sig)), 3):
             out.append((j0, j1))
@@ -139,6 +143,8 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig, mags: tuple[Stream,
     if len(acc) < 2 * n:
         msg = f"{acc.source}: only {len(acc)} IMU samples; a still-segment search needs at least {2 * n}"
         raise StreamError(msg)
+    for stream in (acc, gyr, *mags):
+        check_signal(stream)
     a, w = acc.xyz, gyr.xyz
     a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), np.maximum(_resolution_floor(a), 1e-12))
     w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), np.maximum(_resolution_floor(w), 1e-12))
@@ -200,3 +206,15 @@ def pooled_std(stream: Stream, segments: tuple[Segment, ...] | list[Segment]) ->
             ss += np.sum((x - x.mean(axis=0)) ** 2, axis=0)
             dof += len(x) - 1
     return np.sqrt(ss / dof) if dof else np.full(stream.values.shape[1], np.nan)
+
+
+def check_signal(stream: Stream) -> None:
+    """Refuse a sensor that reads one value throughout (stuck, disconnected, not enabled, or zero-filled)."""
+    x = stream.values
+    if len(x) < 2 or not np.all(x == x[0]):
+        return
+    what = "zero" if not np.any(x[0]) else "the same value"
+    msg = (f"{stream.source}: the {stream.kind.value} {stream.id} reads {what} in all {len(x)} samples; the sensor is stuck, "
+           "disconnected or not enabled (or the column is a placeholder). Check the sensor and its logging, and "
+           "record again")
+    raise InsufficientDataError(msg)

@@ -29,6 +29,8 @@ from .solve import Factor, Options, Solution, solve
 
 FloatArray = npt.NDArray[np.float64]
 LAYOUT = MagLayout.packed(0)
+#: verticals all within this angle (deg, 95th percentile) of their mean: level or yaw-only motion, refused
+MIN_TILT_SPREAD_DEG = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,7 +88,7 @@ def initial_orientations(d0: FloatArray, o0: FloatArray, dip0: float, y: FloatAr
     return so3.wahba(body, np.stack([field_nav(dip0), UP_N]))
 
 
-def _sigma_update(sol: Solution, sig_m: float, sig_v: float) -> tuple[float, float]:
+def _sigma_update(sol: Solution, sig_m: float, sig_v: float, where: str = "kok2012") -> tuple[float, float]:
     """ML noise levels per residual group with leverage-corrected degrees of freedom (REML-like).
 
     A vertical residual has 2 informative directions per pair (the one along v_k is second order).
@@ -96,7 +98,8 @@ def _sigma_update(sol: Solution, sig_m: float, sig_v: float) -> tuple[float, flo
     k = fm.r.shape[0]
     dof_m, dof_v = 3 * k - h_m, 2 * k - h_v
     if dof_m <= 1.0 or dof_v <= 1.0:
-        msg = "too few measurement pairs to estimate the noise levels"
+        msg = (f"{where}: too few distinct measurement pairs to estimate the noise levels; hold the sensor still "
+               "in more orientations (on each side and upside down) for 2-4 s each")
         raise InsufficientDataError(msg)
     ss_m = float(np.sum(fm.r**2)) * sig_m**2
     ss_v = float(np.sum(fv.r**2)) * sig_v**2
@@ -137,7 +140,7 @@ def fit_kok2012(data: KokData, sigma_rounds: int = 3, where: str = "kok2012") ->
         sol = solve(make(sig_m, sig_v), states, theta)
         states, theta, iters = sol.states, sol.theta, iters + sol.iterations
         log.extend(sol.log)
-        sig_m, sig_v = _sigma_update(sol, sig_m, sig_v)
+        sig_m, sig_v = _sigma_update(sol, sig_m, sig_v, where)
     sol = solve(make(sig_m, sig_v), states, theta)
     log.extend(sol.log)
     if not np.all(np.isfinite(sol.cov_theta)):
@@ -191,6 +194,36 @@ def kok_data(problem: Problem, mag: Stream, min_poses: int, separation_deg: floa
     return KokData(mag.id, ell, y[::step], v[::step], f"{len(y[::step])} quasi-static samples", tq[::step])
 
 
+def distinct_directions(v: FloatArray, separation_deg: float, enough: int = 64, cells: int = 2000) -> int:
+    """Number (up to `enough`) of directions among the vectors v (K, 3) at least `separation_deg` apart, counted
+    greedily over the cells of a Fibonacci sphere lattice they fall in (thousands of samples: one product)."""
+    if len(v) == 0:
+        return 0
+    k = np.arange(cells) + 0.5
+    z = 1.0 - 2.0 * k / cells
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * k
+    centres = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    cos_sep = np.cos(np.deg2rad(separation_deg))
+    kept = np.zeros((0, 3))
+    for c in centres[np.unique(np.argmax(u @ centres.T, axis=1))]:     # cells, not samples: at most `cells`
+        if kept.shape[0] and np.max(kept @ c) > cos_sep:
+            continue
+        kept = np.vstack([kept, c])
+        if kept.shape[0] >= enough:
+            break
+    return int(kept.shape[0])
+
+
+def vertical_spread_deg(v: FloatArray) -> float:
+    """95th percentile of the angle (deg) between the unit verticals (K, 3) and their mean direction."""
+    mean = v.mean(axis=0)
+    norm = float(np.linalg.norm(mean))
+    if len(v) == 0 or norm < 1e-6:
+        return 180.0
+    return float(np.percentile(np.degrees(np.arccos(np.clip(v @ (mean / norm), -1.0, 1.0))), 95))
+
+
 def gyro_bias_from_still(problem: Problem) -> ImuFit:
     """Gyro bias = mean rate over the still samples (std = noise / sqrt(n)); Kok 2012 has no accelerometer bias."""
     segs = problem.still.segments
@@ -209,6 +242,19 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
             n_seg = len(problem.still.segments)
             msg = (f"{problem.where}: only {n_seg} stationary segments and too few quasi-static samples for "
                    f"{mag.id}; hold the sensor still in >= {cfg.min_poses} distinct orientations for 2-4 s each")
+            raise InsufficientDataError(msg)
+        spread = vertical_spread_deg(data.v)
+        if spread < MIN_TILT_SPREAD_DEG:
+            msg = (f"{problem.where}: {mag.id}: every vertical measurement ({data.source}) lies within {spread:.0f} deg "
+                   "of the same direction (level or yaw-only motion), which cannot determine the calibration; hold "
+                   f"the sensor still in >= {cfg.min_poses} orientations that differ in tilt -- on each side and upside "
+                   "down -- for 2-4 s each")
+            raise InsufficientDataError(msg)
+        poses = distinct_directions(data.v, cfg.min_pose_separation_deg)
+        if poses < cfg.min_poses:
+            msg = (f"{problem.where}: {mag.id}: the vertical measurements ({data.source}) show only {poses} distinct "
+                   f"orientations ({cfg.min_pose_separation_deg:g} deg apart); Kok 2012 needs >= {cfg.min_poses}: hold "
+                   "the sensor still in more orientations -- on each side and upside down -- for 2-4 s each")
             raise InsufficientDataError(msg)
         notes.append(f"{mag.id}: vertical measurements from {data.source}")
         fits.append(fit_kok2012(data, cfg.kok_sigma_rounds, f"{problem.where}: {mag.id}"))
