@@ -63,7 +63,7 @@ class RosbagReader:
         try:
             reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
-        except errors as exc:
+        except Exception as exc:  # noqa: BLE001 - rosbags also raises AssertionError, MemoryError... on damage
             storage = sorted(bag.glob("*.mcap")) if bag.is_dir() else []
             if not storage:
                 msg = f"{path}: cannot open the {fmt} ({_reason(exc)}). {_advice(exc)}"
