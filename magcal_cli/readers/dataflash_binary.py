@@ -37,7 +37,7 @@ META_TYPES = ("FMTU", "UNIT", "MULT")
 Placed = tuple[int, MessageFormat]
 CHUNK = 1 << 23
 #: bytes parsed at a time, and the overlap that lets a record near a window's end be confirmed by the next two
-WINDOW = 1 << 24
+WINDOW = 1 << 22
 OVERLAP = 1024
 
 
@@ -258,10 +258,12 @@ class _ChainParser:
         tables: dict[str, Table] = {}
         for tid, n in self.counts.items():
             counts[by_id[tid].name] = counts.get(by_id[tid].name, 0) + n
-        for tid, parts in self.parts.items():
+        for tid in sorted(self.parts):
+            parts = self.parts.pop(tid)               # one type at a time: its pieces are freed as it is joined
             f = by_id[tid]
             pos = np.concatenate([p for p, _ in parts])
             raw = np.concatenate([r for _, r in parts])
+            del parts
             tables[f.name] = decode_records(raw, pos, f)
         try:
             formats = attach_units(formats, tables.get("FMTU"), tables.get("UNIT"), tables.get("MULT"))

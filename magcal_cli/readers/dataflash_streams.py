@@ -113,12 +113,16 @@ class Pending:
 
 def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float],
            notes: list[str]) -> Recording:
-    """Recording with times relative to the first IMU or magnetometer sample, cleaned and noted."""
+    """Recording with times relative to the first IMU or magnetometer sample, cleaned and noted.
+
+    `pending` is emptied as its streams are built, so each one's arrays are freed once copied (memory)."""
     anchor = [p.t for p in pending if Kind.MAGNETOMETER in p.kinds or Kind.ACCELEROMETER in p.kinds]
-    finite = [t[np.isfinite(t)] for t in (anchor or [p.t for p in pending])]
-    t0 = min((float(t.min()) for t in finite if t.size), default=0.0)
+    t0 = min((float(np.nanmin(t)) for t in (anchor or [p.t for p in pending]) if np.isfinite(t).any()), default=0.0)
+    del anchor
     streams: list[Stream] = []
-    for p in pending:
+    pending.reverse()
+    while pending:
+        p = pending.pop()
         where = p.id if len(p.kinds) > 1 else f"{p.id} {p.kinds[0].value}"
         t, values, cleaned = clean_time(p.t - t0, p.values, where)
         if p.kinds == (Kind.MAGNETOMETER,):
