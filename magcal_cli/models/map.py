@@ -46,7 +46,7 @@ MAX_EPOCH_RATE_HZ = 100.0
 MIN_EPOCHS = 50
 #: rounds of (solve, re-estimate the noise levels); stop when no level changes by more than NOISE_TOL
 NOISE_ROUNDS = 6
-NOISE_TOL = 0.03
+NOISE_TOL = 0.04
 #: without still segments the gyro noise starts at the quietest-window level divided by this
 GYRO_START_DIVISOR = 10.0
 #: slope of the gyro's variance-factor fixed point (d log factor / d log variance) assumed for the first step
@@ -300,8 +300,8 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
     floor = noise if still_s >= MIN_STILL_S else None
-    if imu_start is not None:
-        noise = Noise(np.maximum(imu_start.acc, noise.acc), np.maximum(imu_start.gyr, noise.gyr), noise.mag)
+    if imu_start is not None:                  # already estimated on this IMU (floors still apply below)
+        noise = Noise(imu_start.acc, imu_start.gyr, noise.mag)
     else:
         # in motion the accelerometer also sees linear acceleration: start from the spread of |a| about g
         dev = np.linalg.norm(ep.acc, axis=1) - G
