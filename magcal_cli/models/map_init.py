@@ -54,27 +54,9 @@ def despike(y: FloatArray, width: int = 5, k: float = 6.0, share: float = 0.05) 
 def intrinsic_fit(y: FloatArray, where: str) -> Intrinsic:
     """Kok 2012 ellipsoid fit on at most ~2000 evenly spaced readings, normalised so that det(D0) = 1 (the
     authors' ml_estimate uses 200; this is only a start value)."""
-    sub = y[:: max(1, len(y) // 2000)]
-    try:
-        ell = fit_ellipsoid(sub, where)
-    except InsufficientDataError:
-        return sphere_fit(sub, where)            # a hyperboloid (disturbed or narrow data): use a sphere
+    ell = fit_ellipsoid(y[:: max(1, len(y) // 2000)], where)
     scale = float(np.cbrt(np.linalg.det(ell.D0)))
     return Intrinsic(ell.D0 / scale, ell.o0 / scale, scale, ell.residual_rms)
-
-
-def sphere_fit(y: FloatArray, where: str) -> Intrinsic:
-    """Centre and radius from |y|^2 = 2 c.y + k (linear least squares): D0 = I, o0 = c in radius units."""
-    a = np.column_stack([2.0 * y, np.ones(len(y))])
-    sol, *_ = np.linalg.lstsq(a, np.sum(y * y, axis=1), rcond=None)
-    c, r2 = sol[:3], float(sol[3] + sol[:3] @ sol[:3])
-    if not r2 > 0.0:
-        msg = (f"{where}: the readings fit neither an ellipsoid nor a sphere; rotate the sensor through more "
-               "orientations, ideally about all three axes")
-        raise InsufficientDataError(msg)
-    r = float(np.sqrt(r2))
-    rms = float(np.sqrt(np.mean((np.linalg.norm(y - c, axis=1) / r - 1.0) ** 2)))
-    return Intrinsic(np.eye(3), c / r, r, rms)
 
 
 def wu_luo(h: FloatArray, phi: FloatArray, duration: FloatArray, window: int
