@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import IO, ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -52,6 +52,8 @@ STREAMS: dict[str, tuple[Kind, str]] = {
 }
 #: above this share of rows that do not parse, the file is malformed rather than damaged here and there
 BAD_ROW_SHARE = 0.01
+#: bytes of text parsed at a time
+CSV_BLOCK = 1 << 24
 CANONICAL_HEADER = "t [s],gx [rad/s],gy [rad/s],gz [rad/s],ax [m/s^2],ay [m/s^2],az [m/s^2],mx [uT],my [uT],mz [uT]"
 _CELL = re.compile(r"\s*(?P<name>.*?)\s*(?:[\[(]\s*(?P<unit>[^\])]*?)\s*[\])])?\s*")
 
@@ -148,37 +150,77 @@ def fill_empty(body: str) -> str:
     return body + "nan" if body.endswith(",") else body
 
 
-def parse_table(body: str, first_line: int, where: str, width: int, notes: list[str]) -> FloatArray:
-    """The numeric rows. Rows that do not parse (a cell that is not a number, a wrong number of cells) are
-    skipped and counted when they are few (corrupt data); when more than BAD_ROW_SHARE are, the file is not in
-    the expected form and the error names the first such line."""
+def parse_rows(body: str, first_line: int, width: int) -> tuple[FloatArray, list[tuple[int, str]]]:
+    """The numeric rows of a block of lines and the rows that do not parse: (line number, why) -- a cell that is
+    not a number, or a wrong number of cells. numpy's C parser reads an undamaged block in one call."""
     if not body.strip():
-        return np.zeros((0, 0))
+        return np.zeros((0, width)), []
     lines = fill_empty(body).splitlines()
     try:
-        return np.loadtxt(lines, delimiter=",", ndmin=2, dtype=np.float64)
+        return np.loadtxt(lines, delimiter=",", ndmin=2, dtype=np.float64), []
     except ValueError:
         pass
     rows: list[list[float]] = []
     bad: list[tuple[int, str]] = []
-    for k, line in enumerate(lines):              # only for a damaged file: find the rows that do not parse
+    for k, line in enumerate(lines):              # only for a damaged block: find the rows that do not parse
         if not line.strip():
             continue
         cells = line.split(",")
         if len(cells) != width:
-            bad.append((k, f"the number of columns changed from {width} to {len(cells)}"))
+            bad.append((first_line + k, f"the number of columns changed from {width} to {len(cells)}"))
             continue
         try:
             rows.append([float(c) for c in cells])
         except ValueError:
             cell = next(c for c in cells if not _is_number(c))
-            bad.append((k, f"could not convert string {cell.strip()!r} to a number"))
-    if len(bad) > BAD_ROW_SHARE * (len(rows) + len(bad)):
-        msg = f"{where}: line {first_line + bad[0][0]}: {bad[0][1]}. Fix or delete that row"
+            bad.append((first_line + k, f"could not convert string {cell.strip()!r} to a number"))
+    return np.array(rows, dtype=np.float64).reshape(-1, width), bad
+
+
+def read_rows(fh: IO[bytes], first_line: int, where: str, width: int, options: ReadOptions,
+              notes: list[str]) -> FloatArray:
+    """The table below the header, read in blocks of CSV_BLOCK bytes (memory: one block of text plus the numbers).
+
+    Rows that do not parse are skipped and counted when they are few (corrupt data); when more than
+    BAD_ROW_SHARE are, the file is not in the expected form and the error names the first such line.
+    """
+    parts: list[FloatArray] = []
+    bad: list[tuple[int, str]] = []
+    line, replaced, lines_read = first_line, 0, 0
+    first_exc: UnicodeDecodeError | None = None
+    chunk = fh.readlines(CSV_BLOCK)
+    while chunk:
+        following = fh.readlines(CSV_BLOCK)
+        data = b"".join(chunk)
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            text = data.decode("utf-8", errors="replace")          # corrupt bytes: their rows will not parse
+            replaced += text.count("\ufffd")
+            first_exc = first_exc or exc
+        if not following:
+            text = _cut_last_row(text, width, line + len(chunk) - 1, where, options, notes)
+        rows, bad_rows = parse_rows(text, line, width)
+        if rows.shape[1] != width:
+            msg = (f"{where}: rows have {rows.shape[1]} cells but the header names {width} columns; make the header "
+                   "and the rows agree")
+            raise LogReadError(msg)
+        parts.append(rows)
+        bad += bad_rows
+        line += len(chunk)
+        lines_read += len(chunk)
+        chunk = following
+    if first_exc is not None and replaced > BAD_ROW_SHARE * lines_read:
+        msg = f"{where}: cannot read the CSV file ({first_exc}). Save it as UTF-8 text"
         raise LogReadError(msg)
-    notes.append(f"skipped {len(bad)} rows that do not parse (corrupt data; the first is line "
-                 f"{first_line + bad[0][0]}: {bad[0][1]})")
-    return np.array(rows, dtype=np.float64).reshape(-1, width)
+    table = np.concatenate(parts) if parts else np.zeros((0, width))
+    if len(bad) > BAD_ROW_SHARE * (len(table) + len(bad)):
+        msg = f"{where}: line {bad[0][0]}: {bad[0][1]}. Fix or delete that row"
+        raise LogReadError(msg)
+    if bad:
+        notes.append(f"skipped {len(bad)} rows that do not parse (corrupt data; the first is line {bad[0][0]}: "
+                     f"{bad[0][1]})")
+    return table
 
 
 def _is_number(cell: str) -> bool:
@@ -188,6 +230,20 @@ def _is_number(cell: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def _header_line(fh: IO[bytes], where: str) -> tuple[str, int]:
+    """The header (the first line that is neither blank nor a '#' comment) and its line number."""
+    for line_no, raw in enumerate(iter(fh.readline, b""), start=1):
+        try:
+            line = raw.decode("utf-8-sig" if line_no == 1 else "utf-8")
+        except UnicodeDecodeError as exc:
+            msg = f"{where}: cannot read the CSV file ({exc}). Save it as UTF-8 text"
+            raise LogReadError(msg) from None
+        if line.strip() and not line.lstrip().startswith("#"):
+            return line.rstrip("\r\n"), line_no
+    msg = f"{where}: no header line; the first line must name the columns, e.g. {CANONICAL_HEADER}"
+    raise LogReadError(msg)
 
 
 def _cut_last_row(body: str, width: int, last_line: int, where: str, options: ReadOptions, notes: list[str]) -> str:
@@ -217,44 +273,22 @@ class CsvReader:
         """Parse the header, the table, and build one stream per sensor (empty cells are no sample)."""
         where = str(path)
         try:
-            data = path.read_bytes()
+            fh = path.open("rb")
         except OSError as exc:
             msg = f"{where}: cannot read the CSV file ({exc.strerror or exc}). Check the path and its permissions"
             raise LogReadError(msg) from None
-        try:
-            text = data.decode("utf-8-sig")
-        except UnicodeDecodeError as exc:
-            text = data.decode("utf-8-sig", errors="replace")      # corrupt bytes: their rows will not parse
-            if "\ufffd" in text.split("\n", 1)[0] or text.count("\ufffd") > BAD_ROW_SHARE * text.count("\n"):
-                msg = f"{where}: cannot read the CSV file ({exc}). Save it as UTF-8 text"
-                raise LogReadError(msg) from None
-        line_no, body = 1, text
-        while True:
-            header, sep, body = body.partition("\n")
-            if header.strip() and not header.lstrip().startswith("#"):
-                break
-            if not sep:
-                msg = f"{where}: no header line; the first line must name the columns, e.g. {CANONICAL_HEADER}"
+        with fh:
+            header, line_no = _header_line(fh, where)
+            if "," not in header and (";" in header or "\t" in header):
+                msg = f"{where}: the header is not comma-separated; magcal reads comma-separated files (CSV)"
                 raise LogReadError(msg)
-            line_no += 1
-        header = header.rstrip("\r")
-        if "," not in header and (";" in header or "\t" in header):
-            msg = f"{where}: the header is not comma-separated; magcal reads comma-separated files (CSV)"
-            raise LogReadError(msg)
-        cols, ignored = parse_header(header, where)
-        by = _check_columns(cols, where)
-        notes: list[str] = []
-        width = header.count(",") + 1
-        body = _cut_last_row(body, width, line_no + 1 + body.count("\n"), where, options, notes)
-        table = parse_table(body, line_no + 1, where, width, notes)
+            cols, ignored = parse_header(header, where)
+            by = _check_columns(cols, where)
+            notes: list[str] = [f"ignored columns: {', '.join(ignored)}"] if ignored else []
+            table = read_rows(fh, line_no + 1, where, header.count(",") + 1, options, notes)
         if table.shape[0] == 0:
             msg = f"{where}: the CSV file has a header but no rows"
             raise LogReadError(msg)
-        if table.shape[1] != header.count(",") + 1:
-            msg = (f"{where}: rows have {table.shape[1]} cells but the header names {header.count(',') + 1} "
-                   "columns; make the header and the rows agree")
-            raise LogReadError(msg)
-        notes[:0] = [f"ignored columns: {', '.join(ignored)}"] if ignored else []
         return self._recording(path, table, by, notes)
 
     @staticmethod

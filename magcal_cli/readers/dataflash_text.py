@@ -16,6 +16,11 @@ from ..errors import LogReadError
 from .dataflash_binary import META_TYPES, attach_units
 from .dataflash_format import STRING_CHARS, MessageFormat, RawLog, Table, valid_format
 
+#: bytes of text parsed at a time
+TEXT_BLOCK = 1 << 24
+#: format characters printed as text: strings, and the flight mode `M`, which text logs print by name
+TEXT_CHARS = STRING_CHARS | {"M"}
+
 
 def _format(parts: list[str]) -> MessageFormat | None:
     """A MessageFormat from the fields of one `FMT, type, length, name, format, columns...` line."""
@@ -30,81 +35,112 @@ def _format(parts: list[str]) -> MessageFormat | None:
     return MessageFormat(type_id, name, length, fmt, cols) if valid_format(name, fmt, cols, length) else None
 
 
-def parse_text(path: Path, wanted: Collection[str] | None = None) -> RawLog:
-    """Parse a text DataFlash log; decode the record types in `wanted` (all when None)."""
+def parse_text(path: Path, wanted: Collection[str] | None = None, block: int = TEXT_BLOCK) -> RawLog:
+    """Parse a text DataFlash log in blocks of about `block` bytes (memory: one block plus the decoded records);
+    decode the record types in `wanted` (all when None)."""
     try:
-        raw = path.read_bytes()
+        fh = path.open("rb")
     except OSError as exc:
         msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
         raise LogReadError(msg) from None
-    lines = raw.decode("latin-1").splitlines()
-    truncated = _cut_last_line(raw, lines)
-    formats: dict[str, MessageFormat] = {}
-    by_name: dict[str, list[int]] = defaultdict(list)
-    for i, line in enumerate(lines):             # text logs are small (a few MB); one pass to group records
-        head, sep, _ = line.partition(",")
-        if not sep:
-            continue
-        name = head.strip()
-        if name == "FMT":
-            f = _format([p.strip() for p in line.split(",")])
-            if f is not None and f.name != "FMT":
-                formats.setdefault(f.name, f)
-        else:
-            by_name[name].append(i)
-    want = None if wanted is None else set(wanted) | set(META_TYPES)
-    tables: dict[str, Table] = {}
-    counts: dict[str, int] = {}
-    notes: list[str] = []
-    bad_total = 0
-    for name, idx in by_name.items():
-        f = formats.get(name)
-        if f is None:
-            continue
-        counts[name] = len(idx)
-        if want is not None and name not in want:
-            continue
+    acc = _Blocks(None if wanted is None else set(wanted) | set(META_TYPES))
+    size, truncated, first = 0, 0, 0
+    with fh:
+        chunk = fh.readlines(block)
+        while chunk:
+            following = fh.readlines(block)
+            data = b"".join(chunk)
+            size += len(data)
+            lines = data.decode("latin-1").splitlines()
+            if not following:
+                truncated = _cut_last_line(data, lines, acc.formats)
+            acc.add(lines, first)
+            first += len(lines)
+            chunk = following
+    tables, counts, notes = acc.tables()
+    if truncated:
+        notes.append(f"the file ends inside a record ({truncated} bytes after the last line break): the log is "
+                     "truncated; read the complete lines")
+    try:
+        formats = attach_units(dict(acc.formats), tables.get("FMTU"), tables.get("UNIT"), tables.get("MULT"))
+    except (ValueError, KeyError, TypeError, IndexError):
+        formats = acc.formats
+        notes.append("ignored FMTU/UNIT/MULT records that are not in the expected text form")
+    return RawLog(formats, tables, counts, size, 0, truncated, notes)
+
+
+class _Blocks:
+    """The formats seen so far and the decoded records of the wanted types, block by block."""
+
+    def __init__(self, want: set[str] | None) -> None:
+        self.want = want
+        self.formats: dict[str, MessageFormat] = {}
+        self.counts: dict[str, int] = defaultdict(int)
+        self.parts: dict[str, list[tuple[np.ndarray, dict[str, np.ndarray]]]] = defaultdict(list)
+        self.bad = 0
+
+    def add(self, lines: list[str], first: int) -> None:
+        """Group one block's lines by record name and decode the wanted ones (lines before their FMT are lost)."""
+        by_name: dict[str, list[int]] = defaultdict(list)
+        for i, line in enumerate(lines):         # one pass per block to group records
+            head, sep, _ = line.partition(",")
+            if not sep:
+                continue
+            name = head.strip()
+            if name == "FMT":
+                f = _format([p.strip() for p in line.split(",")])
+                if f is not None and f.name != "FMT":
+                    self.formats.setdefault(f.name, f)
+            else:
+                by_name[name].append(i)
+        for name, idx in by_name.items():
+            f = self.formats.get(name)
+            if f is None:
+                continue
+            self.counts[name] += len(idx)
+            if self.want is None or name in self.want:
+                self._decode(f, [lines[i] for i in idx], np.asarray(idx, dtype=np.int64) + first)
+
+    def _decode(self, f: MessageFormat, rows_text: list[str], pos: np.ndarray) -> None:
+        """The rows of one type: fields split, numbers parsed, malformed rows dropped and counted."""
         width = len(f.format) + 1
-        rows = [[p.strip() for p in lines[i].split(",", width - 1)] for i in idx]
-        good = [len(r) == width for r in rows]
-        bad_total += len(rows) - sum(good)
-        arr = np.array([r[1:] for r, g in zip(rows, good, strict=True) if g], dtype=str)
+        rows = [[p.strip() for p in line.split(",", width - 1)] for line in rows_text]
+        good = np.array([len(r) == width for r in rows], dtype=bool)
+        self.bad += int((~good).sum())
+        arr = np.array([r[1:] for r, g in zip(rows, good.tolist(), strict=True) if g], dtype=str)
         arr = arr.reshape(-1, width - 1)
-        pos = np.array([i for i, g in zip(idx, good, strict=False) if g], dtype=np.int64)
+        pos = pos[good]
         ok = np.ones(len(pos), dtype=bool)
         cols: dict[str, np.ndarray] = {}
         for j, col in enumerate(f.columns[:width - 1]):
-            if f.format[j] in STRING_CHARS:
+            if f.format[j] in TEXT_CHARS:
                 values = arr[:, j]
             else:
                 values, parsed = _numbers(arr[:, j])
                 ok &= parsed
             cols.setdefault(col, values)
-        bad_total += int((~ok).sum())
-        cols = {k: v[ok] for k, v in cols.items()}
-        tables[name] = Table(f, pos[ok], cols, prescaled=True)
-    if bad_total:
-        notes.append(f"skipped {bad_total} malformed text records (wrong number of fields, or a field that is not "
-                     "a number)")
-    try:
-        formats = attach_units(formats, tables.get("FMTU"), tables.get("UNIT"), tables.get("MULT"))
-    except ValueError:
-        notes.append("ignored FMTU/UNIT/MULT records that are not in the expected text form")
-    if truncated:
-        notes.append(f"the file ends inside a record ({truncated} bytes after the last line break): the log is "
-                     "truncated; read the complete lines")
-    return RawLog(formats, tables, counts, len(raw), 0, truncated, notes)
+        self.bad += int((~ok).sum())
+        self.parts[f.name].append((pos[ok], {k: v[ok] for k, v in cols.items()}))
+
+    def tables(self) -> tuple[dict[str, Table], dict[str, int], list[str]]:
+        """The decoded tables, the record counts and the notes."""
+        tables = {}
+        for name, parts in self.parts.items():
+            cols = {c: np.concatenate([p[1][c] for p in parts]) for c in parts[0][1]}
+            tables[name] = Table(self.formats[name], np.concatenate([p[0] for p in parts]), cols, prescaled=True)
+        notes = [f"skipped {self.bad} malformed text records (wrong number of fields, or a field that is not a "
+                 "number)"] if self.bad else []
+        return tables, dict(self.counts), notes
 
 
-def _cut_last_line(raw: bytes, lines: list[str]) -> int:
+def _cut_last_line(data: bytes, lines: list[str], formats: dict[str, MessageFormat]) -> int:
     """Bytes of a last line cut off by the end of the file (no line break, fewer fields than its FMT), which is
     removed from `lines`; 0 when the file ends cleanly."""
-    if not lines or raw.endswith((b"\n", b"\r")):
+    if not lines or data.endswith((b"\n", b"\r")):
         return 0
     name, sep, rest = lines[-1].partition(",")
     fields = rest.count(",") + 1 if sep else 0
-    fmt = next((_format([p.strip() for p in line.split(",")]) for line in lines
-                if line.startswith("FMT") and f", {name.strip()}," in line), None)
+    fmt = formats.get(name.strip())
     if name.strip() != "FMT" and (fmt is None or fields >= len(fmt.format)):
         return 0
     return len(lines.pop().encode("latin-1"))
