@@ -604,3 +604,23 @@ def test_sigint_mid_run_leaves_no_partial_files(tmp_path: Path) -> None:
     assert "Error: interrupted; outputs not yet renamed into place were discarded." in err
     assert "Traceback" not in err
     assert not out.exists() or not any(out.iterdir())
+
+
+# --- the negative real logs of ../shared/realdata -------------------------------------------------------------
+
+@pytest.mark.parametrize(("name", "args", "message"), [
+    ("robert_lefebvre_octo_PM.log", (), "{path}: no magnetometer messages (MAG defined by FMT but never written); "
+                                        "nothing to calibrate. Enable compass logging (LOG_BITMASK) and record the "
+                                        "log again"),
+    ("ap462_truncated_80k.bin", (), "{path}: the log is truncated (the file ends inside a record, 2 bytes from its "
+                                    "end). Re-copy the log, or pass --allow-truncated to use the complete messages"),
+    ("ap462_truncated_80k.bin", ("--allow-truncated",),
+     "ap462_truncated_80k.bin: magnetometer MAG[0] has only 4 samples (0.3 s); a calibration needs a recording of at "
+     "least a minute with the vehicle turned through many orientations"),
+])
+def test_negative_real_logs(runner: CliRunner, tmp_path: Path, realdata: Path, name: str, args: tuple[str, ...],
+                            message: str) -> None:
+    """No MAG with an old GPS format (pymavlink raises TypeError on it), and a log cut at 80 kB: one clean line."""
+    path = realdata / "ardupilot" / name
+    assert one_error(fit(runner, path, tmp_path / "o", *args)) == message.format(path=path)
+    assert not (tmp_path / "o").exists()
