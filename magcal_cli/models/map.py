@@ -46,7 +46,7 @@ MAX_EPOCH_RATE_HZ = 100.0
 MIN_EPOCHS = 50
 #: rounds of (solve, re-estimate the noise levels); stop when no level changes by more than NOISE_TOL
 NOISE_ROUNDS = 6
-NOISE_TOL = 0.04
+NOISE_TOL = 0.03
 #: without still segments the gyro noise starts at the quietest-window level divided by this
 GYRO_START_DIVISOR = 10.0
 #: slope of the gyro's variance-factor fixed point (d log factor / d log variance) assumed for the first step
