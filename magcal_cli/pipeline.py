@@ -33,6 +33,8 @@ Progress = Callable[[str], None]
 METHODS: dict[str, str] = {
     "kok2012": "magcal_cli.models.kok2012:run",
     "map": "magcal_cli.models.map:run",
+    "ekf-ml": "magcal_cli.models.ekf_ml:run",
+    "ekf-aug": "magcal_cli.models.ekf_aug:run",
 }
 
 

@@ -189,3 +189,28 @@ def log_small(rot: npt.ArrayLike, limit: float = 3.0) -> FloatArray:
     if np.any(far):
         out[far] = log(rot[far])
     return out
+
+
+#: hat(v) = v @ _HAT_BASIS reshaped: the generators [e_x]x, [e_y]x, [e_z]x as rows
+_HAT_BASIS = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]],
+                      dtype=np.float64)
+
+
+def exp_and_right_jacobian(phi: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Exp(phi) and J_r(phi) of (..., 3) rotation vectors from one evaluation of the coefficients (filter loops).
+
+    When every angle is below 1e-2 rad (a filter's update increments) the Taylor series to theta^4 is exact to
+    double precision (first neglected term ~theta^6/5040 < 1e-15), evaluated without square root or branches.
+    """
+    phi = np.asarray(phi, dtype=np.float64)
+    t2 = np.einsum("...i,...i->...", phi, phi)
+    if t2.size and float(t2.max()) < 1e-4:
+        a = 1.0 + t2 * (-1.0 / 6.0 + t2 / 120.0)
+        b = 0.5 + t2 * (-1.0 / 24.0 + t2 / 720.0)
+        c = 1.0 / 6.0 + t2 * (-1.0 / 120.0 + t2 / 5040.0)
+    else:
+        _, a, b, c = _coefficients(phi)
+    k = (phi @ _HAT_BASIS).reshape(phi.shape[:-1] + (3, 3))
+    k2 = k @ k
+    a, b, c = a[..., None, None], b[..., None, None], c[..., None, None]
+    return np.eye(3) + a * k + b * k2, np.eye(3) - b * k + c * k2

@@ -19,6 +19,8 @@ if TYPE_CHECKING:
 METHOD_NAMES = {
     "kok2012": "Kok et al. 2012 (ellipsoid fit, alignment with the accelerometer's vertical, maximum likelihood)",
     "map": "Huang et al. 2025 joint MAP (trajectory, accelerometer and gyro biases, D, o, dip; gyro preintegration)",
+    "ekf-ml": "Kok & Schoen 2016 (EKF innovation likelihood maximised over the calibration and noise levels)",
+    "ekf-aug": "Wu et al. 2018 (one pass of an EKF with orientation and calibration in the state)",
 }
 #: the unit a report shows a native unit in (tesla is unreadable at Earth-field scale)
 DISPLAY = {"tesla": ("microtesla", "uT"), "millitesla": ("microtesla", "uT"), "microtesla": ("microtesla", "uT"),
