@@ -260,6 +260,17 @@ def test_corrupt_ulog_message_is_skipped(tmp_path: Path, sim: Simulation) -> Non
     assert len(rec.select(Kind.MAGNETOMETER)) > 0.9 * len(sim.recording.select(Kind.MAGNETOMETER))
 
 
+def test_damaged_ulog_format_definition(tmp_path: Path, sim: Simulation) -> None:
+    """A format definition whose timestamp field is garbled: that topic is ignored and named (found by fuzzing:
+    it was a KeyError)."""
+    write_log(sim, tmp_path / "x.ulg")
+    data = (tmp_path / "x.ulg").read_bytes()
+    at = data.index(b"timestamp", data.index(b"sensor_mag:"))
+    (tmp_path / "bad.ulg").write_bytes(data[:at] + b"timestXmp" + data[at + 9:])
+    rec = open_recording(tmp_path / "bad.ulg")
+    assert "ignored sensor_mag: the format has no timestamp field (corrupt definition)" in rec.notes
+
+
 def test_corrupt_bag_chunk_is_skipped(tmp_path: Path, sim: Simulation) -> None:
     """A damaged chunk in the middle of a ROS 1 bag: reading resumes after it and the note counts what was lost."""
     write_bag(sim, tmp_path / "x.bag", chunk_size=16_000)

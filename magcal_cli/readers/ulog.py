@@ -74,10 +74,13 @@ class _Topics:
     """The parsed data sets by (topic, instance), with helpers that read fields as numpy arrays."""
 
     def __init__(self, loaded: Loaded, path: Path, options: ReadOptions) -> None:
-        self.sets = {(d.name, int(d.multi_id)): d for d in loaded.ulog.data_list}
+        self.sets = {(d.name, int(d.multi_id)): d for d in loaded.ulog.data_list if "timestamp" in d.data}
         self.name = path.name
         self.use_sample = not options.receive_time
         self.notes: list[str] = []
+        untimed = sorted({d.name for d in loaded.ulog.data_list if "timestamp" not in d.data})
+        if untimed:                             # a format definition damaged: its data cannot be placed in time
+            self.notes.append(f"ignored {', '.join(untimed)}: the format has no timestamp field (corrupt definition)")
 
     def instances(self, topic: str) -> list[int]:
         """The multi-instance indices logged for `topic`, in order."""
@@ -357,7 +360,7 @@ class UlogReader:
     def _check_damage(path: Path, loaded: Loaded, options: ReadOptions, notes: list[str]) -> None:
         """Raise for a file without decodable data, and for a cut-off or corrupt one unless allowed."""
         ulog = loaded.ulog
-        kept = sum(len(d.data["timestamp"]) for d in ulog.data_list)
+        kept = sum(len(d.data["timestamp"]) for d in ulog.data_list if "timestamp" in d.data)
         if not ulog.data_list and not loaded.topics:
             if loaded.cut_at is not None and ulog.message_formats:      # definitions were read, then it ends
                 msg = (f"{path}: the ULog is truncated at byte {loaded.cut_at} of {loaded.size}, before any "
