@@ -17,7 +17,7 @@ from . import __version__, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from .config import Config
 from .detect import StillResult, detect_still, pooled_std
-from .errors import MagcalError, StreamError
+from .errors import InsufficientDataError, MagcalError, StreamError
 from .findings import Finding, Severity
 from .models.problem import Problem
 from .models.result import MagFit, MethodResult
@@ -176,13 +176,31 @@ def _findings(rec: Recording, problem: Problem, result: MethodResult, mags: list
     return out
 
 
+def _method_for(problem: Problem, cfg: Config) -> tuple[str, list[Finding]]:
+    """The method to run: auto picks MAP when there is gyro data, but Kok 2012 for a field normalised upstream,
+    whose magnitude the joint model needs (Kok 2012 uses only directions); MAP on such a field is refused."""
+    normalised = [m.id for m in problem.mags if normalised_field(m.xyz)]
+    if normalised and cfg.method in ("auto", "map") and len(problem.gyr):
+        ids = ", ".join(normalised)
+        if cfg.method == "map":
+            msg = (f"{problem.where}: {ids}: the field was normalised to unit length upstream, so --method map cannot "
+                   "determine the calibration (it needs the raw field's magnitude); use --method kok2012 for the "
+                   "misalignment and dip only, or log the raw magnetometer readings")
+            raise InsufficientDataError(msg)
+        return "kok2012", [Finding(Severity.WARNING, "method_choice",
+                                   f"{ids}: the field was normalised to unit length upstream, so auto chose Kok 2012 "
+                                   "(directions only) over the joint MAP method (which needs the field's magnitude); "
+                                   "only the misalignment and dip are meaningful")]
+    return (("map" if len(problem.gyr) else "kok2012") if cfg.method == "auto" else cfg.method), []
+
+
 def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress = _noop) -> RunResult:
     """Calibrate every selected magnetometer of one log against its IMU."""
     path = Path(path)
     progress(f"reading {path.name}")
     rec = open_recording(path, fmt, ReadOptions(allow_truncated=cfg.allow_truncated))
     problem = select_problem(rec, cfg)
-    method = ("map" if len(problem.gyr) else "kok2012") if cfg.method == "auto" else cfg.method
+    method, chosen = _method_for(problem, cfg)
     cfg = _with_position(rec, cfg)
     target = METHODS.get(method)
     if target is None:
@@ -212,7 +230,7 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
         noise["source"] = f"estimated by {result.method} from its residuals (variance components)"
     t_used = np.concatenate([problem.acc.t, *[m.t for m in problem.mags]])
     source = Source(str(path), rec.format, sha256(path), float(t_used.min()), float(t_used.max()))
-    findings = _findings(rec, problem, result, mags)
+    findings = chosen + _findings(rec, problem, result, mags)
     cal = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
                       notes=tuple(f.message for f in findings))
     return RunResult(cal, rec, problem.still, tuple(findings), series)
