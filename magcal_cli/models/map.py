@@ -324,6 +324,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     sol = None
     history: list[tuple[float, float]] = []      # (gyro log-variance applied so far, log factor found there)
     applied = 0.0
+    last_step = None
     for rnd in range(noise_rounds + 1):
         opts = (start if noise_rounds else first) if rnd == 0 else later
         sol = solve(make_linearize(ep, pre, noise), states, theta, opts)
@@ -344,10 +345,12 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
             # (its residuals in motion mostly hold unmodelled scale and timing errors, see docs/method-map.md)
             step[3] = 0.0
             step = np.maximum(step, 2.0 * np.log(_levels(floor) / _levels(noise)))
-        if float(np.max(np.abs(step))) < 2.0 * NOISE_TOL:
-            break
+        small = float(np.max(np.abs(step))) < 2.0 * NOISE_TOL
         measured = float(step[3])
         step[3] = _secant(history, applied, measured) if floor is None else 0.0
+        if small:
+            last_step = step
+            break
         history.append((applied, measured))
         applied += float(step[3])
         noise, pre = rescaled(noise, pre, step)
@@ -356,17 +359,24 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         iters += sol.iterations
         log.extend(f"final: {line}" for line in sol.log)
     assert sol is not None
-    return _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes)
+    cov = None
+    if last_step is not None:
+        # the last small change of the levels moves the optimum negligibly but the covariance proportionally:
+        # report the covariance with the final levels at the same point (one assembly, no iterations)
+        noise, pre = rescaled(noise, pre, last_step)
+        cov = marginal_covariance(make_linearize(ep, pre, noise), sol.states, sol.theta)
+    return _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov)
 
 
 def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, sol: Solution, iters: int,
-              log: tuple[str, ...], notes: tuple[str, ...]) -> MapEstimate:
+              log: tuple[str, ...], notes: tuple[str, ...], cov_theta: FloatArray | None = None
+              ) -> MapEstimate:
     """Convert the scaled solution to SI, with the total gyro bias and the observability findings."""
     s = ep.scale
     jac = np.concatenate([np.ones(6), np.full(12, s), [1.0]])
     theta = sol.theta * jac
     theta[BG:BG + 3] += pre.bias
-    cov = sol.cov_theta * np.outer(jac, jac)
+    cov = (sol.cov_theta if cov_theta is None else cov_theta) * np.outer(jac, jac)
     states = sol.states
     dip = float(theta[LAYOUT.dip])
     if abs(dip) > np.pi / 2:
