@@ -14,7 +14,8 @@ class StillConfig:
     window_s: float = 0.5            # moving window for the variance and mean tests
     false_alarm: float = 1e-3        # per-window probability that pure noise fails a test (chi-square tail)
     noise_quantile: float = 0.05     # the quietest 5 % of windows define the noise level
-    min_duration_s: float = 1.0      # shorter still runs are ignored
+    min_duration_s: float = 1.0      # shorter still runs are ignored ...
+    min_samples: int = 40            # ... and runs of fewer samples: the drift test needs them at low rates
     edge_trim_s: float = 0.1         # dropped at both ends of a run before averaging
     rate_allowance_dps: float = 0.1  # gyro bias instability allowed between still windows (deg/s)
     gravity_tolerance: float = 0.15  # | |a| - g | / g above this is not at rest (constant linear acceleration)

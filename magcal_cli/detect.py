@@ -65,10 +65,21 @@ def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
 
 
 def noise_std(x: FloatArray, n: int, quantile: float) -> FloatArray:
-    """Per-axis noise std from the `quantile` of window variances, corrected by the chi-square quantile."""
+    """Per-axis noise std: the smaller of two estimates that fail in different ways.
+
+    The `quantile` of window variances (chi-square corrected) is exact when some windows are still but
+    absorbs the motion when none is; the MAD of second differences (var = 6 sigma^2 for white noise) ignores
+    smooth motion but absorbs jitter. With short windows at low rates the first alone let a steady
+    rotation pass as noise (paper protocol at 10 Hz).
+    """
     _, var = _moving(x, n)
     q = np.quantile(var, quantile, axis=0)
-    return np.sqrt(q * (n - 1) / stats.chi2.ppf(quantile, n - 1))
+    by_windows = np.sqrt(q * (n - 1) / stats.chi2.ppf(quantile, n - 1))
+    if len(x) < 3:
+        return by_windows
+    d2 = np.diff(x, n=2, axis=0)
+    by_differences = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
+    return np.minimum(by_windows, by_differences)
 
 
 def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
@@ -174,7 +185,7 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig, mags: tuple[Stream,
     parts = [p for i0, i1 in _runs(mask) for p in _steady_parts(signals, acc.t, i0, i1, n, cfg.false_alarm)]
     for i0, i1 in parts:
         j0, j1 = i0 + trim, i1 - trim
-        if j1 <= j0 or acc.t[j1 - 1] - acc.t[j0] < cfg.min_duration_s:
+        if j1 - j0 < cfg.min_samples or acc.t[j1 - 1] - acc.t[j0] < cfg.min_duration_s:
             continue
         segments.append(Segment(j0, j1, float(acc.t[j0]), float(acc.t[j1 - 1]),
                                 a[j0:j1].mean(axis=0), w[j0:j1].mean(axis=0)))
