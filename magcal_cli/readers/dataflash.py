@@ -193,6 +193,13 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
         table, t = table.where(keep), t[keep]
         k = _mag_factor(table)
         logged = _cols(table, ("MagX", "MagY", "MagZ"), k)
+        field = logged
+        if f.char("MagX") in "bBhHiIqQ":
+            # AP_Compass logs (int16_t)field: the cast truncates toward zero, so the field was on average half
+            # a count further out; left in, it shrinks D by ~0.5 count / |field| (0.2 % at 270 mG)
+            field = logged + 0.5 * k * np.sign(logged)
+            notes.append(f"MAG[{inst}]: added back half a count ({0.5 * k:g} mG) lost to the firmware's int16 "
+                         "truncation toward zero")
         ofs = _cols(table, ("OfsX", "OfsY", "OfsZ"), k) if f.has("OfsX", "OfsY", "OfsZ") else None
         mo_cols = next((c for c in (("MOfsX", "MOfsY", "MOfsZ"), ("MOX", "MOY", "MOZ")) if f.has(*c)), None)
         motor = _cols(table, mo_cols, k) if mo_cols else None
@@ -212,7 +219,7 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
             notes.append(f"MAG[{inst}]: firmware version unknown; motor offsets taken as added after the "
                          "iron matrix")
         src = f"{path.name}#{f.name}{_inst(f, inst)}.MagX/MagY/MagZ (raw, reconstructed)"
-        out.append(MagReconstruction(inst, src, t, logged, undo_correction(logged, corr), corr,
+        out.append(MagReconstruction(inst, src, t, logged, undo_correction(field, corr), corr,
                                      tuple(bad_instances * (not out) + notes)))
     return out
 

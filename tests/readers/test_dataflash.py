@@ -152,9 +152,12 @@ def test_round_trip_with_scale_motor_current_and_a_parameter_change(tmp_path: Pa
 
 
 def test_reapplying_the_parameters_reproduces_the_logged_field(tmp_path: Path, sim: Simulation) -> None:
-    """apply_correction(reconstruction) == the logged integers (float round-off only)."""
+    """apply_correction(reconstruction) is the logged integers plus the half count the int16 cast truncated
+    toward zero, and the firmware's own truncation of it gives back exactly the logged integers."""
     (m,) = reconstruct_mags(write_bin(tmp_path, sim, PreviousCalibration(scale=0.9)))
-    np.testing.assert_allclose(apply_correction(m.raw, m.correction), m.logged, atol=1e-9)
+    again = apply_correction(m.raw, m.correction)
+    np.testing.assert_allclose(again, m.logged + 0.5 * np.sign(m.logged), atol=1e-9)
+    np.testing.assert_array_equal(np.trunc(np.round(again, 6)), m.logged)
 
 
 def test_corrupt_bytes_are_skipped_and_counted(tmp_path: Path, sim: Simulation) -> None:
