@@ -78,9 +78,10 @@ def main() -> None:
         h_raw = headings(raw_m, series.t, att.t, att.values)
         h_cal = headings(cal_m, series.t, att.t, att.values)
         shape = float(np.abs(mag.soft_iron - np.eye(3)).max())
+        smooth = smooth_norm_range_pct(norm, int(0.5 * rate))
         print(f"{name:40} {elapsed:6.1f} {np.linalg.norm(mag.b):7.3f} "
               f"[{', '.join(f'{x:+6.2f}' for x in mag.b)}] {shape:10.4f} "
-              f"{100 * np.std(norm) / np.mean(norm):10.2f} {smooth_norm_range_pct(norm, int(0.5 * rate)):22.2f} "
+              f"{100 * np.std(norm) / np.mean(norm):10.2f} {smooth:22.2f} "
               f"{circular_std_deg(h_raw):14.2f} -> {circular_std_deg(h_cal):8.2f}    {mag.dip_deg:6.2f}")
 
 

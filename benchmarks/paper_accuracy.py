@@ -65,7 +65,8 @@ def run_seed(seed: int, duration: float | None = None, rate: float | None = None
                                 np.zeros(3) if kok.imu.gyro_bias is None else kok.imu.gyro_bias,
                                 fit.D.ravel(order="F"), fit.o, [fit.dip]])
     sd = sim.truth.noise_std
-    noise = mapm.Noise(np.full(3, sd["accelerometer"]), np.full(3, sd["gyroscope"]), np.full(3, sd["magnetometer"]))
+    noise = mapm.Noise(np.full(3, sd["accelerometer"]), np.full(3, sd["gyroscope"]),
+                       np.full(3, sd["magnetometer"]))
     step = int(round(sim.recording.streams[0].rate_hz / mag.rate_hz))
     states = sim.rotations[::step][: est.epochs.size]
     crlb = mapm.information_at(problem, mag, states, truth, noise)
@@ -76,7 +77,8 @@ def table(results: list[SeedResult]) -> str:
     """The comparison table: RMSE (MAP, Kok), mean NEES with its band, RMSE^2/CRLB with a 95 % interval."""
     n = len(results)
     lines = [f"{n} seeds; RMSE is the root of the mean (over seeds) of the squared error norm of the group; "
-             "95% CI: where RMSE^2/CRLB of an efficient estimator falls; std/CRLB: reported std over CRLB std "
+             "95% CI: where RMSE^2/CRLB of an efficient estimator falls; std/CRLB: reported std over CRLB "
+             "std "
              "(geometric mean over seeds and entries)",
              f"{'group':6} {'RMSE map':>12} {'RMSE kok2012':>13} {'unit':6} {'map<=kok':>8} "
              f"{'mean NEES':>10} {'95% band':>15} {'RMSE^2/CRLB':>12} {'95% CI':>14} {'std/CRLB':>10}"]
@@ -90,8 +92,8 @@ def table(results: list[SeedResult]) -> str:
         lo, hi = stats.chi2.ppf([0.025, 0.975], n * dim) / n
         crlb = float(np.mean([np.trace(r.crlb[sl, sl]) for r in results]))
         ratio = rmse_map**2 / crlb
-        # for an efficient estimator sum |e|^2 = sum of lambda_i chi2_1 over the CRLB eigenvalues of every seed:
-        # Satterthwaite's chi-square with dof (sum lambda)^2 / sum lambda^2 gives its 95 % interval
+        # for an efficient estimator sum |e|^2 = sum of lambda_i chi2_1 over the CRLB eigenvalues of every
+        # seed: Satterthwaite's chi-square with dof (sum lambda)^2 / sum lambda^2 gives its 95 % interval
         lam = np.concatenate([np.linalg.eigvalsh(r.crlb[sl, sl]) for r in results])
         dof = float(lam.sum() ** 2 / np.sum(lam**2))
         c_lo, c_hi = stats.chi2.ppf([0.025, 0.975], dof) / dof
