@@ -17,7 +17,7 @@ from . import __version__, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from .config import Config
 from .detect import StillResult, detect_still, pooled_std
-from .errors import InsufficientDataError, MagcalError, StreamError
+from .errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
 from .findings import Finding, Severity
 from .models.problem import Problem
 from .models.result import MagFit, MethodResult
@@ -210,7 +210,12 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     progress(f"{len(problem.still.segments)} still segments; fitting {method} "
              f"for {', '.join(m.id for m in problem.mags)}")
     module, func = target.split(":")
-    result: MethodResult = getattr(importlib.import_module(module), func)(problem, cfg)
+    try:
+        result: MethodResult = getattr(importlib.import_module(module), func)(problem, cfg)
+    except np.linalg.LinAlgError as exc:                 # singular or non-finite systems: degenerate data
+        msg = (f"{path.name}: the {method} solver failed numerically ({exc}); the data are degenerate for it "
+               "(damaged or repeated samples?). Check the log with magcal inspect, or try another --method")
+        raise ConvergenceError(msg) from None
     mags, series = [], {}
     ref = reference_for(cfg)
     for fit, stream in zip(result.mags, problem.mags):

@@ -342,6 +342,36 @@ def test_values_beyond_physical_limits_are_dropped(tmp_path: Path) -> None:
     assert rec.notes == ("mag: dropped 1 magnetometer samples beyond physical limits (corrupt values)",)
 
 
+def test_vanishing_readings_are_dropped(tmp_path: Path) -> None:
+    """A zeroed record (an accelerometer reading exactly 0, a field at 0.001 % of its size) is not a reading
+    (found by fuzzing: it made the MAP start fail with a LinAlgError)."""
+    rows = [f"{k * 0.01:.2f},0,0,0,0,0,9.8,{20 + k % 7},1,2" for k in range(40)]
+    rows[3] = rows[3].replace(",0,0,9.8,", ",0,0,0,")
+    rows[8] = rows[8].replace(f",{20 + 8 % 7},1,2", ",0.0001,0,0")
+    rec = open_recording(rows_csv(tmp_path / "x.csv", rows))
+    assert rec.notes == ("imu gyroscope/accelerometer: dropped 1 samples whose field or specific force vanishes "
+                         "(exactly zero, or the field below 1 % of its median: zeroed or corrupt records)",
+                         "mag: dropped 1 samples whose field or specific force vanishes (exactly zero, or the field "
+                         "below 1 % of its median: zeroed or corrupt records)")
+
+
+def singular(problem: object, cfg: object) -> None:
+    """A method that meets a singular system."""
+    raise np.linalg.LinAlgError("SVD did not converge")
+
+
+def test_numerical_failure_is_a_clean_error(runner: CliRunner, tmp_path: Path, sim: Simulation,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """A LinAlgError inside a method (degenerate data) is one line, not an internal error."""
+    from magcal_cli import pipeline
+
+    monkeypatch.setitem(pipeline.METHODS, "kok2012", "tests.test_robustness:singular")
+    write_log(sim, tmp_path / "x.bin")
+    assert one_error(fit(runner, tmp_path / "x.bin", tmp_path / "o", "--method", "kok2012")) == (
+        "x.bin: the kok2012 solver failed numerically (SVD did not converge); the data are degenerate for it "
+        "(damaged or repeated samples?). Check the log with magcal inspect, or try another --method")
+
+
 @pytest.mark.parametrize(("value", "what"), [(0.0, "zero"), (33.0, "the same value")])
 def test_dead_magnetometer(runner: CliRunner, tmp_path: Path, sim: Simulation, value: float, what: str) -> None:
     """An all-zero or constant field (a stuck or disconnected sensor) cannot be calibrated: one line saying so."""

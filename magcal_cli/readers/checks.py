@@ -60,6 +60,8 @@ def drop_held(t: FloatArray, xyz: FloatArray, where: str) -> tuple[FloatArray, F
 #: readings beyond these magnitudes (SI) are not physical, so they are corrupt (e.g. a bit flip in a float's
 #: exponent): 10 T keeps fields normalised to 1 "tesla"; 2000 m/s^2 is 200 g; 200 rad/s is 11,000 deg/s
 PLAUSIBLE_SI = {Kind.MAGNETOMETER: 10.0, Kind.ACCELEROMETER: 2000.0, Kind.GYROSCOPE: 200.0}
+#: a field reading below this share of the median magnitude is corrupt (the Earth's field does not vanish)
+VANISHED_SHARE = 0.01
 #: a range wall holds at least this many readings (and this share of them) to count as saturation
 SATURATED_MIN, SATURATED_SHARE = 10, 0.005
 #: ... and more than this many times the readings in the band just inside it (a pile-up, not a tail)
@@ -103,6 +105,19 @@ def sensor_checks(kinds: tuple[Kind, ...], t: FloatArray, values: FloatArray,
         names = "/".join(k.value for k, _ in blocks)
         notes.append(f"{where}: dropped {int(bad.sum())} {names} samples beyond physical limits (corrupt values)")
         t, values = t[~bad], values[~bad]
+    gone = np.zeros(len(t), dtype=bool)
+    for kind, sl in blocks:
+        if kind is Kind.GYROSCOPE:                     # a quantised gyro at rest may read exactly zero
+            continue
+        norm = np.linalg.norm(values[:, sl], axis=1)
+        floor = VANISHED_SHARE * float(np.median(norm)) if kind is Kind.MAGNETOMETER and len(norm) else 0.0
+        vanished = (norm == 0.0) | (norm < floor)
+        if not vanished.all():                         # all zero: a dead sensor, which fit reports as such
+            gone |= vanished
+    if gone.any():
+        notes.append(f"{where}: dropped {int(gone.sum())} samples whose field or specific force vanishes (exactly "
+                     "zero, or the field below 1 % of its median: zeroed or corrupt records)")
+        t, values = t[~gone], values[~gone]
     if len(t) < 2 * SATURATED_MIN:
         return t, values, notes
     clipped = np.zeros(len(t), dtype=bool)

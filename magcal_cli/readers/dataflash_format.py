@@ -86,6 +86,14 @@ def valid_format(name: str, fmt: str, columns: tuple[str, ...], length: int) -> 
     return size + 3 <= length and len(columns) <= 64
 
 
+def _number(value: object) -> float:
+    """A cell as a float, NaN when it is not a number."""
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 @dataclass(frozen=True, eq=False)
 class Table:
     """The decoded messages of one type, in file order.
@@ -104,7 +112,10 @@ class Table:
 
     def num(self, column: str) -> FloatArray:
         """A numeric column as float64 with the format character's built-in multiplier applied."""
-        values = np.asarray(self.columns[column], dtype=np.float64)
+        try:
+            values = np.asarray(self.columns[column], dtype=np.float64)
+        except (ValueError, TypeError):        # text where a number belongs (a damaged FMT): NaN, dropped later
+            values = np.array([_number(v) for v in self.columns[column]], dtype=np.float64)
         factor = 1.0 if self.prescaled else FORMAT_CHARS[self.fmt.char(column)][1]
         return values * factor if factor != 1.0 else values
 
