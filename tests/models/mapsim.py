@@ -28,7 +28,8 @@ def record(rot: np.ndarray, rate: float, seed: int, mag_step: int = 1, mag_offse
     rotations at the magnetometer epochs."""
     rng = np.random.default_rng(seed)
     truths = [draw_truth(rng, rate, rate / mag_step) for _ in range(n_mags)]
-    truths = [Truth(t.D, t.o, t.dip, truths[0].accel_bias, truths[0].gyro_bias, truths[0].noise_std) for t in truths]
+    first = truths[0]
+    truths = [Truth(t.D, t.o, t.dip, first.accel_bias, first.gyro_bias, first.noise_std) for t in truths]
     tr = truths[0]
     sd = tr.noise_std
     n = rot.shape[0] - 1
@@ -42,8 +43,10 @@ def record(rot: np.ndarray, rate: float, seed: int, mag_step: int = 1, mag_offse
                Stream(Kind.GYROSCOPE, "imu", t, gyro, "sim#imu", "rad/s")]
     for i, m in enumerate(truths):
         m_n = np.array([np.cos(m.dip), 0.0, np.sin(m.dip)])
-        y = (r_m.transpose(0, 2, 1) @ m_n) @ m.D.T + m.o + sd["magnetometer"] * rng.standard_normal((idx.size, 3))
-        streams.append(Stream(Kind.MAGNETOMETER, f"mag{i}", t[idx] + mag_offset / rate, y, f"sim#mag{i}", "tesla"))
+        noise = sd["magnetometer"] * rng.standard_normal((idx.size, 3))
+        y = (r_m.transpose(0, 2, 1) @ m_n) @ m.D.T + m.o + noise
+        t_mag = t[idx] + mag_offset / rate
+        streams.append(Stream(Kind.MAGNETOMETER, f"mag{i}", t_mag, y, f"sim#mag{i}", "tesla"))
     rec = Recording(Path(f"sim-{seed}.sim"), "simulation", tuple(streams), t0=0.0)
     return select_problem(rec, Config()), truths, r_m
 

@@ -48,7 +48,7 @@ def test_matches_sequential_recursion_on_aligned_epochs(data: tuple[np.ndarray, 
 
 
 def test_partial_pieces_when_epochs_fall_between_samples(data: tuple[np.ndarray, np.ndarray]) -> None:
-    """Unaligned epochs: each interval is integrated piecewise (zero-order hold) with partial first/last pieces."""
+    """Unaligned epochs: each interval integrated piecewise (zero-order hold), partial first/last pieces."""
     t, gyr = data
     rng = np.random.default_rng(1)
     epochs = np.sort(rng.uniform(0.05, 1.9, 60))
@@ -57,7 +57,8 @@ def test_partial_pieces_when_epochs_fall_between_samples(data: tuple[np.ndarray,
     for i in (0, 10, 58):
         a, b = epochs[i], epochs[i + 1]
         cuts = np.concatenate([[a], t[(t > a) & (t < b)], [b]])
-        pieces = [(int(np.searchsorted(t, s, side="right") - 1), e - s) for s, e in zip(cuts[:-1], cuts[1:], strict=True)]
+        pieces = [(int(np.searchsorted(t, s, side="right") - 1), e - s)
+                  for s, e in zip(cuts[:-1], cuts[1:], strict=True)]
         d_r, g, c = _sequential(gyr, bias, pieces)
         np.testing.assert_allclose(pre.delta[i], d_r, atol=1e-14)
         np.testing.assert_allclose(pre.d_bias[i], g, atol=1e-14)
@@ -118,19 +119,21 @@ def test_factor_jacobians_against_finite_differences(data: tuple[np.ndarray, np.
     for a in range(3):
         d = np.zeros((epochs.size, 3))
         d[:, a] = eps
-        for jac, mask in ((f.J_x, np.arange(epochs.size) % 2 == 0), (f.J_next, np.arange(epochs.size) % 2 == 1)):
+        even = np.arange(epochs.size) % 2 == 0
+        for jac, mask in ((f.J_x, even), (f.J_next, ~even)):
             # perturb every other state so that each factor row sees only one perturbed state
             dd = d * mask[:, None]
             plus = gyro_factor(states @ so3.exp(dd), theta, pre, 2, False).r
             minus = gyro_factor(states @ so3.exp(-dd), theta, pre, 2, False).r
             rows = mask[:-1] if jac is f.J_x else mask[1:]
-            np.testing.assert_allclose((plus - minus)[rows] / (2 * eps), jac[rows, :, a], rtol=1e-5, atol=1e-4)
+            fd = (plus - minus)[rows] / (2 * eps)
+            np.testing.assert_allclose(fd, jac[rows, :, a], rtol=1e-5, atol=1e-4)
     assert f.theta_cols is not None
     np.testing.assert_array_equal(f.theta_cols, [2, 3, 4])
     for c in range(3):
         e = np.zeros(theta.size)
         e[2 + c] = eps
-        fd = (gyro_factor(states, theta + e, pre, 2, False).r - gyro_factor(states, theta - e, pre, 2, False).r)
+        fd = gyro_factor(states, theta + e, pre, 2, False).r - gyro_factor(states, theta - e, pre, 2, False).r
         np.testing.assert_allclose(fd / (2 * eps), f.J_theta[:, :, c], rtol=1e-5, atol=1e-4)
 
 

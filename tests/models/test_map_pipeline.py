@@ -27,12 +27,13 @@ def _truth() -> dict:  # type: ignore[type-arg]
 
 
 def test_auto_picks_map_and_every_std_is_reported() -> None:
-    """With gyro data `auto` is the joint MAP; biases, D, o and dip all carry finite stds that cover the truth."""
+    """With gyro data `auto` is the joint MAP; biases, D, o and dip carry finite stds that cover the truth."""
     res = calibrate(LOG, Config())
     cal = res.calibration
     assert cal.method == "map"
     imu, truth = cal.imu, _truth()
-    for key, std in (("accelerometer_bias", imu.accelerometer_bias_std), ("gyroscope_bias", imu.gyroscope_bias_std)):
+    for key, std in (("accelerometer_bias", imu.accelerometer_bias_std),
+                     ("gyroscope_bias", imu.gyroscope_bias_std)):
         est = getattr(imu, key)
         assert std is not None and np.all(np.isfinite(std)) and np.all(std > 0)
         assert np.all(np.abs(est - np.array(truth["imu"][key])) < 5 * std), key
@@ -59,8 +60,8 @@ def test_location_gives_wmm_field_strength_and_dip_start() -> None:
 def test_cli_location_option(tmp_path: Path) -> None:
     """The CLI passes --location/--date through; a malformed location is a usage error (exit 2)."""
     runner = CliRunner()
-    ok = runner.invoke(cli, ["fit", str(LOG), "-o", str(tmp_path / "out"), "--outputs", "json", "--json", "-q",
-                             "--location", "52.52,13.40", "--date", "2026-05-01"])
+    ok = runner.invoke(cli, ["fit", str(LOG), "-o", str(tmp_path / "out"), "--outputs", "json", "--json",
+                             "-q", "--location", "52.52,13.40", "--date", "2026-05-01"])
     assert ok.exit_code == 0, ok.output
     doc = json.loads(ok.output)
     assert doc["magnetometers"][0]["field_strength_source"] == "wmm"
@@ -70,7 +71,7 @@ def test_cli_location_option(tmp_path: Path) -> None:
 
 
 def test_several_magnetometers_on_one_imu() -> None:
-    """Three magnetometers with different D, o on one IMU: each calibrated against it within its covariance."""
+    """Three magnetometers with different D, o on one IMU: each calibrated within its covariance."""
     rng = np.random.default_rng(21)
     rot = paper_trajectory(rng, 50.0, 60.0)
     problem, truths, _ = record(rot, 50.0, 21, mag_step=2, n_mags=3)

@@ -32,8 +32,9 @@ def _chain(rng: np.random.Generator, n: int, compact: bool):  # noqa: ANN202
         jinv = so3.right_jacobian_inv(d)
         # d r2 / d theta[3] by central differences (exact enough for a structure test)
         eps = 1e-7
-        dp = so3.log(so3.exp(rel / (theta[3] + eps)).transpose(0, 2, 1) @ states[:-1].transpose(0, 2, 1) @ states[1:])
-        dm = so3.log(so3.exp(rel / (theta[3] - eps)).transpose(0, 2, 1) @ states[:-1].transpose(0, 2, 1) @ states[1:])
+        rel_states = states[:-1].transpose(0, 2, 1) @ states[1:]
+        dp = so3.log(so3.exp(rel / (theta[3] + eps)).transpose(0, 2, 1) @ rel_states)
+        dm = so3.log(so3.exp(rel / (theta[3] - eps)).transpose(0, 2, 1) @ rel_states)
         jt2 = ((dp - dm) / (2 * eps) / 0.01)[:, :, None]
         ji = -jinv @ (states[1:].transpose(0, 2, 1) @ states[:-1]) / 0.01
         if compact:

@@ -13,7 +13,8 @@ from magcal_cli.readers import ReadOptions, open_recording, sniff
 from magcal_cli.streams import Kind
 
 
-@pytest.mark.parametrize("name", ["02_undisturbed_slow_rotation_B.hdf5", "01_undisturbed_slow_rotation_A.mat"])
+@pytest.mark.parametrize("name", ["02_undisturbed_slow_rotation_B.hdf5",
+                                  "01_undisturbed_slow_rotation_A.mat"])
 def test_reads_both_layouts(realdata: Path, name: str) -> None:
     """IMU at 285.714 Hz in SI, the field in tesla (~44 uT), the mocap attitude as a unit quaternion."""
     path = realdata / "broad" / name
@@ -32,7 +33,7 @@ def test_reads_both_layouts(realdata: Path, name: str) -> None:
 
 
 def test_attitude_is_imu_to_ned(realdata: Path) -> None:
-    """At rest the accelerometer reads -R^T g_n: the converted mocap attitude predicts it (ENU -> NED done)."""
+    """The accelerometer reads ~ -R^T g_n: the converted mocap attitude predicts it (ENU -> NED done)."""
     rec = open_recording(realdata / "broad" / "02_undisturbed_slow_rotation_B.hdf5")
     acc, att = rec.select(Kind.ACCELEROMETER), rec.select(Kind.ATTITUDE)
     idx = np.searchsorted(acc.t, att.t[:2000])
