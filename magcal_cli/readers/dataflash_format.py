@@ -113,7 +113,8 @@ class Table:
     def num(self, column: str) -> FloatArray:
         """A numeric column as float64 with the format character's built-in multiplier applied."""
         try:
-            values = np.asarray(self.columns[column], dtype=np.float64)
+            with np.errstate(invalid="ignore"):         # a signalling NaN (a bit flip) raises the flag in the cast
+                values = np.asarray(self.columns[column], dtype=np.float64)
         except (ValueError, TypeError):        # text where a number belongs (a damaged FMT): NaN, dropped later
             values = np.array([_number(v) for v in self.columns[column]], dtype=np.float64)
         factor = 1.0 if self.prescaled else FORMAT_CHARS[self.fmt.char(column)][1]
