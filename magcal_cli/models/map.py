@@ -23,7 +23,7 @@ from ..align import interpolate
 from ..config import Config
 from ..detect import pooled_std
 from ..errors import InsufficientDataError
-from ..findings import Finding
+from ..findings import Finding, Severity
 from ..streams import Stream
 from . import map_init
 from .accel import G, accel_factor
@@ -32,6 +32,7 @@ from .mag import MagLayout, mag_factor
 from .observability import check_observability
 from .problem import Problem
 from .result import ImuFit, MagFit, MethodResult
+from .sandwich import time_clusters, widening
 from .solve import Factor, Linearize, Options, Solution, marginal_covariance, solve
 
 FloatArray = npt.NDArray[np.float64]
@@ -40,6 +41,8 @@ FloatArray = npt.NDArray[np.float64]
 BA, BG = 0, 3
 LAYOUT = MagLayout.packed(6)
 P = 19
+PARAM_GROUPS = {"accelerometer bias": slice(0, 3), "gyroscope bias": slice(3, 6), "D": slice(6, 15),
+                "o": slice(15, 18), "dip": slice(18, 19)}
 #: at most this many epochs per magnetometer, at most this epoch rate (else every k-th reading is used)
 MAX_EPOCHS = 60_000
 MAX_EPOCH_RATE_HZ = 100.0
@@ -365,12 +368,17 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         # report the covariance with the final levels at the same point (one assembly, no iterations)
         noise, pre = rescaled(noise, pre, last_step)
         cov = marginal_covariance(make_linearize(ep, pre, noise), sol.states, sol.theta)
-    return _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov)
+    # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
+    # or disturbances) make the information overstate what the data know: widen where the data say so
+    ids = time_clusters(ep.t)
+    widen = widening(sol, [ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1) for f in sol.factors])
+    cov = (sol.cov_theta if cov is None else cov) * np.outer(widen, widen)
+    return _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen)
 
 
 def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, sol: Solution, iters: int,
-              log: tuple[str, ...], notes: tuple[str, ...], cov_theta: FloatArray | None = None
-              ) -> MapEstimate:
+              log: tuple[str, ...], notes: tuple[str, ...], cov_theta: FloatArray | None = None,
+              widen: FloatArray | None = None) -> MapEstimate:
     """Convert the scaled solution to SI, with the total gyro bias and the observability findings."""
     s = ep.scale
     jac = np.concatenate([np.ones(6), np.full(12, s), [1.0]])
@@ -391,6 +399,13 @@ def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, so
     noise_si = Noise(noise.acc, noise.gyr, noise.mag * s)
     where = f"{problem.where}: {ep.mag_id}"
     condition, findings = check_observability(cov, s, ep.acc, where)
+    if widen is not None and np.any(widen > 1.0):
+        names = [n for n, sl in PARAM_GROUPS.items() if np.any(widen[sl] > 1.0)]
+        findings.append(Finding(
+            Severity.WARNING, "correlated_residuals",
+            f"{where}: the residuals are correlated in time beyond the noise model (quantised readings, "
+            f"unmodelled motion or a disturbance); the uncertainty of {', '.join(names)} was widened up to "
+            f"{float(widen.max()):.1f}x (time-clustered sandwich estimate)", {"max_factor": float(widen.max())}))
     return MapEstimate(ep.mag_id, theta, cov, noise_si, states, ep.t, sol.cost, iters, sol.converged,
                        float(np.sqrt(np.mean(resid**2))), log, tuple(findings), notes, condition)
 

@@ -21,7 +21,8 @@ IntArray = npt.NDArray[np.int64]
 
 
 def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 0) -> FloatArray:
-    """Sandwich covariance of theta; clusters[i] (M_i,) gives the cluster id of each row group of factor i.
+    """Sandwich covariance of theta; clusters[i] (M_i,) gives the cluster id of each row group of factor i
+    (negative ids leave rows out, e.g. priors, which are not data).
 
     With lags > 0, clusters are ordered in time and neighbours up to `lags` apart are allowed to correlate:
     Bartlett weights 1 - l/(lags+1) keep the estimate positive semi-definite (Newey & West 1987).
@@ -32,12 +33,14 @@ def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 
     scores = np.zeros((n_clusters, p))
     for f, c in zip(sol.factors, clusters):
         e = np.zeros((f.r.shape[0], p))
-        if f.J_theta is not None:
-            e += np.einsum("mkp,mk->mp", f.J_theta, f.r)
+        jt = f.full_theta(p)
+        if jt is not None:
+            e += np.einsum("mkp,mk->mp", jt, f.r)
         for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
             if jx is not None and idx is not None:
                 e -= np.einsum("mip,mi->mp", sol._w[idx], np.einsum("mki,mk->mi", jx, f.r))
-        np.add.at(scores, c, e)
+        keep = c >= 0
+        np.add.at(scores, c[keep], e[keep])
     meat = scores.T @ scores
     for lag in range(1, lags + 1):
         cross = scores[:-lag].T @ scores[lag:]
@@ -53,3 +56,23 @@ def time_clusters(t: npt.ArrayLike, count: int = 40, min_length_s: float = 5.0) 
     length = max(span / count, min_length_s)
     ids = np.floor((t - t.min()) / length).astype(np.int64)
     return np.unique(ids, return_inverse=True)[1].astype(np.int64)
+
+
+def widening(sol: Solution, clusters: Sequence[IntArray], lags: int = 4,
+             false_alarm: float = 1e-3) -> FloatArray:
+    """Per-parameter std factors >= 1: sqrt(sandwich / model variance) where that ratio is significant.
+
+    Under a correct noise model the ratio of a Newey-West variance to the model variance is about
+    chi2(nu)/nu with nu = C / (1 + 2 sum_l w_l^2) for C clusters and Bartlett weights w_l; only ratios
+    above its 1 - false_alarm quantile widen (so simulated, well-specified data keep the model covariance).
+    """
+    from scipy import stats
+
+    sand = cluster_robust_cov(sol, clusters, lags)
+    model = np.diag(sol.cov_theta)
+    n_clusters = int(max(int(c.max()) for c in clusters if c.size) + 1)
+    nu = n_clusters / (1.0 + 2.0 * sum((1.0 - k / (lags + 1.0)) ** 2 for k in range(1, lags + 1)))
+    threshold = stats.chi2.ppf(1.0 - false_alarm, nu) / nu
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(model > 0, np.diag(sand) / model, 1.0)
+    return np.where(ratio > threshold, np.sqrt(ratio), 1.0)
