@@ -154,8 +154,6 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig, mags: tuple[Stream,
     if len(acc) < 2 * n:
         msg = f"{acc.source}: only {len(acc)} IMU samples; a still-segment search needs at least {2 * n}"
         raise StreamError(msg)
-    for stream in (acc, gyr, *mags):
-        check_signal(stream)
     a, w = acc.xyz, gyr.xyz
     a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), np.maximum(_resolution_floor(a), 1e-12))
     w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), np.maximum(_resolution_floor(w), 1e-12))

@@ -16,7 +16,7 @@ import numpy.typing as npt
 from . import __version__, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from .config import Config
-from .detect import StillResult, detect_still, pooled_std
+from .detect import StillResult, check_signal, detect_still, pooled_std
 from .errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
 from .findings import Finding, Severity
 from .models.problem import Problem
@@ -28,6 +28,7 @@ from .wmm import ReferenceField, reference_for
 
 FloatArray = npt.NDArray[np.float64]
 Progress = Callable[[str], None]
+MethodRun = Callable[[Problem, Config], MethodResult]
 
 #: method name -> "module:function(problem, config) -> MethodResult"
 METHODS: dict[str, str] = {
@@ -82,6 +83,11 @@ def utc_now() -> str:
 
 def select_problem(rec: Recording, cfg: Config) -> Problem:
     """Pick the IMU and magnetometers named by the config and cut them to [start, end]."""
+    return _select(rec, cfg)[0]
+
+
+def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
+    """The problem, and warnings for magnetometers left out because they cannot be used (while others can)."""
     where = rec.path.name
     gyro_ids = set(rec.ids(Kind.GYROSCOPE))
     if cfg.imu is None:
@@ -96,7 +102,8 @@ def select_problem(rec: Recording, cfg: Config) -> Problem:
                  for m in (mag_ids or [None]))
     acc, gyr = acc.between(cfg.start_s, cfg.end_s), gyr.between(cfg.start_s, cfg.end_s)
     windowed = cfg.start_s is not None or cfg.end_s is not None
-    for s in (acc, *mags):
+
+    def usable(s: Stream) -> None:
         if len(s) < 10:
             span = f" ({s.t[-1] - s.t[0]:.1f} s)" if len(s) > 1 else ""
             msg = (f"{where}: {s.kind.value} {s.id} has only {len(s)} samples between --start and --end; "
@@ -104,7 +111,24 @@ def select_problem(rec: Recording, cfg: Config) -> Problem:
                    f"{where}: {s.kind.value} {s.id} has only {len(s)} samples{span}; a calibration needs a "
                    "recording of at least a minute with the vehicle turned through many orientations")
             raise StreamError(msg)
-    return Problem(where, acc.id, acc, gyr, mags, detect_still(acc, gyr, cfg.still, mags))
+        check_signal(s)
+
+    for s in (acc, gyr):
+        usable(s)
+    good, dropped = [], []
+    for m in mags:                      # one unusable magnetometer must not cost the user the others
+        try:
+            usable(m)
+            good.append(m)
+        except (StreamError, InsufficientDataError) as exc:
+            if len(mags) == 1:
+                raise
+            dropped.append((m, exc))
+    if not good:
+        raise dropped[0][1]
+    findings = [Finding(Severity.WARNING, "not_calibrated", f"{m.id} was not calibrated: {exc}", {"sensor": m.id})
+                for m, exc in dropped]
+    return Problem(where, acc.id, acc, gyr, tuple(good), detect_still(acc, gyr, cfg.still, tuple(good))), findings
 
 
 def coverage_pct(m_b: FloatArray, cells: int = 100) -> float:
@@ -144,6 +168,29 @@ def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = N
     cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
                          fit.cov * np.outer(scale, scale), strength, source, quality)
     return cal, MagSeries(stream.t, raw, m_b)
+
+
+#: a fitted dip further than this from the World Magnetic Model's says the model missed something
+DIP_TOLERANCE_DEG = 5.0
+
+
+def _dip_check(mags: list[MagCalibration], ref: ReferenceField | None) -> list[Finding]:
+    """Warn when a fitted dip disagrees with the WMM: acceleration, a local disturbance or a frame error."""
+    if ref is None:
+        return []
+    out = []
+    for m in mags:
+        diff = m.dip_deg - float(np.rad2deg(ref.dip))
+        if abs(diff) > max(DIP_TOLERANCE_DEG, 3.0 * float(m.std[12])):
+            out.append(Finding(
+                Severity.WARNING, "dip_disagrees_with_wmm",
+                f"{m.id}: the fitted dip {m.dip_deg:.1f} deg differs from the World Magnetic Model's "
+                f"{np.rad2deg(ref.dip):.1f} deg at the log's position by {diff:+.1f} deg: the accelerometer saw "
+                "non-gravity acceleration (flight manoeuvres, vibration) or the local field is disturbed; the "
+                "attitude the calibration implies is tilted by about that much. Calibrate from a recording "
+                "with the vehicle moved by hand, or check the field near the vehicle",
+                {"dip_deg": m.dip_deg, "wmm_dip_deg": float(np.rad2deg(ref.dip))}))
+    return out
 
 
 def _findings(rec: Recording, problem: Problem, result: MethodResult, mags: list[MagCalibration]) -> list[Finding]:
@@ -194,12 +241,61 @@ def _method_for(problem: Problem, cfg: Config) -> tuple[str, list[Finding]]:
     return (("map" if len(problem.gyr) else "kok2012") if cfg.method == "auto" else cfg.method), []
 
 
+def _call(run: MethodRun, problem: Problem, cfg: Config, method: str) -> MethodResult:
+    """One method run; numerical breakdowns become a ConvergenceError that names the method."""
+    try:
+        return run(problem, cfg)
+    except np.linalg.LinAlgError as exc:                 # singular or non-finite systems: degenerate data
+        msg = (f"{problem.where}: the {method} solver failed numerically ({exc}); the data are degenerate for it "
+               "(damaged or repeated samples?). Check the log with magcal inspect, or try another --method")
+        raise ConvergenceError(msg) from None
+
+
+def _run_method(run: MethodRun, problem: Problem, cfg: Config, method: str) -> tuple[MethodResult, list[Finding]]:
+    """Run the method on every magnetometer; when several are fitted and some cannot be, keep the others.
+
+    A magnetometer that cannot be calibrated (too little motion for it, disturbed, no convergence) must not
+    cost the user the others: they are refitted one by one and the failures become warnings. Only when no
+    magnetometer can be calibrated is it an error.
+    """
+    try:
+        return _call(run, problem, cfg, method), []
+    except (InsufficientDataError, ConvergenceError):
+        if len(problem.mags) == 1:
+            raise
+    parts: list[MethodResult] = []
+    failed: list[Finding] = []
+    first: MagcalError | None = None
+    for m in problem.mags:
+        try:
+            parts.append(_call(run, replace(problem, mags=(m,)), cfg, method))
+        except (InsufficientDataError, ConvergenceError) as exc:
+            first = first or exc
+            failed.append(Finding(Severity.WARNING, "not_calibrated", f"{m.id} was not calibrated: {exc}",
+                                  {"sensor": m.id}))
+    if not parts:
+        assert first is not None
+        raise first
+    imu = min((p.imu for p in parts), key=lambda i: float(np.sum(i.accel_bias_std)) if i.accel_bias_std is not None
+              else np.inf)
+    noise = {k: v for p in parts for k, v in p.noise.items()}
+    merged = MethodResult(parts[0].method, tuple(f for p in parts for f in p.mags), imu, noise,
+                          tuple(n for p in parts for n in p.notes), tuple(f for p in parts for f in p.findings))
+    return merged, failed
+
+
 def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress = _noop) -> RunResult:
     """Calibrate every selected magnetometer of one log against its IMU."""
     path = Path(path)
     progress(f"reading {path.name}")
     rec = open_recording(path, fmt, ReadOptions(allow_truncated=cfg.allow_truncated))
-    problem = select_problem(rec, cfg)
+    return calibrate_recording(rec, cfg, progress)
+
+
+def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop) -> RunResult:
+    """Calibrate every selected magnetometer of a recording already read (or built in code) against its IMU."""
+    path = rec.path
+    problem, dropped = _select(rec, cfg)
     method, chosen = _method_for(problem, cfg)
     cfg = _with_position(rec, cfg)
     target = METHODS.get(method)
@@ -210,15 +306,12 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     progress(f"{len(problem.still.segments)} still segments; fitting {method} "
              f"for {', '.join(m.id for m in problem.mags)}")
     module, func = target.split(":")
-    try:
-        result: MethodResult = getattr(importlib.import_module(module), func)(problem, cfg)
-    except np.linalg.LinAlgError as exc:                 # singular or non-finite systems: degenerate data
-        msg = (f"{path.name}: the {method} solver failed numerically ({exc}); the data are degenerate for it "
-               "(damaged or repeated samples?). Check the log with magcal inspect, or try another --method")
-        raise ConvergenceError(msg) from None
+    result, failed = _run_method(getattr(importlib.import_module(module), func), problem, cfg, method)
     mags, series = [], {}
     ref = reference_for(cfg)
-    for fit, stream in zip(result.mags, problem.mags):
+    streams = {m.id: m for m in problem.mags}
+    for fit in result.mags:
+        stream = streams[fit.id]
         cal, ser = _mag_calibration(fit, stream, ref)
         mags.append(cal)
         series[stream.id] = ser
@@ -227,15 +320,17 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     segs = problem.still.segments
     noise = {"accelerometer_std": problem.still.acc_noise.tolist(), "gyroscope_std": problem.still.gyr_noise.tolist(),
              "source": "quietest windows of the IMU (detect.noise_std)"}
-    for m, stream in zip(mags, problem.mags):
+    for m in mags:
         if segs:
+            stream = streams[m.id]
             noise[f"magnetometer_std[{m.id}]"] = (pooled_std(stream, segs) * units.from_si(stream.native_unit)).tolist()
     if result.noise:                     # the levels the method estimated and used replace the detector's
         noise.update(result.noise)
         noise["source"] = f"estimated by {result.method} from its residuals (variance components)"
     t_used = np.concatenate([problem.acc.t, *[m.t for m in problem.mags]])
-    source = Source(str(path), rec.format, sha256(path), float(t_used.min()), float(t_used.max()))
-    findings = chosen + _findings(rec, problem, result, mags)
+    digest = sha256(path) if path.exists() else ""
+    source = Source(str(path), rec.format, digest, float(t_used.min()), float(t_used.max()))
+    findings = chosen + dropped + failed + _findings(rec, problem, result, mags) + _dip_check(mags, ref)
     cal = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
                       notes=tuple(f.message for f in findings))
     return RunResult(cal, rec, problem.still, tuple(findings), series)

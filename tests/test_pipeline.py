@@ -14,12 +14,15 @@ from magcal_cli.streams import Kind, Recording, Stream
 
 
 def _recording(n_mag: int) -> Recording:
+    rng = np.random.default_rng(0)
     t = np.arange(2000) / 100.0
     tm = np.arange(n_mag) / 10.0
     return Recording(Path("short.bin"), "dataflash", (
-        Stream(Kind.ACCELEROMETER, "IMU[0]", t, np.tile([0, 0, -9.8], (2000, 1)), "short.bin#IMU", "m/s^2"),
-        Stream(Kind.GYROSCOPE, "IMU[0]", t, np.zeros((2000, 3)), "short.bin#IMU", "rad/s"),
-        Stream(Kind.MAGNETOMETER, "MAG[0]", tm, np.ones((n_mag, 3)), "short.bin#MAG", "milligauss")))
+        Stream(Kind.ACCELEROMETER, "IMU[0]", t, [0, 0, -9.8] + 0.05 * rng.normal(size=(2000, 3)), "short.bin#IMU",
+               "m/s^2"),
+        Stream(Kind.GYROSCOPE, "IMU[0]", t, 0.01 * rng.normal(size=(2000, 3)), "short.bin#IMU", "rad/s"),
+        Stream(Kind.MAGNETOMETER, "MAG[0]", tm, 1e-5 + 1e-8 * rng.normal(size=(n_mag, 3)), "short.bin#MAG",
+               "milligauss")))
 
 
 def test_a_short_log_says_record_longer() -> None:
@@ -39,3 +42,41 @@ def test_missing_imu_lists_what_is_there() -> None:
     """--imu with an unknown id names the ids available."""
     with pytest.raises(StreamError, match=r"no accelerometer stream 'IMU\[7\]'; available: IMU\[0\]. Use --imu"):
         select_problem(_recording(200), Config(imu="IMU[7]"))
+
+
+def test_one_uncalibratable_magnetometer_does_not_cost_the_others() -> None:
+    """A second, stuck magnetometer (constant readings) is reported as not calibrated; the good one is."""
+    from dataclasses import replace
+
+    from magcal_cli.config import Config
+    from magcal_cli.pipeline import calibrate_recording
+    from magcal_cli.synth import simulate
+
+    sim = simulate("handheld", 2)
+    good = sim.recording.select(Kind.MAGNETOMETER)
+    stuck = Stream(Kind.MAGNETOMETER, "/stuck/mag", good.t, np.tile(good.values[0], (len(good), 1)),
+                   "sim#/stuck/mag", "tesla")
+    rec = replace(sim.recording, streams=(*sim.recording.streams, stuck))
+    result = calibrate_recording(rec, Config(method="kok2012"))
+    assert [m.id for m in result.calibration.magnetometers] == ["/imu/mag"]
+    (failed,) = [f for f in result.findings if f.code == "not_calibrated"]
+    assert failed.message.startswith("/stuck/mag was not calibrated: ")
+
+
+def test_a_dip_far_from_the_world_magnetic_model_is_flagged() -> None:
+    """A fitted dip 10 deg from the WMM's is a warning that names both values (log171.bin in flight)."""
+    import datetime as dt
+
+    from magcal_cli.calibration import MagCalibration
+    from magcal_cli.pipeline import _dip_check
+    from magcal_cli.wmm import ReferenceField
+
+    ref = ReferenceField(np.deg2rad(-66.0), 57e-6, 0.2, "WMM2025", -35.4, 149.2, 600.0, dt.date(2015, 6, 1))
+    cov = np.diag(np.full(13, 1e-4))
+    near = MagCalibration("MAG[0]", "milligauss", np.eye(3) * 570, np.zeros(3), -64.0, cov, 570.0)
+    far = MagCalibration("MAG[1]", "milligauss", np.eye(3) * 570, np.zeros(3), -76.3, cov, 570.0)
+    (finding,) = _dip_check([near, far], ref)
+    assert finding.code == "dip_disagrees_with_wmm"
+    assert finding.message.startswith("MAG[1]: the fitted dip -76.3 deg differs from the World Magnetic "
+                                      "Model's -66.0 deg at the log's position by -10.3 deg")
+    assert _dip_check([near, far], None) == []

@@ -372,7 +372,6 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     # or disturbances) make the information overstate what the data know: widen where the data say so
     ids = time_clusters(ep.t)
     widen = widening(sol, [ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1) for f in sol.factors])
-    cov = (sol.cov_theta if cov is None else cov) * np.outer(widen, widen)
     return _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen)
 
 
@@ -398,8 +397,10 @@ def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, so
     resid = fm.r * noise.mag * s
     noise_si = Noise(noise.acc, noise.gyr, noise.mag * s)
     where = f"{problem.where}: {ep.mag_id}"
+    # observability is a property of the motion: judge it on the model information, then widen for honesty
     condition, findings = check_observability(cov, s, ep.acc, where)
     if widen is not None and np.any(widen > 1.0):
+        cov = cov * np.outer(widen, widen)
         names = [n for n, sl in PARAM_GROUPS.items() if np.any(widen[sl] > 1.0)]
         findings.append(Finding(
             Severity.WARNING, "correlated_residuals",
