@@ -22,6 +22,8 @@ FloatArray = npt.NDArray[np.float64]
 #: COMPASS_MIN_SCALE_FACTOR / COMPASS_MAX_SCALE_FACTOR (CompassCalibrator.h); outside, SCALE is ignored
 SCALE_RANGE = (0.85, 1.4)
 AXES = ("X", "Y", "Z")
+#: samples per batched 3x3 solve when undoing the correction (bounds the solver's copies)
+SOLVE_BLOCK = 1 << 16
 
 
 class ParamHistory:
@@ -99,7 +101,9 @@ def apply_correction(raw: FloatArray, c: Correction) -> FloatArray:
 def undo_correction(logged: FloatArray, c: Correction) -> FloatArray:
     """The body-frame raw readings (N, 3) mG behind a logged corrected field (apply_correction's inverse)."""
     x = logged - c.motor if c.motor_after_matrix else logged
-    y: FloatArray = np.linalg.solve(c.matrix, x[:, :, None])[:, :, 0].astype(np.float64)
+    y: FloatArray = np.empty(x.shape, dtype=np.float64)
+    for i in range(0, len(x), SOLVE_BLOCK):           # blocks: the batched solve copies its inputs
+        y[i:i + SOLVE_BLOCK] = np.linalg.solve(c.matrix[i:i + SOLVE_BLOCK], x[i:i + SOLVE_BLOCK, :, None])[:, :, 0]
     if not c.motor_after_matrix:
         y = y - c.motor
     return y / c.scale[:, None] - c.ofs

@@ -15,21 +15,41 @@ from .dataflash_format import FloatArray, IntArray, RawLog, Table
 
 
 class Clock:
-    """Time of messages that carry none (old PARM, px4log): that of the latest timed message before them."""
+    """Time of messages that carry none (old PARM, px4log): that of the latest timed message before them.
 
-    def __init__(self, pos: IntArray, t: FloatArray) -> None:
+    Built from a RawLog, the (position, time) table of every timed message is made only when a message without
+    its own time asks (modern logs never do), which spares memory on gigantic logs.
+    """
+
+    def __init__(self, pos: IntArray, t: FloatArray, raw: RawLog | None = None) -> None:
         order = np.argsort(pos, kind="stable")
-        self.pos, self.t = pos[order], t[order]
+        self._pos, self._t = pos[order], t[order]
+        self._raw = raw
+
+    def _table(self) -> tuple[IntArray, FloatArray]:
+        """Positions and times of the timed messages, sorted by position."""
+        if self._raw is not None:
+            pos, ts = [], []
+            for table in self._raw.tables.values():
+                t = own_time(table)
+                if t is not None and len(table):
+                    pos.append(table.pos)
+                    ts.append(t)
+            p, t = np.concatenate(pos), np.concatenate(ts)
+            order = np.argsort(p, kind="stable")
+            self._pos, self._t, self._raw = p[order], t[order], None
+        return self._pos, self._t
 
     def __bool__(self) -> bool:
-        return bool(self.pos.size)
+        return self._raw is not None or bool(self._pos.size)
 
     def at(self, pos: IntArray) -> FloatArray:
         """The time (s) in force at each file position; before the first timed message, the first time."""
-        if not self.pos.size:
+        times_pos, times = self._table()
+        if not times_pos.size:
             return np.full(pos.shape, np.nan)
-        i = np.searchsorted(self.pos, pos, side="right") - 1
-        return self.t[np.clip(i, 0, None)]
+        i = np.searchsorted(times_pos, pos, side="right") - 1
+        return times[np.clip(i, 0, None)]
 
 
 def own_time(table: Table) -> FloatArray | None:
@@ -51,16 +71,16 @@ def time_of(table: Table, clock: Clock) -> FloatArray:
 
 
 def clock_from(raw: RawLog) -> Clock:
-    """A clock made of every decoded message that carries its own time."""
-    pos, ts = [], []
-    for table in raw.tables.values():
-        t = own_time(table)
-        if t is not None and len(table):
-            pos.append(table.pos)
-            ts.append(t)
-    if not pos:
+    """A clock made of every decoded message that carries its own time (empty when none does)."""
+    if not any(own_time_known(t) for t in raw.tables.values()):
         return Clock(np.zeros(0, dtype=np.int64), np.zeros(0))
-    return Clock(np.concatenate(pos), np.concatenate(ts))
+    return Clock(np.zeros(0, dtype=np.int64), np.zeros(0), raw)
+
+
+def own_time_known(table: Table) -> bool:
+    """Whether the messages of `table` carry their own time (and there are any)."""
+    f = table.fmt
+    return bool(len(table)) and (f.has("TimeUS") or f.has("TimeMS") or (f.name.startswith("GPS") and f.has("T")))
 
 
 #: ArduPilot logs at most this many instances of a sensor (COMPASS/INS/GPS_MAX_INSTANCES; BATT up to 16)
