@@ -16,6 +16,7 @@ import numpy as np
 from magcal_cli import so3
 from magcal_cli.config import Config
 from magcal_cli.pipeline import METHODS, select_problem
+from magcal_cli.registry import resolve
 from magcal_cli.synth import simulate
 
 
@@ -26,10 +27,7 @@ def main() -> None:
     ap.add_argument("--method", default="kok2012", choices=sorted(METHODS))
     ap.add_argument("--scenario", default="handheld")
     args = ap.parse_args()
-    import importlib
-
-    module, func = METHODS[args.method].split(":")
-    run = getattr(importlib.import_module(module), func)
+    run = resolve(METHODS[args.method], f"the {args.method} method")
     rows, inside, total, times = [], 0, 0, []
     for seed in range(args.seeds):
         sim = simulate(args.scenario, seed)

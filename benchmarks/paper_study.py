@@ -18,7 +18,6 @@ Writes paper_study.md (tables, the published values, the checks), paper_study.js
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import os
 import time
@@ -33,6 +32,7 @@ from magcal_cli.models import ekf, ekf_aug, ekf_ml
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import MethodResult
 from magcal_cli.pipeline import METHODS, select_problem
+from magcal_cli.registry import resolve
 from magcal_cli.synth import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,8 +124,7 @@ def run_setup(setup: Setup, datasets: int, duration: float | None, methods: Sequ
             preps = [ekf.prepare(p, p.mags[0]) for p in problems]
             thetas = [e.theta for e in BATCHED[m](preps)]
         else:
-            module, func = METHODS[m].split(":")
-            run = getattr(importlib.import_module(module), func)
+            run = resolve(METHODS[m], f"the {m} method")
             thetas = [result_theta(run(p, Config(method=m))) for p in problems]
         cells[m].seconds = (time.perf_counter() - t0) / datasets
         cells[m].errors = [(th - tr).tolist() for th, tr in zip(thetas, truths, strict=True)]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import importlib
 import os
 import time
 from collections.abc import Callable
@@ -23,6 +22,7 @@ from .models.problem import Problem
 from .models.result import MagFit, MethodResult
 from .readers import ReadOptions, open_recording
 from .readers.checks import normalised_field
+from .registry import resolve
 from .streams import Kind, Recording, Stream
 from .wmm import ReferenceField, reference_for
 
@@ -305,8 +305,7 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
         raise MagcalError(msg)
     progress(f"{len(problem.still.segments)} still segments; fitting {method} "
              f"for {', '.join(m.id for m in problem.mags)}")
-    module, func = target.split(":")
-    result, failed = _run_method(getattr(importlib.import_module(module), func), problem, cfg, method)
+    result, failed = _run_method(resolve(target, f"the {method} method"), problem, cfg, method)
     mags, series = [], {}
     ref = reference_for(cfg)
     streams = {m.id: m for m in problem.mags}

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import MagcalError
+from ..registry import resolve
 from ..synth import Simulation
 
 #: file extension -> "module:function(sim, path)"; a directory path (no extension) is a ROS 2 bag
@@ -27,6 +27,5 @@ def write_log(sim: Simulation, path: Path) -> None:
         msg = (f"{path}: cannot write a log with extension {path.suffix or '(none)'!r}; "
                f"use one of {', '.join(sorted(e or '(none: a ROS 2 bag directory)' for e in LOG_WRITERS))}")
         raise MagcalError(msg)
-    module, func = target.split(":")
-    writer: Callable[[Simulation, Path], None] = getattr(importlib.import_module(module), func)
+    writer: Callable[[Simulation, Path], None] = resolve(target, f"writing {path.suffix or 'bag'} logs")
     writer(sim, path)

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Protocol
 
-from ..errors import LogReadError, MissingDependencyError, UnsupportedFormatError
+from ..errors import LogReadError, UnsupportedFormatError
+from ..registry import resolve
 from ..streams import Recording
 
 
@@ -88,15 +88,7 @@ def get_reader(name: str) -> Reader:
     if target is None:
         msg = f"format {name!r} has no reader in this version; supported: {', '.join(sorted(READERS))}"
         raise UnsupportedFormatError(msg)
-    if isinstance(target, str):
-        module, cls = target.split(":")
-        try:
-            target = getattr(importlib.import_module(module), cls)
-        except ImportError as exc:
-            msg = (f"reading {name} logs needs the package {exc.name!r}; "
-                   f"run: pip install --upgrade magcal-cli")
-            raise MissingDependencyError(msg) from None
-    return target()  # type: ignore[operator,return-value,no-any-return]
+    return resolve(target, f"reading {name} logs")()  # type: ignore[no-any-return]
 
 
 def open_recording(path: Path, fmt: str | None = None, options: ReadOptions | None = None) -> Recording:

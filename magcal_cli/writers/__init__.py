@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import importlib
 import shutil
 import signal
 import tempfile
@@ -13,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
 from ..errors import OutputError
+from ..registry import resolve
 
 if TYPE_CHECKING:
     from ..pipeline import RunResult
@@ -50,10 +50,7 @@ def get_writer(name: str) -> Writer:
     if target is None:
         msg = f"--outputs: unknown output {name!r}; available: {', '.join(WRITERS)}"
         raise OutputError(msg)
-    if isinstance(target, str):
-        module, cls = target.split(":")
-        target = getattr(importlib.import_module(module), cls)
-    return target()  # type: ignore[operator,return-value,no-any-return]
+    return resolve(target, f"the {name} output")()  # type: ignore[no-any-return]
 
 
 def check_targets(outdir: Path, names: list[str], force: bool) -> None:
