@@ -51,7 +51,7 @@ def main() -> None:
     print(f"{'metric':<34}{'median':>12}{'max':>12}")
     names = ["relative Frobenius error of D", "|o - o_true| / |field|", "misalignment angle error [deg]",
              "dip error [deg]"]
-    for name, col in zip(names, a.T):
+    for name, col in zip(names, a.T, strict=True):
         print(f"{name:<34}{np.median(col):>12.4g}{col.max():>12.4g}")
     print(f"scalar parameters within 3 reported std: {inside}/{total} = {100 * inside / total:.1f} %")
 

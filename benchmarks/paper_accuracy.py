@@ -44,8 +44,7 @@ class SeedResult:
 
 def truth_vector(sim: Simulation) -> np.ndarray:
     """theta of the simulation's truth (SI)."""
-    tr = sim.truth
-    return np.concatenate([tr.accel_bias, tr.gyro_bias, tr.D.ravel(order="F"), tr.o, [tr.dip]])
+    return sim.truth.theta
 
 
 def run_seed(seed: int, duration: float | None = None, rate: float | None = None,

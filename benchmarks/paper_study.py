@@ -75,8 +75,7 @@ class Setup:
 
 def truth_theta(sim: Simulation) -> np.ndarray:
     """theta of the simulation's truth (SI)."""
-    tr = sim.truth
-    return np.concatenate([tr.accel_bias, tr.gyro_bias, tr.D.ravel(order="F"), tr.o, [tr.dip]])
+    return sim.truth.theta
 
 
 def result_theta(res: MethodResult) -> np.ndarray:

@@ -24,7 +24,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
     tmp.chmod(0o666 & ~umask)           # mkstemp makes 0600; outputs get the usual permissions
     try:
         yield tmp
-        os.replace(tmp, target)
+        tmp.replace(target)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()

@@ -83,7 +83,8 @@ class MagCalibration:
     @property
     def A(self) -> FloatArray:
         """The correction matrix D^-1."""
-        return np.linalg.inv(self.D)
+        a: FloatArray = np.linalg.inv(self.D).astype(np.float64)
+        return a
 
     @property
     def b(self) -> FloatArray:

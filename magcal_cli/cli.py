@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import json
 import sys
 import traceback
 import warnings
@@ -25,7 +24,7 @@ EXIT_CODES = ("Exit codes: 0 success; 1 the input could not be used (unreadable,
 METHOD_CHOICES = ("auto", "kok2012", "map", "ekf-ml", "ekf-aug")
 
 
-class QualityGateFailed(Exception):
+class QualityGateError(Exception):
     """A --fail-on or check threshold failed (exit 3)."""
 
 
@@ -45,7 +44,7 @@ def handle_errors(func: F) -> F:
             return func(*args, **kwargs)
         except MagcalError as exc:
             raise click.ClickException(str(exc)) from None
-        except QualityGateFailed as exc:
+        except QualityGateError as exc:
             click.echo(f"Error: {exc}", err=True)
             ctx.exit(3)
         except KeyboardInterrupt:
@@ -221,7 +220,7 @@ def _firmware_output(ctx: click.Context, log: Path, fmt: str | None, names: list
 
 
 def _fit_gates(result: Any, conditions: tuple[Any, ...]) -> None:
-    """Raise QualityGateFailed (exit 3) when a magnetometer meets a --fail-on condition."""
+    """Raise QualityGateError (exit 3) when a magnetometer meets a --fail-on condition."""
     from . import gates
     from .firmware.metrics import fit_metrics
 
@@ -231,7 +230,7 @@ def _fit_gates(result: Any, conditions: tuple[Any, ...]) -> None:
               for f in gates.failures(conditions, metrics, why)]
     if failed:
         msg = f"fit --fail-on: {'; '.join(failed)}"
-        raise QualityGateFailed(msg)
+        raise QualityGateError(msg)
 
 
 def _angle_deg(rot: Any) -> float:
@@ -451,7 +450,7 @@ def check_cmd(ctx: click.Context, log: Path, cal_path: Path | None, params_path:
     if not report.passed:
         failed = [f"{c.id}: {', '.join(c.failed)}" for c in report.compasses if c.failed and c.gated]
         msg = f"check: {'; '.join(failed)}"
-        raise QualityGateFailed(msg)
+        raise QualityGateError(msg)
 
 
 def main() -> None:

@@ -74,18 +74,19 @@ def noise_std(x: FloatArray, n: int, quantile: float) -> FloatArray:
     """
     _, var = _moving(x, n)
     q = np.quantile(var, quantile, axis=0)
-    by_windows = np.sqrt(q * (n - 1) / stats.chi2.ppf(quantile, n - 1))
+    by_windows: FloatArray = np.sqrt(q * (n - 1) / stats.chi2.ppf(quantile, n - 1))
     if len(x) < 3:
         return by_windows
     d2 = np.diff(x, n=2, axis=0)
     by_differences = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
-    return np.minimum(by_windows, by_differences)
+    out: FloatArray = np.minimum(by_windows, by_differences)
+    return out
 
 
 def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
     """[start, stop) index pairs of the True runs of a boolean array."""
     edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
 
 
 def _resolution_floor(x: FloatArray) -> FloatArray:

@@ -97,7 +97,8 @@ def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
         imu_id = cfg.imu
     acc = rec.select(Kind.ACCELEROMETER, imu_id, "--imu")
     gyr = rec.select(Kind.GYROSCOPE, acc.id, "--imu")
-    mag_ids = rec.ids(Kind.MAGNETOMETER) if cfg.mag == "all" else [m.strip() for m in cfg.mag.split(",")]
+    mag_ids: list[str | None] = list(rec.ids(Kind.MAGNETOMETER)) if cfg.mag == "all" else \
+        [m.strip() for m in cfg.mag.split(",")]
     mags = tuple(rec.select(Kind.MAGNETOMETER, m or None, "--mag").between(cfg.start_s, cfg.end_s)
                  for m in (mag_ids or [None]))
     acc, gyr = acc.between(cfg.start_s, cfg.end_s), gyr.between(cfg.start_s, cfg.end_s)
@@ -330,6 +331,6 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     digest = sha256(path) if path.exists() else ""
     source = Source(str(path), rec.format, digest, float(t_used.min()), float(t_used.max()))
     findings = chosen + dropped + failed + _findings(rec, problem, result, mags) + _dip_check(mags, ref)
-    cal = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
+    doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
                       notes=tuple(f.message for f in findings))
-    return RunResult(cal, rec, problem.still, tuple(findings), series)
+    return RunResult(doc, rec, problem.still, tuple(findings), series)

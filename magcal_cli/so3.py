@@ -64,7 +64,8 @@ def log(rot: npt.ArrayLike) -> FloatArray:
     rot = np.asarray(rot, dtype=np.float64)
     flat = rot.reshape(-1, 3, 3)
     out = Rotation.from_matrix(flat).as_rotvec()
-    return out.reshape(rot.shape[:-2] + (3,))
+    result: FloatArray = out.reshape(rot.shape[:-2] + (3,))
+    return result
 
 
 def right_jacobian(phi: npt.ArrayLike) -> FloatArray:
@@ -97,28 +98,32 @@ def from_quat(q: npt.ArrayLike) -> FloatArray:
     """Rotation matrices from (..., 4) quaternions (w, x, y, z); they need not be normalised."""
     q = np.asarray(q, dtype=np.float64)
     flat = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix()
-    return flat.reshape(q.shape[:-1] + (3, 3))
+    result: FloatArray = flat.reshape(q.shape[:-1] + (3, 3))
+    return result
 
 
 def as_quat(rot: npt.ArrayLike) -> FloatArray:
     """(..., 4) quaternions (w, x, y, z) with w >= 0 of rotation matrices."""
     rot = np.asarray(rot, dtype=np.float64)
     flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat(canonical=True, scalar_first=True)
-    return flat.reshape(rot.shape[:-2] + (4,))
+    result: FloatArray = flat.reshape(rot.shape[:-2] + (4,))
+    return result
 
 
 def from_rpy(rpy: npt.ArrayLike) -> FloatArray:
     """Rz(yaw) Ry(pitch) Rx(roll) from (..., 3) roll, pitch, yaw in radians (roll applied first)."""
     rpy = np.asarray(rpy, dtype=np.float64)
     flat = Rotation.from_euler("ZYX", rpy.reshape(-1, 3)[:, ::-1]).as_matrix()
-    return flat.reshape(rpy.shape[:-1] + (3, 3))
+    result: FloatArray = flat.reshape(rpy.shape[:-1] + (3, 3))
+    return result
 
 
 def as_rpy(rot: npt.ArrayLike) -> FloatArray:
     """(..., 3) roll, pitch, yaw in radians with rot = Rz(yaw) Ry(pitch) Rx(roll)."""
     rot = np.asarray(rot, dtype=np.float64)
     flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_euler("ZYX")[:, ::-1]
-    return flat.reshape(rot.shape[:-2] + (3,))
+    result: FloatArray = flat.reshape(rot.shape[:-2] + (3,))
+    return result
 
 
 def project(m: npt.ArrayLike) -> FloatArray:
@@ -126,7 +131,8 @@ def project(m: npt.ArrayLike) -> FloatArray:
     u, _, vt = np.linalg.svd(np.asarray(m, dtype=np.float64))
     sign = np.sign(np.linalg.det(u @ vt))
     u[..., :, 2] *= sign[..., None]
-    return u @ vt
+    result: FloatArray = u @ vt
+    return result
 
 
 def wahba(body: npt.ArrayLike, nav: npt.ArrayLike, weights: npt.ArrayLike | None = None) -> FloatArray:
@@ -153,7 +159,8 @@ def polar(m: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
 
 def angle(rot: npt.ArrayLike) -> FloatArray:
     """Rotation angle(s) in radians, in [0, pi]."""
-    return np.linalg.norm(log(rot), axis=-1)
+    result: FloatArray = np.linalg.norm(log(rot), axis=-1)
+    return result
 
 
 def cumulative_product(rots: npt.ArrayLike, reproject: bool = True) -> FloatArray:
@@ -184,7 +191,7 @@ def log_small(rot: npt.ArrayLike, limit: float = 3.0) -> FloatArray:
     theta = np.arctan2(s, c)
     small = s < _SMALL
     ratio = np.where(small, 1.0 + s * s / 6.0, theta / np.where(small, 1.0, s))   # theta / sin(theta)
-    out = ratio[..., None] * v
+    out: FloatArray = ratio[..., None] * v
     far = theta > limit
     if np.any(far):
         out[far] = log(rot[far])

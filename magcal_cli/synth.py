@@ -44,6 +44,11 @@ class Truth:
     noise_std: dict[str, float]
 
     @property
+    def theta(self) -> FloatArray:
+        """The 19 calibration parameters in the joint-MAP order: b_a, b_g, vec(D) column-major, o, dip."""
+        return np.concatenate([self.accel_bias, self.gyro_bias, self.D.ravel(order="F"), self.o, [self.dip]])
+
+    @property
     def field_strength(self) -> float:
         """det(D)^(1/3), the convention magcal reports when no reference field is known."""
         return float(np.cbrt(np.linalg.det(self.D)))
@@ -85,7 +90,10 @@ def truth_calibration(sim: Simulation, log: Recording, version: str, created_utc
 
 def draw_truth(rng: np.random.Generator, rate: float, mag_rate: float) -> Truth:
     """Calibration drawn as in methods.md section 5 (field magnitude 27 uT)."""
-    u = lambda lim, n=3: rng.uniform(-lim, lim, n)  # noqa: E731
+    def u(lim: float, n: int = 3) -> FloatArray:
+        out: FloatArray = rng.uniform(-lim, lim, n)
+        return out
+
     acc_bias, mag_bias = u(0.5), u(2.0) * 1e-6
     scale = np.diag(1.0 + u(0.1))
     s1, s2, s3 = u(np.deg2rad(10.0))
@@ -146,7 +154,7 @@ def handheld_trajectory(rng: np.random.Generator, rate: float,
     poses = [start] + [_pose_with_up(u_, rng.uniform(-np.pi, np.pi)) for u_ in ups] + [start]
     holds = [10.0] + list(rng.uniform(2.0, 4.0, n_poses)) + [10.0]
     pieces, still, t = [], [], 0.0
-    for k, (pose, hold) in enumerate(zip(poses, holds)):
+    for k, (pose, hold) in enumerate(zip(poses, holds, strict=True)):
         n = int(round(hold * rate))
         pieces.append(np.broadcast_to(pose, (n, 3, 3)))
         still.append((t, t + (n - 1) / rate))
@@ -179,8 +187,9 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     rng = np.random.default_rng(seed)
     drawn = draw_truth(rng, rate, mag_rate)
     truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
+    still: tuple[tuple[float, float], ...] = ()
     if scenario == "paper":
-        rot, still = paper_trajectory(rng, rate, duration), ()
+        rot = paper_trajectory(rng, rate, duration)
     else:
         rot, still = handheld_trajectory(rng, rate, duration)
     n = rot.shape[0] - 1                    # gyro k covers [t_k, t_k+1], so keep N+1 rotations

@@ -6,6 +6,9 @@ import os
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
+
+from magcal_cli.synth import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 REALDATA = Path(os.environ.get("MAGCAL_REALDATA", ROOT.parent / "shared" / "realdata"))
@@ -20,6 +23,20 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def update_golden(request: pytest.FixtureRequest) -> bool:
     """True when the run should rewrite golden files."""
     return bool(request.config.getoption("--update-golden"))
+
+
+@pytest.fixture(scope="module")
+def sim() -> Simulation:
+    """A handheld simulation at 25 Hz IMU / 12.5 Hz field (about 90 s): accurate enough, fast to fit.
+
+    Modules with a `sim` fixture of their own use theirs (pytest prefers the nearer definition)."""
+    return simulate("handheld", 1, rate=25.0, mag_rate=12.5)
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    """A click test runner (stdout and stderr kept apart)."""
+    return CliRunner()
 
 
 @pytest.fixture

@@ -16,10 +16,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_logs" / "handheld.mcap"
 
 
-@pytest.fixture
-def runner() -> CliRunner:
-    return CliRunner()
-
 
 def test_every_command_and_option_has_help(runner: CliRunner) -> None:
     """`magcal X --help` works for every command and no option lacks a help text."""

@@ -5,26 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pytest
 from click.testing import CliRunner
 
 from magcal_cli.logwriters.csvfile import write_csv
 from magcal_cli.streams import Kind
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth import Simulation
 
 from .test_robustness import edited, fit, one_error
-
-
-@pytest.fixture(scope="module")
-def sim() -> Simulation:
-    """A handheld simulation at 25 Hz IMU / 12.5 Hz field."""
-    return simulate("handheld", 1, rate=25.0, mag_rate=12.5)
-
-
-@pytest.fixture
-def runner() -> CliRunner:
-    """A click test runner."""
-    return CliRunner()
 
 
 def test_normalised_field(runner: CliRunner, tmp_path: Path, sim: Simulation) -> None:

@@ -30,21 +30,11 @@ from magcal_cli.models.accel import G
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.readers.dataflash_binary import parse_binary, parse_buffer
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import Simulation, draw_truth, simulate
+from magcal_cli.synth import Simulation, draw_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def sim() -> Simulation:
-    """A handheld simulation at 25 Hz IMU / 12.5 Hz field (about 90 s): accurate enough, fast to fit."""
-    return simulate("handheld", 1, rate=25.0, mag_rate=12.5)
-
-
-@pytest.fixture
-def runner() -> CliRunner:
-    """A click test runner (stdout and stderr kept apart)."""
-    return CliRunner()
 
 
 def run(runner: CliRunner, *args: str | Path) -> Result:

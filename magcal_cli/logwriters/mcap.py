@@ -69,4 +69,4 @@ def write_mcap(sim: Simulation, path: Path, chunk_size: int = 1 << 20) -> None:
                        "magnetic_field": _vec(mag.values[i]),
                        "magnetic_field_covariance": list(np.eye(3).ravel() * var["magnetometer"])}
                 writer.write_message("/imu/mag", mag_schema, msg, log_time=ns, publish_time=ns, sequence=seq)
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap_ros2 ships no annotations

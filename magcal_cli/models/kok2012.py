@@ -19,13 +19,13 @@ from ..config import Config
 from ..detect import window_means
 from ..errors import ConvergenceError, InsufficientDataError
 from ..streams import Stream
-from .accel import G, UP_N, vertical_factor
+from .accel import UP_N, G, vertical_factor
 from .ellipsoid import Ellipsoid, fit_ellipsoid
 from .mag import MagLayout, field_nav, mag_factor
 from .problem import Problem
 from .result import ImuFit, MagFit, MethodResult
 from .sandwich import cluster_robust_cov, time_clusters
-from .solve import Factor, Options, Solution, solve
+from .solve import Factor, Linearize, Options, Solution, solve
 
 FloatArray = npt.NDArray[np.float64]
 LAYOUT = MagLayout.packed(0)
@@ -126,7 +126,7 @@ def fit_kok2012(data: KokData, sigma_rounds: int = 3, where: str = "kok2012") ->
     idx = np.arange(k)
     sig_m, sig_v = 1e-3, 1e-2                                        # replaced by the ML estimate below
 
-    def make(sm: float, sv: float):  # noqa: ANN202
+    def make(sm: float, sv: float) -> Linearize:
         lm, lv = np.eye(3) / sm, np.eye(3) / sv
 
         def linearize(states: FloatArray, theta: FloatArray, jac: bool) -> list[Factor]:
@@ -134,7 +134,8 @@ def fit_kok2012(data: KokData, sigma_rounds: int = 3, where: str = "kok2012") ->
                     vertical_factor(states, data.v, lv, idx, jac)]
         return linearize
 
-    states, theta, log, iters = states0, theta0, [], 0
+    states, theta, iters = states0, theta0, 0
+    log: list[str] = []
     sol = None
     for _ in range(max(1, sigma_rounds)):
         sol = solve(make(sig_m, sig_v), states, theta)

@@ -31,7 +31,7 @@ def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 
     p = s_inv.shape[0]
     n_clusters = int(max(int(c.max()) for c in clusters if c.size) + 1)
     scores = np.zeros((n_clusters, p))
-    for f, c in zip(sol.factors, clusters):
+    for f, c in zip(sol.factors, clusters, strict=True):
         e = np.zeros((f.r.shape[0], p))
         jt = f.full_theta(p)
         if jt is not None:

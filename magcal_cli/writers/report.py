@@ -57,7 +57,7 @@ def _advice(mag: MagCalibration, misalign_deg: float, norm_before: float) -> lis
 
 def render(result: RunResult) -> str:
     """The whole text report."""
-    cal, rec = result.calibration, result.recording
+    cal = result.calibration
     src = cal.source
     lines = [f"magcal {cal.magcal_version} calibration report ({cal.created_utc})", "",
              f"Log:     {src.path} ({src.format}, {src.end_s - src.start_s:.1f} s used, sha256 {src.sha256[:12]})",

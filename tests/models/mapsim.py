@@ -17,7 +17,7 @@ from magcal_cli.synth import Truth, draw_truth
 
 def theta_of(truth: Truth) -> np.ndarray:
     """theta = (b_a, b_g, vec D, o, dip) of a truth (SI)."""
-    return np.concatenate([truth.accel_bias, truth.gyro_bias, truth.D.ravel(order="F"), truth.o, [truth.dip]])
+    return truth.theta
 
 
 def record(rot: np.ndarray, rate: float, seed: int, mag_step: int = 1, mag_offset: float = 0.0,
