@@ -20,7 +20,17 @@ from ..calibration import Calibration, MagCalibration
 from ..readers.dataflash_mag import param_suffix
 from . import FirmwareError, NotExportableError, rotations
 from .effects import accepted
-from .export import Collected, Export, MagExport, Options, check_limits, correction, select_mags, soft_range
+from .export import (
+    Collected,
+    Export,
+    MagExport,
+    Options,
+    check_limits,
+    correction,
+    select_mags,
+    shared_signal,
+    soft_range,
+)
 from .split import choose_rotation, split_rotation_first
 
 FloatArray = npt.NDArray[np.float64]
@@ -213,11 +223,9 @@ def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Opt
         acc.add(exp, integers)
         if kind:
             kinds[mag.id] = kind
-    if not acc.mags:
-        msg = "; ".join(acc.warnings)
-        raise NotExportableError(msg)
+    acc.require_any()
     if kinds:
-        kind = "current" if "current" in kinds.values() else "throttle"
+        kind = shared_signal(kinds)
         dropped = [m for m, k in kinds.items() if k != kind]
         for e in acc.mags:                        # MOTCT is global: every compass uses the same signal [S15]
             sfx = e.slot.removeprefix("COMPASS_*")

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from .. import units
 from ..calibration import Calibration, MagCalibration
-from . import FirmwareError, FirmwareLimitError
+from . import FirmwareError, FirmwareLimitError, NotExportableError
 from .split import Split
 
 FloatArray = npt.NDArray[np.float64]
@@ -154,3 +154,15 @@ class Collected:
         self.integers |= integers
         self.notes += m.notes
         self.warnings += m.warnings
+
+    def require_any(self) -> None:
+        """Raise NotExportableError with every magnetometer's reason when none could be exported."""
+        if not self.mags:
+            msg = "; ".join(self.warnings)
+            raise NotExportableError(msg)
+
+
+def shared_signal(kinds: Mapping[str, str]) -> str:
+    """The one interference signal a firmware applies to every compass (COMPASS_MOTCT, CAL_MAG_COMP_TYP are
+    global): current when any magnetometer's accepted effect is a current one, else throttle."""
+    return "current" if "current" in kinds.values() else "throttle"

@@ -19,7 +19,17 @@ from .. import so3
 from ..calibration import Calibration, MagCalibration
 from . import FirmwareError, NotExportableError, rotations
 from .effects import accepted
-from .export import Collected, Export, MagExport, Options, check_limits, correction, select_mags, soft_range
+from .export import (
+    Collected,
+    Export,
+    MagExport,
+    Options,
+    check_limits,
+    correction,
+    select_mags,
+    shared_signal,
+    soft_range,
+)
 from .split import choose_rotation, split_symmetric_first
 
 FloatArray = npt.NDArray[np.float64]
@@ -176,11 +186,9 @@ def export_px4(cal: Calibration, params: Mapping[str, float], options: Options |
         acc.add(exp, integers)
         if kind:
             kinds[mag.id] = kind
-    if not acc.mags:
-        msg = "; ".join(acc.warnings)
-        raise NotExportableError(msg)
+    acc.require_any()
     if kinds:
-        kind = "current" if "current" in kinds.values() else "throttle"
+        kind = shared_signal(kinds)
         for mag_id, n in slots.items():
             if kinds.get(mag_id) != kind:
                 acc.params |= {f"CAL_MAG{n}_{a}COMP": 0.0 for a in AXES}
