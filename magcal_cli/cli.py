@@ -242,6 +242,27 @@ def _angle_deg(rot: Any) -> float:
     return float(np.rad2deg(so3.angle(rot)))
 
 
+def _parse_effects(ctx: click.Context, param: click.Parameter, values: tuple[str, ...]) -> tuple[Any, ...]:
+    """--effect values as EffectSpecs (SI), each id once; a bad one is click's usage error (exit 2)."""
+    from .synth_effects import EffectSpecError, check_unique, parse_effect
+
+    try:
+        specs = tuple(parse_effect(v) for v in values)
+        check_unique(specs)
+    except EffectSpecError as exc:
+        raise click.BadParameter(str(exc), ctx, param) from None
+    return specs
+
+
+def _effect_help() -> str:
+    """The --effect help: syntax, units and every id with its keys."""
+    from .synth_effects import syntax
+
+    return ("Inject a physical effect (repeatable): ID[:key=value,...]. Vectors are x/y/z "
+            "(e.g. c_uT_per_A=0.2/-0.1/0.3), windows t0-t1/t0-t1 in s; omitted keys take their defaults. "
+            f"Ids (keys): {syntax()}. See docs/simulate-effects.md.")
+
+
 @cli.command(epilog=EXIT_CODES)
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option("--scenario", type=click.Choice(["paper", "handheld"]), default="handheld", show_default=True,
@@ -250,6 +271,8 @@ def _angle_deg(rot: Any) -> float:
 @click.option("--duration", type=float, default=None, help="Length in seconds [default: the scenario's own].")
 @click.option("--rate", type=float, default=None, help="IMU rate in Hz [default: paper 80, handheld 100].")
 @click.option("--mag-rate", type=float, default=None, help="Magnetometer rate in Hz [default: paper 80, handheld 50].")
+@click.option("--effect", "effects", multiple=True, metavar="ID[:key=value,...]", callback=_parse_effects,
+              help=_effect_help())
 @click.option("--truth", "truth_path", type=click.Path(path_type=Path), default=None,
               help="Where to write the truth [default: OUT.truth.json].")
 @click.option("--force", is_flag=True, help="Overwrite existing outputs.")
@@ -257,8 +280,11 @@ def _angle_deg(rot: Any) -> float:
 @click.pass_context
 @handle_errors
 def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: float | None, rate: float | None,
-             mag_rate: float | None, truth_path: Path | None, force: bool) -> None:
-    """Write a synthetic log (format from OUT's extension) and its truth as a calibration document."""
+             mag_rate: float | None, effects: tuple[Any, ...], truth_path: Path | None, force: bool) -> None:
+    """Write a synthetic log (format from OUT's extension) and its truth as a calibration document.
+
+    The truth lists the injected effects in the log's magnetometer unit and with the reader's channel ids.
+    """
     from .atomic import write_text
     from .document import dumps_json
     from .errors import OutputError
@@ -273,8 +299,9 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
         if p.exists() and not force:
             msg = f"{p}: exists already. Pass --force to overwrite it"
             raise OutputError(msg)
-    _stderr(ctx, f"simulating {scenario} (seed {seed})")
-    sim = run_simulation(scenario, seed, rate, mag_rate, duration)
+    _stderr(ctx, f"simulating {scenario} (seed {seed})" + (f" with {', '.join(e.id for e in effects)}"
+                                                             if effects else ""))
+    sim = run_simulation(scenario, seed, rate, mag_rate, duration, effects=effects)
     write_log(sim, out)
     written = open_recording(out)                       # the truth uses the ids and unit readers report
     write_text(truth_path, dumps_json(truth_calibration(sim, written, __version__, utc_now())))

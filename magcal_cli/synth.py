@@ -3,6 +3,8 @@
 Truth and noise are drawn as in methods.md section 5 (the authors' simulate/simulate.m), in NED.
 Gyro samples are exact constant-rate increments, y_g,k = Log(R_k^T R_k+1)/dt + b_g + noise, so they agree
 with preintegration; accelerometers see gravity only (pure rotation): y_a = -R^T g_n + b_a + noise.
+`effects` adds physics the base model leaves out (synth_effects.py, synth_inject.py); they draw from their
+own generators, so a simulation with effects has the same trajectory and noise as one without.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from .calibration import Calibration, ImuCalibration, MagCalibration, Source
 from .errors import MagcalError
 from .models.accel import G
 from .streams import Kind, Recording, Stream
+from .synth_effects import EffectSpec
+from .synth_inject import Base, InjectedEffect, inject, truth_entry
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -56,7 +60,8 @@ class Truth:
 
 @dataclass(frozen=True, eq=False)
 class Simulation:
-    """A simulated recording, its truth, the true trajectory at the IMU epochs and the still intervals (s)."""
+    """A simulated recording, its truth, the true trajectory at the IMU epochs, the still intervals (s) and the
+    injected effects (SI parameters)."""
 
     recording: Recording
     truth: Truth
@@ -64,6 +69,7 @@ class Simulation:
     still: tuple[tuple[float, float], ...]
     scenario: str
     seed: int
+    effects: tuple[InjectedEffect, ...] = ()
 
 
 def truth_calibration(sim: Simulation, log: Recording, version: str, created_utc: str) -> Calibration:
@@ -85,7 +91,9 @@ def truth_calibration(sim: Simulation, log: Recording, version: str, created_utc
     sim_info = {"scenario": sim.scenario, "seed": sim.seed, "rate_hz": acc_sim.rate_hz,
                 "mag_rate_hz": mag_sim.rate_hz, "still_intervals_s": [list(s) for s in sim.still]}
     noise = {f"{k}_std": [v] * 3 for k, v in tr.noise_std.items()} | {"source": "simulation (per-sample std, SI)"}
-    return Calibration(source, "truth", imu, (cal,), version, created_utc, noise, extra={"simulation": sim_info})
+    effects = tuple(truth_entry(e, log, imu_id) for e in sim.effects)
+    return Calibration(source, "truth", imu, (cal,), version, created_utc, noise, effects,
+                       extra={"simulation": sim_info})
 
 
 def draw_truth(rng: np.random.Generator, rate: float, mag_rate: float) -> Truth:
@@ -170,13 +178,19 @@ def handheld_trajectory(rng: np.random.Generator, rate: float,
 
 
 def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
-             duration: float | None = None, truth: Truth | None = None) -> Simulation:
+             duration: float | None = None, truth: Truth | None = None, effects: tuple[EffectSpec, ...] = (),
+             noise_scale: float = 1.0, trajectory: FloatArray | None = None) -> Simulation:
     """Simulate one recording (IMU stream `/imu/data`, magnetometer `/imu/mag`) with seeded truth.
 
-    `truth` replaces the drawn calibration (its noise_std is still set from the rates).
+    `truth` replaces the drawn calibration (its noise_std is still set from the rates). `effects` are injected
+    (auxiliary channels join the recording); `noise_scale` multiplies every noise std (0: noise-free);
+    `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate replaces the scenario's.
     """
     if scenario not in SCENARIOS:
         msg = f"simulate: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}"
+        raise MagcalError(msg)
+    if not np.isfinite(noise_scale) or noise_scale < 0:
+        msg = f"simulate: noise_scale must be a finite number >= 0, got {noise_scale}"
         raise MagcalError(msg)
     rate = rate or DEFAULT_RATES[scenario][0]
     mag_rate = mag_rate or min(DEFAULT_RATES[scenario][1], rate)
@@ -186,29 +200,47 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
         raise MagcalError(msg)
     rng = np.random.default_rng(seed)
     drawn = draw_truth(rng, rate, mag_rate)
+    if noise_scale != 1.0:
+        drawn = replace(drawn, noise_std={k: v * noise_scale for k, v in drawn.noise_std.items()})
     truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
     still: tuple[tuple[float, float], ...] = ()
-    if scenario == "paper":
+    if trajectory is not None:
+        rot = np.asarray(trajectory, dtype=np.float64)
+        if rot.ndim != 3 or rot.shape[1:] != (3, 3) or len(rot) < 3:
+            msg = f"simulate: trajectory must be (N+1, 3, 3) rotations with N >= 2, got {rot.shape}"
+            raise MagcalError(msg)
+    elif scenario == "paper":
         rot = paper_trajectory(rng, rate, duration)
     else:
         rot, still = handheld_trajectory(rng, rate, duration)
     n = rot.shape[0] - 1                    # gyro k covers [t_k, t_k+1], so keep N+1 rotations
     t = np.arange(n) / rate
     sd = truth.noise_std
-    gyro = so3.log(rot[:-1].transpose(0, 2, 1) @ rot[1:]) * rate + truth.gyro_bias
-    gyro += sd["gyroscope"] * rng.standard_normal((n, 3))
-    rot = rot[:-1]
-    acc = -np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, G])) + truth.accel_bias
-    acc += sd["accelerometer"] * rng.standard_normal((n, 3))
+    omega = so3.log(rot[:-1].transpose(0, 2, 1) @ rot[1:]) * rate
+    noise_g = sd["gyroscope"] * rng.standard_normal((n, 3))
+    knots, rot = rot, rot[:-1]
+    force = -np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, G]))
+    noise_a = sd["accelerometer"] * rng.standard_normal((n, 3))
     step = int(round(ratio))
     m_n = np.array([np.cos(truth.dip), 0.0, np.sin(truth.dip)])
     mb = np.einsum("nji,j->ni", rot[::step], m_n)
-    mag = mb @ truth.D.T + truth.o + sd["magnetometer"] * rng.standard_normal(mb.shape)
+    noise_m = sd["magnetometer"] * rng.standard_normal(mb.shape)
     src = f"simulate:{scenario}:seed={seed}"
+    done = inject(tuple(effects), Base(knots, rate, step, m_n, truth.field_strength, seed, noise_scale, src),
+                  omega, force)
+    gyro = done.omega + truth.gyro_bias
+    gyro += noise_g
+    acc = done.force + truth.accel_bias
+    acc += noise_a
+    mag = (mb if done.mag_body is None else done.mag_body) @ truth.D.T + truth.o
+    if done.mag_extra is not None:
+        mag = mag + done.mag_extra
+    mag = mag + noise_m
     streams = (
         Stream(Kind.ACCELEROMETER, "/imu/data", t, acc, f"{src}#/imu/data", "m/s^2"),
         Stream(Kind.GYROSCOPE, "/imu/data", t, gyro, f"{src}#/imu/data", "rad/s"),
         Stream(Kind.MAGNETOMETER, "/imu/mag", t[::step], mag, f"{src}#/imu/mag", "tesla"),
+        *done.streams,
     )
     rec = Recording(Path(f"{scenario}-{seed}.sim"), "simulation", streams, t0=T0_ROS)
-    return Simulation(rec, truth, rot, still, scenario, seed)
+    return Simulation(rec, truth, rot, still, scenario, seed, done.effects)

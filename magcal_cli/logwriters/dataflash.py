@@ -24,6 +24,7 @@ from ..readers.dataflash_format import FMT_ID, FMT_LENGTH, FORMAT_CHARS, HEAD1, 
 from ..readers.dataflash_mag import Correction, apply_correction, effective_scale, iron_matrix
 from ..streams import Kind, Recording
 from ..synth import Simulation
+from ..synth_physics import local
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -182,15 +183,16 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
 
     t10 = np.arange(0.0, float(acc.t[-1]), 0.1)
     swing = 0.5 * (1.0 - np.cos(2.0 * np.pi * t10 / 20.0))
-    current = _series(rec, Kind.BATTERY_CURRENT, t10, 0.8 + prev.current_swing_a * swing)
-    throttle = _series(rec, Kind.THROTTLE, t10, 0.2 + 0.5 * swing if prev.motct == 1 else np.zeros_like(t10))
+    t_bat, t_thr = _times(rec, Kind.BATTERY_CURRENT, t10), _times(rec, Kind.THROTTLE, t10)
+    current = _series(rec, Kind.BATTERY_CURRENT, t_bat, 0.8 + prev.current_swing_a * swing)
+    throttle = _series(rec, Kind.THROTTLE, t_thr, 0.2 + 0.5 * swing if prev.motct == 1 else np.zeros_like(t10))
 
     ofs = np.tile(ofs0, (n, 1))
     if prev.change_at_s is not None and prev.ofs_after is not None:
         ofs[mag.t >= prev.change_at_s] = f32(prev.ofs_after)
     signal = np.zeros(n)
     if prev.motct in (1, 2):
-        signal = np.interp(mag.t, t10, throttle if prev.motct == 1 else current)
+        signal = np.interp(mag.t, *((t_thr, throttle) if prev.motct == 1 else (t_bat, current)))
     corr = Correction(ofs, iron_matrix(np.tile(f32(prev.dia), (n, 1)), np.tile(f32(prev.odi), (n, 1))),
                       effective_scale(np.full(n, f32(prev.scale))), signal[:, None] * f32(prev.mot))
     logged = apply_correction(mag.values * 1e7, corr)
@@ -203,7 +205,7 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
         m[f"MO{a}"] = np.trunc(corr.motor[:, i])
     m["Health"] = 1
 
-    parts = [(imu["TimeUS"], imu), (m["TimeUS"], m)] + _slow_records(sim, t10, current, throttle)
+    parts = [(imu["TimeUS"], imu), (m["TimeUS"], m)] + _slow_records(sim, t10, (t_bat, current), (t_thr, throttle))
     if prev.change_at_s is not None and prev.ofs_after is not None:
         change = _records("PARM", 3)
         change["TimeUS"] = _us(prev.change_at_s)
@@ -224,10 +226,18 @@ def _series(rec: Recording, kind: Kind, t: FloatArray, default: FloatArray) -> F
     return interpolate(found[0], np.clip(t, found[0].t[0], found[0].t[-1]))[:, 0]
 
 
-def _slow_records(sim: Simulation, t10: FloatArray, current: FloatArray,
-                  throttle: FloatArray) -> list[tuple[npt.NDArray[np.int64], np.ndarray]]:
-    """ATT, BAT, CTUN at 10 Hz and GPS at 5 Hz (a fixed position: the handheld scenario does not travel)."""
-    acc_t = sim.recording.select(Kind.ACCELEROMETER).t
+def _times(rec: Recording, kind: Kind, default: FloatArray) -> FloatArray:
+    """The times of the simulation's stream of `kind`, else `default`."""
+    found = rec.of_kind(kind)
+    return found[0].t if found and len(found[0]) > 1 else default
+
+
+def _slow_records(sim: Simulation, t10: FloatArray, current: tuple[FloatArray, FloatArray],
+                  throttle: tuple[FloatArray, FloatArray]) -> list[tuple[npt.NDArray[np.int64], np.ndarray]]:
+    """ATT at 10 Hz; BAT and CTUN at the times of the simulation's current and throttle (else 10 Hz); GPS at the
+    simulated position's times, else at 5 Hz at a fixed position (the base scenarios do not travel)."""
+    rec = sim.recording
+    acc_t = rec.select(Kind.ACCELEROMETER).t
     idx = np.clip(np.searchsorted(acc_t, t10), 0, len(sim.rotations) - 1)
     with warnings.catch_warnings():                 # poses pointing straight up or down are gimbal-locked
         warnings.simplefilter("ignore", UserWarning)
@@ -238,22 +248,40 @@ def _slow_records(sim: Simulation, t10: FloatArray, current: FloatArray,
     att["Pitch"] = att["DesPitch"] = rpy[:, 1]
     att["Yaw"] = att["DesYaw"] = np.mod(rpy[:, 2], 360.0)
     att["AEKF"] = 3
-    bat = _records("BAT", len(t10))
-    bat["TimeUS"] = _us(t10) + 500
-    bat["Volt"] = bat["VoltR"] = 16.4 - 0.0002 * t10
-    bat["Curr"] = current
-    bat["CurrTot"] = np.cumsum(current) * 0.1 / 3.6
+    t_bat, amps = current
+    bat = _records("BAT", len(t_bat))
+    bat["TimeUS"] = _us(t_bat) + 500
+    bat["Volt"] = bat["VoltR"] = _series(rec, Kind.BATTERY_VOLTAGE, t_bat, 16.4 - 0.0002 * t_bat)
+    bat["Curr"] = amps
+    bat["CurrTot"] = np.concatenate([[0.0], np.cumsum(0.5 * (amps[1:] + amps[:-1]) * np.diff(t_bat))]) / 3.6
     bat["RemPct"], bat["H"] = 99, 1
-    ctun = _records("CTUN", len(t10))
-    ctun["TimeUS"] = _us(t10) + 700
-    ctun["ThO"] = ctun["ThI"] = throttle
-    t5 = t10[::2]
-    gps = _records("GPS", len(t5))
-    gps["TimeUS"] = _us(t5) + 900
+    t_thr, thr = throttle
+    ctun = _records("CTUN", len(t_thr))
+    ctun["TimeUS"] = _us(t_thr) + 700
+    ctun["ThO"] = ctun["ThI"] = thr
+    return [(att["TimeUS"], att), (bat["TimeUS"], bat), (ctun["TimeUS"], ctun), _gps(rec, t10[::2])]
+
+
+def _gps(rec: Recording, t5: FloatArray) -> tuple[npt.NDArray[np.int64], np.ndarray]:
+    """GPS records: the simulated position (Lat/Lng 1e-7 deg, Alt cm, Spd, GCrs, VZ down), else a fixed fix."""
+    pos = rec.of_kind(Kind.POSITION)
+    t = pos[0].t if pos else t5
+    gps = _records("GPS", len(t))
+    gps["TimeUS"] = _us(t) + 900
     gps["Status"], gps["NSats"], gps["HDop"], gps["GWk"] = 3, 14, 70, 2390
-    gps["GMS"] = (np.round(t5 * 1000).astype(np.int64) + 345_600_000) % 604_800_000
-    gps["Lat"], gps["Lng"], gps["Alt"] = 473_977_420, 85_455_940, 48_800        # 1e-7 deg, 1e-7 deg, cm
-    return [(att["TimeUS"], att), (bat["TimeUS"], bat), (ctun["TimeUS"], ctun), (gps["TimeUS"], gps)]
+    gps["GMS"] = (np.round(t * 1000).astype(np.int64) + 345_600_000) % 604_800_000
+    if not pos:
+        gps["Lat"], gps["Lng"], gps["Alt"] = 473_977_420, 85_455_940, 48_800        # 1e-7 deg, 1e-7 deg, cm
+        return gps["TimeUS"], gps
+    lla = pos[0].values
+    gps["Lat"], gps["Lng"] = np.round(lla[:, 0] * 1e7), np.round(lla[:, 1] * 1e7)
+    gps["Alt"] = np.round(lla[:, 2] * 100.0)
+    if len(t) > 1:
+        vel = np.gradient(local(lla), t, axis=0)
+        gps["Spd"] = np.linalg.norm(vel[:, :2], axis=1)
+        gps["GCrs"] = np.mod(np.rad2deg(np.arctan2(vel[:, 1], vel[:, 0])), 360.0)
+        gps["VZ"] = vel[:, 2]
+    return gps["TimeUS"], gps
 
 
 def write_bin(sim: Simulation, path: Path) -> None:

@@ -1,8 +1,10 @@
 """ROS 1 `.bag` and ROS 2 bag directory writers (rosbags): Imu, MagneticField, and the other sensor types.
 
 Streams sharing an id become one topic: accelerometer + gyroscope -> sensor_msgs/Imu, magnetometer ->
-MagneticField (tesla), battery current + voltage -> BatteryState, temperature -> Temperature, position ->
-NavSatFix. Both writers build the bag under a temporary name and rename it into place.
+MagneticField (tesla), battery current + voltage -> BatteryState (current negative while discharging, as
+ROS defines it), temperature -> Temperature, position -> NavSatFix, throttle -> mavros_msgs/ActuatorControl
+(controls[3] of mixer group 0, as mavros publishes PX4's actuator controls). Both writers build the bag under
+a temporary name and rename it into place.
 """
 
 from __future__ import annotations
@@ -28,7 +30,28 @@ MESSAGE_KINDS: dict[str, tuple[Kind, ...]] = {
     "sensor_msgs/msg/BatteryState": (Kind.BATTERY_CURRENT, Kind.BATTERY_VOLTAGE),
     "sensor_msgs/msg/Temperature": (Kind.TEMPERATURE,),
     "sensor_msgs/msg/NavSatFix": (Kind.POSITION,),
+    "mavros_msgs/msg/ActuatorControl": (Kind.THROTTLE,),
 }
+#: mavros_msgs/ActuatorControl (mavros 1 and 2): PX4 mixer-group controls, throttle at index 3 of group 0
+ACTUATOR_CONTROL = "mavros_msgs/msg/ActuatorControl"
+ACTUATOR_CONTROL_MSG = """uint8 PX4_MIX_FLIGHT_CONTROL = 0
+uint8 PX4_MIX_FLIGHT_CONTROL_VTOL_ALT = 1
+uint8 PX4_MIX_PAYLOAD = 2
+uint8 PX4_MIX_MANUAL_PASSTHROUGH = 3
+std_msgs/Header header
+uint8 group_mix
+float32[8] controls
+"""
+#: index of the throttle in mixer group 0 (PX4 actuator_controls_s::INDEX_THROTTLE)
+THROTTLE_INDEX = 3
+
+
+def register_types(store: Any) -> None:
+    """Add the message types rosbags' stock typestores lack (mavros_msgs/ActuatorControl) to `store`."""
+    from rosbags.typesys import get_types_from_msg
+
+    if ACTUATOR_CONTROL not in store.types:
+        store.register(get_types_from_msg(ACTUATOR_CONTROL_MSG, ACTUATOR_CONTROL))
 
 
 def topic_name(stream_id: str) -> str:
@@ -54,6 +77,7 @@ class Builder:
     """Makes rosbags message objects of one typestore (ROS 1 Noetic or ROS 2 Humble)."""
 
     def __init__(self, store: Any, ros1: bool, noise_std: dict[str, float]) -> None:
+        register_types(store)
         self.types = store.types
         self.ros1 = ros1
         self.var = {k: v**2 for k, v in noise_std.items()}
@@ -93,6 +117,10 @@ class Builder:
             status = t["sensor_msgs/msg/NavSatStatus"](status=0, service=1)
             return t[msgtype](header=h, status=status, latitude=lat, longitude=lon, altitude=alt,
                               position_covariance=np.zeros(9), position_covariance_type=0)
+        if msgtype == ACTUATOR_CONTROL:
+            controls = np.zeros(8, dtype=np.float32)
+            controls[THROTTLE_INDEX] = parts[0].values[i, 0]
+            return t[msgtype](header=h, group_mix=0, controls=controls)
         return self._battery(h, float(parts[0].values[i, 0]), float(parts[1].values[i, 0]))
 
     def _battery(self, h: Any, current: float, voltage: float) -> Any:

@@ -17,9 +17,11 @@ import numpy as np
 import numpy.typing as npt
 
 from .. import __version__, so3, units
+from ..align import interpolate
 from ..atomic import atomic_path
-from ..streams import Kind
+from ..streams import Kind, Recording
 from ..synth import Simulation
+from ..synth_physics import local
 
 #: pyulog's HEADER_BYTES ("ULog" + 0x01 0x12 0x35), then the file version
 MAGIC = b"ULog\x01\x12\x35"
@@ -32,8 +34,10 @@ NUMPY_TYPES = {"int8_t": "i1", "uint8_t": "u1", "int16_t": "<i2", "uint16_t": "<
 START_US = 20_000_000
 #: DeviceStructure of the simulated magnetometer: bus type 4 (simulation), bus 0, address 0x0e, devtype 0x06
 SIM_MAG_DEVICE_ID = 4 | (0 << 3) | (0x0E << 8) | (0x06 << 16)
-#: the temperature the simulated magnetometer reports (degC; the simulator has no thermal model)
+#: the temperature the simulated magnetometer reports (degC) when the simulation has no temperature stream
 SIM_MAG_TEMPERATURE = 25.0
+#: DeviceStructure of the simulated GNSS receiver: bus type 5 (serial), bus 1, devtype 0xa6 (GPS)
+SIM_GPS_DEVICE_ID = 5 | (1 << 3) | (0xA6 << 16)
 #: vehicle_attitude is logged at most this often (Hz), as PX4's logger rate-limits it
 ATTITUDE_RATE_HZ = 50.0
 
@@ -159,7 +163,9 @@ def _us(t: npt.ArrayLike) -> npt.NDArray[np.int64]:
 
 
 def sim_content(sim: Simulation) -> UlogContent:
-    """The simulation as PX4 logs it: sensor_combined, sensor_mag (gauss), vehicle_attitude, parameters."""
+    """The simulation as PX4 logs it: sensor_combined, sensor_mag (gauss, with the simulated temperature),
+    vehicle_attitude, parameters, and battery_status, vehicle_thrust_setpoint and vehicle_gps_position when the
+    simulation has battery, throttle or position streams."""
     rec = sim.recording
     acc, gyr, mag = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), rec.select(Kind.MAGNETOMETER)
     t_imu, n = _us(gyr.t), len(gyr)
@@ -183,7 +189,8 @@ def sim_content(sim: Simulation) -> UlogContent:
         ("bool", "is_external")),
         {"timestamp": t_mag + 150, "timestamp_sample": t_mag, "device_id": np.full(m, SIM_MAG_DEVICE_ID),
          "x": field_g[:, 0], "y": field_g[:, 1], "z": field_g[:, 2],
-         "temperature": np.full(m, SIM_MAG_TEMPERATURE), "error_count": np.zeros(m),
+         "temperature": _series(rec, Kind.TEMPERATURE, mag.t, np.full(m, SIM_MAG_TEMPERATURE)),
+         "error_count": np.zeros(m),
          "is_external": np.ones(m)})
     step = max(1, int(round(gyr.rate_hz / ATTITUDE_RATE_HZ)))
     att_t = t_imu[::step]
@@ -200,7 +207,57 @@ def sim_content(sim: Simulation) -> UlogContent:
                    f"CAL_MAG0_{axis}COMP": 0.0, f"SENS_BOARD_{axis}_OFF": 0.0}
     info = {"sys_name": "PX4", "ver_hw": "MAGCAL_SIM", "ver_sw": f"magcal {__version__} simulate",
             "magcal_simulation": f"{sim.scenario} seed={sim.seed}"}
-    return UlogContent((comb, sensor_mag, att), params, info)
+    return UlogContent((comb, sensor_mag, att, *_aux_topics(rec)), params, info)
+
+
+def _series(rec: Recording, kind: Kind, t: npt.NDArray[np.float64],
+            default: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """The recording's stream of `kind` at t (held at its ends), else `default`."""
+    found = rec.of_kind(kind)
+    if not found or len(found[0]) < 2:
+        return default
+    return interpolate(found[0], np.clip(t, found[0].t[0], found[0].t[-1]))[:, 0]
+
+
+def _aux_topics(rec: Recording) -> list[Topic]:
+    """battery_status, vehicle_thrust_setpoint and vehicle_gps_position for the auxiliary streams present."""
+    out = []
+    cur, volt = rec.of_kind(Kind.BATTERY_CURRENT), rec.of_kind(Kind.BATTERY_VOLTAGE)
+    if cur:
+        t, amps = cur[0].t, cur[0].values[:, 0]
+        volts = _series(rec, Kind.BATTERY_VOLTAGE, t, np.full(t.size, np.nan)) if volt else np.full(t.size, 0.0)
+        used = np.concatenate([[0.0], np.cumsum(0.5 * (amps[1:] + amps[:-1]) * np.diff(t))]) / 3.6   # mAh
+        n = t.size
+        out.append(Topic("battery_status", (
+            ("uint64_t", "timestamp"), ("float", "voltage_v"), ("float", "current_a"),
+            ("float", "current_average_a"), ("float", "discharged_mah"), ("float", "remaining"),
+            ("float", "temperature"), ("uint8_t", "cell_count"), ("bool", "connected"), ("uint8_t", "id")),
+            {"timestamp": _us(t), "voltage_v": volts, "current_a": amps, "current_average_a": amps,
+             "discharged_mah": used, "remaining": 1.0 - used / 5000.0, "temperature": np.full(n, np.nan),
+             "cell_count": np.full(n, 4), "connected": np.ones(n), "id": np.ones(n)}))
+    thr = rec.of_kind(Kind.THROTTLE)
+    if thr:              # PX4 >= 1.14: multicopter thrust along -z (FRD), normalised 0..1
+        t, n = thr[0].t, len(thr[0])
+        xyz = np.column_stack([np.zeros(n), np.zeros(n), -thr[0].values[:, 0]])
+        out.append(Topic("vehicle_thrust_setpoint", (
+            ("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("float[3]", "xyz")),
+            {"timestamp": _us(t) + 50, "timestamp_sample": _us(t), "xyz": xyz}))
+    pos = rec.of_kind(Kind.POSITION)
+    if pos:
+        t, lla, n = pos[0].t, pos[0].values, len(pos[0])
+        vel = np.gradient(local(lla), t, axis=0) if n > 1 else np.zeros((n, 3))
+        out.append(Topic("vehicle_gps_position", (
+            ("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+            ("double", "latitude_deg"), ("double", "longitude_deg"), ("double", "altitude_msl_m"),
+            ("float", "eph"), ("float", "epv"), ("float", "vel_m_s"), ("float", "vel_n_m_s"),
+            ("float", "vel_e_m_s"), ("float", "vel_d_m_s"), ("bool", "vel_ned_valid"), ("uint8_t", "fix_type"),
+            ("uint8_t", "satellites_used")),
+            {"timestamp": _us(t) + 80_000, "timestamp_sample": _us(t), "device_id": np.full(n, SIM_GPS_DEVICE_ID),
+             "latitude_deg": lla[:, 0], "longitude_deg": lla[:, 1], "altitude_msl_m": lla[:, 2],
+             "eph": np.full(n, 0.8), "epv": np.full(n, 1.2), "vel_m_s": np.linalg.norm(vel[:, :2], axis=1),
+             "vel_n_m_s": vel[:, 0], "vel_e_m_s": vel[:, 1], "vel_d_m_s": vel[:, 2], "vel_ned_valid": np.ones(n),
+             "fix_type": np.full(n, 3), "satellites_used": np.full(n, 14)}))
+    return out
 
 
 def write_ulg(sim: Simulation, path: Path) -> None:

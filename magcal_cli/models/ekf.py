@@ -26,8 +26,9 @@ from ..findings import Finding
 from ..streams import Stream
 from . import map_init
 from .accel import G
+from .epochs import BIAS_SCALE, GYRO_START_DIVISOR, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, preintegrate
-from .map import BA, BG, BIAS_SCALE, GYRO_START_DIVISOR, LAYOUT, Noise, epochs_for, initial_noise
+from .map import BA, BG, LAYOUT
 from .observability import check_observability
 from .problem import Problem
 from .result import ImuFit, MagFit, MethodResult

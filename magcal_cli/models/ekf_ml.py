@@ -26,7 +26,8 @@ from ..config import Config
 from ..errors import ConvergenceError
 from . import ekf
 from .ekf import D_AT, DIP_AT, P_THETA, Batch, Prepared
-from .map import BG, Noise
+from .epochs import Noise
+from .map import BG
 from .problem import Problem
 from .result import MethodResult
 

@@ -11,7 +11,7 @@ Internally the magnetometer is expressed in units of its ellipsoid-fit scale (D 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -19,14 +19,12 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from .. import so3, units
-from ..align import interpolate
 from ..config import Config
-from ..detect import pooled_std
-from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
 from ..streams import Stream
 from . import map_init
 from .accel import G, accel_factor
+from .epochs import BIAS_SCALE, Epochs, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, gyro_factor, preintegrate
 from .mag import MagLayout, mag_factor
 from .observability import check_observability
@@ -43,49 +41,15 @@ LAYOUT = MagLayout.packed(6)
 P = 19
 PARAM_GROUPS = {"accelerometer bias": slice(0, 3), "gyroscope bias": slice(3, 6), "D": slice(6, 15),
                 "o": slice(15, 18), "dip": slice(18, 19)}
-#: at most this many epochs per magnetometer, at most this epoch rate (else every k-th reading is used)
-MAX_EPOCHS = 60_000
-MAX_EPOCH_RATE_HZ = 100.0
-MIN_EPOCHS = 50
 #: rounds of (solve, re-estimate the noise levels); stop when no level changes by more than NOISE_TOL
 NOISE_ROUNDS = 6
 NOISE_TOL = 0.03
-#: without still segments the gyro noise starts at the quietest-window level divided by this
-GYRO_START_DIVISOR = 10.0
 #: slope of the gyro's variance-factor fixed point (d log factor / d log variance) assumed for the first step
 FIRST_GYRO_SLOPE = -0.7
 #: with at least this much still data (s) its noise levels are floors and the gyro level is kept
 MIN_STILL_S = 2.0
 #: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
 REPREINTEGRATE_RAD = 0.01
-#: typical bias magnitudes (m/s^2, rad/s) to compare bias uncertainties of different magnetometers' fits
-BIAS_SCALE = np.array([0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3])
-
-
-@dataclass(frozen=True, eq=False)
-class Epochs:
-    """One magnetometer's epochs: times (K,) s, readings / scale (K, 3), accelerometer interpolated onto them
-    (K, 3) m/s^2 and the factor (K,) by which interpolation shrinks its noise std."""
-
-    mag_id: str
-    t: FloatArray
-    mag: FloatArray
-    acc: FloatArray
-    acc_factor: FloatArray
-    scale: float
-    notes: tuple[str, ...] = ()
-    index: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))   # readings used
-
-
-@dataclass(frozen=True)
-class Noise:
-    """Per-sample standard deviations per axis: accelerometer (m/s^2), gyro (rad/s), magnetometer (scaled)."""
-
-    acc: FloatArray
-    gyr: FloatArray
-    mag: FloatArray
-
-
 @dataclass(frozen=True, eq=False)
 class MapEstimate:
     """One magnetometer's joint MAP result in SI: theta (b_a, b_g, vec D, o, dip) with the *total* gyro bias,
@@ -112,34 +76,6 @@ class MapEstimate:
         return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
 
 
-def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MAX_EPOCHS) -> Epochs:
-    """The magnetometer readings inside the IMU span, the accelerometer linearly interpolated onto them."""
-    t_imu = problem.acc.t
-    index = np.flatnonzero((mag.t >= t_imu[0]) & (mag.t <= t_imu[-1]))
-    notes = []
-    dt = float(np.median(np.diff(t_imu)))
-    if index.size:
-        index = index[np.concatenate([[True], np.diff(mag.t[index]) > 0.01 * dt])]
-    t = mag.t[index]
-    rate = 1.0 / float(np.median(np.diff(t))) if t.size > 1 else 0.0
-    step = max(int(np.ceil(t.size / max_epochs)), int(np.ceil(rate / MAX_EPOCH_RATE_HZ))) if t.size else 1
-    if step > 1:
-        n = t.size
-        index = index[::step]
-        t = mag.t[index]
-        notes.append(f"{mag.id}: {n} readings at {rate:.0f} Hz; used every {step}th ({t.size} epochs, "
-                     f"{rate / step:.0f} Hz) to bound time and memory (the paper decimates too)")
-    if t.size < MIN_EPOCHS:
-        msg = (f"{problem.where}: {mag.id} has only {t.size} readings inside the IMU's time span (need >= "
-               f"{MIN_EPOCHS}); check that both sensors were logged at the same time, or widen --start/--end")
-        raise InsufficientDataError(msg)
-    acc = interpolate(problem.acc, t)
-    j = np.clip(np.searchsorted(t_imu, t, side="right") - 1, 0, t_imu.size - 2)
-    w = np.clip((t - t_imu[j]) / (t_imu[j + 1] - t_imu[j]), 0.0, 1.0)
-    factor = np.sqrt((1.0 - w) ** 2 + w**2)        # std of (1-w) a_j + w a_j+1 relative to one sample's
-    return Epochs(mag.id, t, mag.xyz[index] / scale, acc, factor, scale, tuple(notes), index)
-
-
 def _scaled(f: Factor, s: FloatArray) -> Factor:
     """A factor's rows multiplied by s (M,)."""
     def mul(a: FloatArray | None) -> FloatArray | None:
@@ -162,17 +98,6 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise) -> Linearize:
                 gyro_factor(states, theta, pre, BG, jac)]   # gyro noise is in pre.l_inv
 
     return linearize
-
-
-def initial_noise(problem: Problem, mag: Stream, scale: float, fit_rms: float) -> Noise:
-    """Start noise levels: IMU from its quietest windows, magnetometer from still data or the ellipsoid."""
-    still = problem.still
-    m = pooled_std(mag, still.segments) / scale if still.segments else np.full(3, fit_rms)
-    m = np.where(np.isfinite(m), m, fit_rms)
-    # without a still segment the quietest windows still contain motion: their gyro level is an upper bound.
-    # The variance-component iteration converges fast from below and slowly from above, so start low.
-    gyr = still.gyr_noise if still.segments else still.gyr_noise / GYRO_START_DIVISOR
-    return Noise(np.maximum(still.acc_noise, 1e-4), np.maximum(gyr, 1e-6), np.maximum(m, 1e-5))
 
 
 def variance_ratios(sol: Solution, loss: str = "l2", c: float = 3.0) -> FloatArray:

@@ -73,7 +73,7 @@ def decoder(schema: Any, channel: Any) -> tuple[Decode | None, str]:
 
 
 class McapReader:
-    """Reads Imu, MagneticField, Vector3Stamped (field), BatteryState, Temperature and NavSatFix channels."""
+    """Reads Imu, MagneticField, Vector3Stamped (field), BatteryState, Temperature, NavSatFix, ActuatorControl."""
 
     name: ClassVar[str] = "mcap"
 

@@ -43,7 +43,7 @@ def ignored_note(topics: list[str]) -> str:
 
 
 class RosbagReader:
-    """Reads Imu, MagneticField, Vector3Stamped (field), BatteryState, Temperature and NavSatFix topics."""
+    """Reads Imu, MagneticField, Vector3Stamped (field), BatteryState, Temperature, NavSatFix, ActuatorControl."""
 
     name: ClassVar[str] = "rosbag"
 

@@ -38,6 +38,8 @@ ROS_TYPES: dict[str, tuple[str, str, Callable[[Any], tuple[float, ...]]]] = {
     "sensor_msgs/msg/Temperature": ("temperature", "temperature", lambda m: (m.temperature,)),
     "sensor_msgs/msg/NavSatFix": ("navsat", "latitude, longitude, altitude",
                                   lambda m: (m.latitude, m.longitude, m.altitude, m.status.status)),
+    "mavros_msgs/msg/ActuatorControl": ("throttle", "controls[3] of group_mix 0",
+                                        lambda m: (m.controls[3], m.group_mix)),
 }
 #: a Vector3Stamped is the field only on a topic whose name contains this (older drivers, e.g. /imu/mag)
 VEC3_TOPIC_HINT = "mag"
@@ -131,6 +133,12 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
         if not fix.all():
             notes.append(f"{topic}: dropped {int((~fix).sum())} samples without a GNSS fix")
         t, values = t[fix], values[fix, :3]
+    if group == "throttle":                     # PX4 mixer group 0 holds the throttle at index 3
+        group0 = values[:, 1] == 0
+        if not group0.any():
+            notes.append(f"{topic}: no ActuatorControl of mixer group 0 (flight control); no throttle stream")
+            return []
+        t, values = t[group0], values[group0, :1]
     if group == "battery":
         return [s for s in (_one(Kind.BATTERY_CURRENT, topic, t, values[:, 0], src, "A", notes),
                             _one(Kind.BATTERY_VOLTAGE, topic, t, values[:, 1], src, "V", notes)) if s]
@@ -148,6 +156,8 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
         return [Stream(Kind.TEMPERATURE, topic, t, values, src, "degC")]
     if group == "navsat":
         return [Stream(Kind.POSITION, topic, t, values, src, "deg")]
+    if group == "throttle":
+        return [Stream(Kind.THROTTLE, topic, t, values, src, "1")]
     unit = "tesla"
     if group == "vec3":
         median = field_spread(values)[0]

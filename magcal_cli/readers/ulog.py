@@ -1,4 +1,4 @@
-"""PX4 ULog reader: raw `sensor_mag` per instance, the IMU, attitude, battery, GPS and parameters.
+"""PX4 ULog reader: raw `sensor_mag` per instance, the IMU, attitude, battery, throttle, GPS and parameters.
 
 Which topic is raw and which calibrated, frames, time stamps, ids and the truncation policy are in
 docs/readers-px4.md; field meanings follow PX4's msg/*.msg definitions.
@@ -27,7 +27,8 @@ IntArray = npt.NDArray[np.int64]
 
 #: the topics magcal reads; pyulog skips the others while parsing
 TOPICS = ["sensor_mag", "sensor_combined", "sensor_accel", "sensor_gyro", "vehicle_attitude",
-          "battery_status", "vehicle_gps_position", "sensor_gps", "vehicle_magnetometer"]
+          "battery_status", "vehicle_gps_position", "sensor_gps", "vehicle_magnetometer",
+          "vehicle_thrust_setpoint", "actuator_controls_0"]
 #: msg/SensorCombined.msg: an `*_timestamp_relative` with this value means "no sample of that sensor"
 RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
 #: a `timestamp_sample` further than this before the publication `timestamp` is not trusted (us)
@@ -239,7 +240,7 @@ def _imu_pieces(tp: _Topics, params: dict[str, float]) -> tuple[list[ImuPiece], 
 
 
 def _other_pieces(tp: _Topics) -> list[Piece]:
-    """vehicle_attitude, battery_status per instance and one GPS position stream."""
+    """vehicle_attitude, battery_status per instance, one throttle and one GPS position stream."""
     out: list[Piece] = []
     att = tp.get("vehicle_attitude")
     q = None if att is None else tp.columns(att, [f"q[{i}]" for i in range(4)])
@@ -261,8 +262,24 @@ def _other_pieces(tp: _Topics) -> list[Piece]:
         volt = tp.columns(ds, ["voltage_v"])
         if volt is not None:
             out.append(Piece(Kind.BATTERY_VOLTAGE, sid, t, volt, tp.source(sid, "voltage_v"), "V"))
-    gps = _gps_piece(tp)
-    return out + ([gps] if gps is not None else [])
+    gps, throttle = _gps_piece(tp), _throttle_piece(tp)
+    return out + [p for p in (throttle, gps) if p is not None]
+
+
+def _throttle_piece(tp: _Topics) -> Piece | None:
+    """The throttle 0..1: |vehicle_thrust_setpoint[0].xyz| (PX4 >= 1.14, what CAL_MAG_COMP_TYP 1 uses), else
+    actuator_controls_0.control[3] (INDEX_THROTTLE, older PX4)."""
+    ds = tp.get("vehicle_thrust_setpoint")
+    xyz = None if ds is None else tp.columns(ds, [f"xyz[{i}]" for i in range(3)])
+    if ds is not None and xyz is not None:
+        return Piece(Kind.THROTTLE, "vehicle_thrust_setpoint", tp.stamps(ds, "vehicle_thrust_setpoint"),
+                     np.linalg.norm(xyz, axis=1)[:, None], tp.source("vehicle_thrust_setpoint", "|xyz|"), "1")
+    ds = tp.get("actuator_controls_0")
+    thr = None if ds is None else tp.columns(ds, ["control[3]"])
+    if ds is not None and thr is not None:
+        return Piece(Kind.THROTTLE, "actuator_controls_0", tp.stamps(ds, "actuator_controls_0"), thr,
+                     tp.source("actuator_controls_0", "control[3]"), "1")
+    return None
 
 
 def _gps_piece(tp: _Topics) -> Piece | None:
