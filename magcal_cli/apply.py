@@ -1,8 +1,9 @@
 """`magcal apply`: a calibration applied to a log, the calibrated field over time as CSV.
 
 Each row is one magnetometer sample: time (s, the log's stream time), stream id, the calibrated body-frame
-field F A (y - o - c s) in the document's unit and its magnitude. Accepted current/throttle interference is
-subtracted when the log has that signal (calibration-file.md).
+field F A (y - o - terms) in the document's unit and its magnitude. Every accepted magnetometer effect
+(interference, temperature drift, time offset, ...) is removed by its plug-in's `correct` when the log has the
+channels it needs (calibration-file.md).
 """
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ import numpy as np
 
 from . import units
 from .calibration import Calibration
+from .effects import EFFECTS, get
+from .effects.base import Target
 from .errors import StreamError
-from .firmware.effects import accepted
-from .firmware.flown import signal_at
 from .streams import Kind, Recording
 
 #: how the CSV header names each document unit (the CSV input contract's spellings)
@@ -40,19 +41,38 @@ def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | No
     for mag in (m for m in mags if m.id in have):
         stream = rec.select(Kind.MAGNETOMETER, mag.id)
         y = stream.xyz * units.from_si(mag.unit)
-        inter, _ = accepted(cal, mag)
-        if inter is not None:
-            kind = Kind.BATTERY_CURRENT if inter.kind == "current" else Kind.THROTTLE
-            s = signal_at(rec, kind, stream.t)
-            if s is None:
-                notes.append(f"{mag.id}: the accepted {inter.kind} interference is not subtracted (no "
-                             f"{kind.value} stream in the log)")
-            else:
-                y = y - (np.abs(s) ** inter.exponent if inter.kind == "throttle" else s)[:, None] * inter.c
-                notes.append(f"{mag.id}: {inter.kind} interference subtracted")
+        t, y, done = _corrected(cal, mag.id, rec, stream.t, y)
+        notes += done
         b = mag.field_strength * mag.apply(y)
-        rows += [(float(t), mag.id, v) for t, v in zip(stream.t, b, strict=True)]
+        rows += [(float(ti), mag.id, v) for ti, v in zip(t, b, strict=True)]
     rows.sort(key=lambda r: (r[0], r[1]))
     lines = [f"t [s],id,mx [{u}],my [{u}],mz [{u}],norm [{u}]"]
     lines += [f"{t:.6f},{i},{v[0]:.7g},{v[1]:.7g},{v[2]:.7g},{np.linalg.norm(v):.7g}" for t, i, v in rows]
     return "\n".join(lines) + "\n", notes
+
+
+def _corrected(cal: Calibration, mag_id: str, rec: Recording, t: np.ndarray, y: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Readings and stamps with the accepted magnetometer effects of `mag_id` removed, and what was done."""
+    notes = []
+    for e in cal.effects:
+        eid = str(e.get("id"))
+        if e.get("sensor") != mag_id or e.get("status") != "accepted" or eid not in EFFECTS:
+            continue
+        eff = get(eid)
+        if eff.target is not Target.MAG:
+            continue
+        chans: dict[str, np.ndarray] = {}
+        for kind in eff.channels:
+            named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
+            found = named or [s for s in rec.of_kind(kind) if len(s) >= 2]
+            if found:
+                chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
+        missing = [k.value for k in eff.channels if k.value not in chans]
+        if missing:
+            notes.append(f"{mag_id}: the accepted {eid} is not removed (the log lacks its {', '.join(missing)} "
+                         "channel)")
+            continue
+        t, y = eff.correct(dict(e.get("params") or {}), t, y, chans)
+        notes.append(f"{mag_id}: {eid} removed")
+    return t, y, notes

@@ -13,11 +13,12 @@ import numpy as np
 import numpy.typing as npt
 
 from . import so3
+from .models.params import MAG
 
 FloatArray = npt.NDArray[np.float64]
 
-#: order of `MagCalibration.cov` (D and o in the magnetometer unit, dip in degrees)
-MAG_PARAMS = "vec(D) column-major (9), o (3), dip_deg (1)"
+#: the layout of `MagCalibration.cov`: vec(D) column-major, o (both in the magnetometer unit), dip in degrees
+MAG_PARAMS = MAG
 
 
 def _frozen(a: npt.ArrayLike | None, shape: tuple[int, ...]) -> FloatArray:
@@ -69,7 +70,7 @@ class MagCalibration:
     def __post_init__(self) -> None:
         object.__setattr__(self, "D", _frozen(self.D, (3, 3)))
         object.__setattr__(self, "o", _frozen(self.o, (3,)))
-        object.__setattr__(self, "cov", _frozen(self.cov, (13, 13)))
+        object.__setattr__(self, "cov", _frozen(self.cov, (MAG_PARAMS.size, MAG_PARAMS.size)))
         object.__setattr__(self, "dip_deg", float(self.dip_deg))
         object.__setattr__(self, "field_strength", float(self.field_strength))
 
@@ -124,6 +125,16 @@ class MagCalibration:
         """Marginal standard deviations of theta_m (MAG_PARAMS order)."""
         return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
 
+    def std_of(self, name: str) -> FloatArray:
+        """Marginal standard deviations of block `name` in its shape: D (3, 3), o (3,), dip () in degrees."""
+        return MAG_PARAMS.value(self.std, name)
+
+    def cov_of(self, *names: str) -> FloatArray:
+        """The joint covariance of the named blocks (MAG_PARAMS names: "D", "o", "dip"), in the order given."""
+        cols = MAG_PARAMS.cols(*names)
+        out: FloatArray = self.cov[np.ix_(cols, cols)]
+        return out
+
     def misalignment_cov(self) -> FloatArray:
         """Covariance (rad^2) of the right perturbation w of U (U <- U Exp(w)), propagated from cov of D.
 
@@ -132,13 +143,14 @@ class MagCalibration:
         """
         u, p = so3.polar(self.D)
         m = np.linalg.inv(np.trace(p) * np.eye(3) - p)
-        jac = np.zeros((3, 9))
-        for col in range(9):
-            dd = np.zeros(9)
+        d_block = MAG_PARAMS.block("D")
+        jac = np.zeros((3, d_block.size))
+        for col in range(d_block.size):
+            dd = np.zeros(d_block.size)
             dd[col] = 1.0
-            x = u.T @ dd.reshape(3, 3, order="F")
+            x = u.T @ d_block.unflatten(dd)
             jac[:, col] = m @ (2.0 * so3.vee(x))
-        return jac @ self.cov[:9, :9] @ jac.T
+        return jac @ self.cov_of("D") @ jac.T
 
 
 @dataclass(frozen=True, eq=False)

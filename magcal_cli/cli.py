@@ -122,6 +122,18 @@ def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | Non
         raise click.BadParameter(str(exc)) from None
 
 
+def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ...]:
+    """--effects parsed into effect ids ('auto' fits the base model until the diagnosis exists)."""
+    from .effects import EffectError, parse
+
+    if value.strip() == "auto":
+        return ()
+    try:
+        return parse(value)
+    except EffectError as exc:
+        raise click.BadParameter(str(exc).removeprefix("--effects: ")) from None
+
+
 @cli.command(epilog=EXIT_CODES)
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
 @click.option("-o", "--outdir", type=click.Path(path_type=Path), default=None,
@@ -147,6 +159,12 @@ def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | Non
               help="Date for the World Magnetic Model [default: the log's date when known, else today].")
 @click.option("--robust-loss", type=click.Choice(["l2", "huber", "cauchy"]), default="l2", show_default=True,
               help="Joint MAP (--method map): down-weight outlying readings with a Huber or Cauchy loss.")
+@click.option("--effects", "effects", default="none", show_default=True, metavar="auto|none|ID[,ID...]",
+              callback=_effects,
+              help="Physics beyond the base model to fit (joint MAP): none, or a comma list of effect ids "
+                   "(current_interference, throttle_interference, temperature_drift, time_offset, gyro_scale, "
+                   "accel_scale, lever_arm, nongravity_acceleration); each is reported with its estimate, "
+                   "uncertainty, test and status. auto (the diagnosis) is not built yet and fits the base model.")
 @click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: _gates(v, "fit"),
               help="Exit 3 when a magnetometer meets a condition, e.g. 'heading_std_deg>1,field_norm_rms_pct>2' "
                    "(METRIC OP NUMBER, comma-separated; see docs/firmware-export.md).")
@@ -156,7 +174,7 @@ def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | Non
 def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str | None, method: str, outputs: str,
         start_s: float | None, end_s: float | None, fmt: str | None, allow_truncated: bool, as_json: bool,
         force: bool, location: tuple[float, float, float] | None, date: str | None, robust_loss: str,
-        fail_on: tuple[Any, ...]) -> None:
+        effects: tuple[str, ...], fail_on: tuple[Any, ...]) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from .document import dumps_json
     from .pipeline import calibrate
@@ -167,7 +185,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
     check_targets(outdir, names + ([auto] if auto else []), force)
     cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=allow_truncated,
-                 location=location, date=date, robust_loss=robust_loss)
+                 location=location, date=date, robust_loss=robust_loss, effects=effects)
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
         names.append(auto)

@@ -13,6 +13,9 @@ from . import so3
 from .calibration import MAG_PARAMS, Calibration, ImuCalibration, MagCalibration, Quality, Source
 from .errors import CalibrationFileError
 
+#: `covariance.order` of documents written before the order became a list of [block, size, unit kind]
+LEGACY_ORDER = "vec(D) column-major (9), o (3), dip_deg (1)"
+
 
 def _list(a: Any) -> Any:
     """Plain Python lists/floats for JSON and YAML (None stays None)."""
@@ -22,7 +25,6 @@ def _list(a: Any) -> Any:
 def mag_to_dict(m: MagCalibration) -> dict[str, Any]:
     """One `magnetometers[]` entry."""
     u = m.misalignment
-    std = m.std
     w_cov = m.misalignment_cov()
     out: dict[str, Any] = {
         "id": m.id, "units": m.unit,
@@ -32,10 +34,10 @@ def mag_to_dict(m: MagCalibration) -> dict[str, Any]:
         "misalignment": {"rotation": _list(u), "angle_deg": float(np.rad2deg(so3.angle(u))),
                          "rpy_deg": _list(np.rad2deg(so3.as_rpy(u)))},
         "soft_iron": _list(m.soft_iron),
-        "std": {"D": _list(std[:9].reshape(3, 3, order="F")), "o": _list(std[9:12]), "dip_deg": float(std[12]),
+        "std": {"D": _list(m.std_of("D")), "o": _list(m.std_of("o")), "dip_deg": float(m.std_of("dip")),
                 "misalignment_deg": float(np.rad2deg(np.sqrt(max(np.trace(w_cov), 0.0))))},
         "quality": None if m.quality is None else dict(m.quality.__dict__),
-        "covariance": {"order": MAG_PARAMS, "matrix": _list(m.cov)},
+        "covariance": {"order": MAG_PARAMS.to_order(), "matrix": _list(m.cov)},
     }
     return out
 
@@ -73,6 +75,35 @@ def _arr(d: dict[str, Any], key: str, shape: tuple[int, ...], where: str) -> np.
         raise CalibrationFileError(msg) from None
 
 
+def _covariance(m: dict[str, Any], where: str) -> np.ndarray:
+    """The magnetometer covariance in MAG_PARAMS order (NaN when absent); its `order` must be MAG_PARAMS's.
+
+    `order` is [[block, size, unit kind], ...] (`Layout.to_order`); documents written before that carry the
+    string LEGACY_ORDER, which names the same layout.
+    """
+    size = MAG_PARAMS.size
+    cov = m.get("covariance") or {}
+    if not isinstance(cov, dict):
+        msg = f"{where}: 'covariance' is not a mapping with 'order' and 'matrix'"
+        raise CalibrationFileError(msg)
+    order = cov.get("order")
+    expected = MAG_PARAMS.to_order()
+    if isinstance(order, list):
+        try:
+            known = [[str(n), int(k), str(u)] for n, k, u in order] == expected
+        except (TypeError, ValueError):
+            known = False
+    else:
+        known = order is None or order == LEGACY_ORDER
+    if not known:
+        msg = (f"{where}: covariance.order is {order!r}, but this magcal reads only {expected!r} (blocks D, o, "
+               f"dip: name, size, unit kind). Re-create the calibration with magcal fit")
+        raise CalibrationFileError(msg)
+    if cov.get("matrix") is None:
+        return np.full((size, size), np.nan)
+    return _arr(cov, "matrix", (size, size), f"{where}: covariance")
+
+
 def from_dict(doc: dict[str, Any], where: str = "calibration") -> Calibration:
     """Parse a document; only `magcal.calibration/1` is understood."""
     if not isinstance(doc, dict) or doc.get("schema") != Calibration.SCHEMA:
@@ -83,12 +114,11 @@ def from_dict(doc: dict[str, Any], where: str = "calibration") -> Calibration:
         mags = []
         for i, m in enumerate(doc["magnetometers"]):
             w = f"{where}: magnetometers[{i}]"
-            cov = m.get("covariance", {}).get("matrix")
             q = m.get("quality")
             mags.append(MagCalibration(
                 id=str(m["id"]), unit=str(m["units"]), D=_arr(m, "D", (3, 3), w), o=_arr(m, "o", (3,), w),
                 dip_deg=float(m["dip_deg"]),
-                cov=np.asarray(cov, dtype=np.float64) if cov is not None else np.full((13, 13), np.nan),
+                cov=_covariance(m, w),
                 field_strength=float(m["field_strength"]),
                 field_strength_source=str(m.get("field_strength_source", "data")),
                 quality=None if q is None else Quality(**q)))

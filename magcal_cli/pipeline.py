@@ -39,6 +39,11 @@ METHODS: dict[str, str] = {
 }
 
 
+#: the channels effect plug-ins may use, handed to the estimators beside the IMU and magnetometers
+AUX_KINDS = frozenset({Kind.BATTERY_CURRENT, Kind.BATTERY_VOLTAGE, Kind.THROTTLE, Kind.TEMPERATURE,
+                       Kind.POSITION, Kind.ATTITUDE})
+
+
 @dataclass(frozen=True, eq=False)
 class MagSeries:
     """A magnetometer's readings and calibrated unit field over time, for reports and plots."""
@@ -129,7 +134,9 @@ def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
         raise dropped[0][1]
     findings = [Finding(Severity.WARNING, "not_calibrated", f"{m.id} was not calibrated: {exc}", {"sensor": m.id})
                 for m, exc in dropped]
-    return Problem(where, acc.id, acc, gyr, tuple(good), detect_still(acc, gyr, cfg.still, tuple(good))), findings
+    aux = tuple(st.between(cfg.start_s, cfg.end_s) for st in rec.streams if st.kind in AUX_KINDS)
+    still = detect_still(acc, gyr, cfg.still, tuple(good))
+    return Problem(where, acc.id, acc, gyr, tuple(good), still, tuple(st for st in aux if len(st) >= 2)), findings
 
 
 def coverage_pct(m_b: FloatArray, cells: int = 100) -> float:
@@ -182,7 +189,7 @@ def _dip_check(mags: list[MagCalibration], ref: ReferenceField | None) -> list[F
     out = []
     for m in mags:
         diff = m.dip_deg - float(np.rad2deg(ref.dip))
-        if abs(diff) > max(DIP_TOLERANCE_DEG, 3.0 * float(m.std[12])):
+        if abs(diff) > max(DIP_TOLERANCE_DEG, 3.0 * float(m.std_of("dip"))):
             out.append(Finding(
                 Severity.WARNING, "dip_disagrees_with_wmm",
                 f"{m.id}: the fitted dip {m.dip_deg:.1f} deg differs from the World Magnetic Model's "
@@ -242,6 +249,13 @@ def _method_for(problem: Problem, cfg: Config) -> tuple[str, list[Finding]]:
     return (("map" if len(problem.gyr) else "kok2012") if cfg.method == "auto" else cfg.method), []
 
 
+def _effect_entries(result: MethodResult, mags: dict[str, Stream]) -> tuple[dict[str, object], ...]:
+    """The document's `effects[]`: magnetometer effects in that magnetometer's unit."""
+    from .effects.document import entry
+
+    return tuple(entry(f, mags[f.sensor].native_unit if f.sensor in mags else None) for f in result.effects)
+
+
 def _call(run: MethodRun, problem: Problem, cfg: Config, method: str) -> MethodResult:
     """One method run; numerical breakdowns become a ConvergenceError that names the method."""
     try:
@@ -299,6 +313,10 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     problem, dropped = _select(rec, cfg)
     method, chosen = _method_for(problem, cfg)
     cfg = _with_position(rec, cfg)
+    if cfg.effects and method != "map":
+        msg = (f"{path.name}: --effects {','.join(cfg.effects)} is modelled by the joint MAP method only in magcal "
+               f"{__version__} (the {method} method has no effect terms); use --method map, or --effects none")
+        raise MagcalError(msg)
     target = METHODS.get(method)
     if target is None:
         msg = (f"{path.name}: --method {method} is not available in magcal {__version__}; "
@@ -332,5 +350,5 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     source = Source(str(path), rec.format, digest, float(t_used.min()), float(t_used.max()))
     findings = chosen + dropped + failed + _findings(rec, problem, result, mags) + _dip_check(mags, ref)
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
-                      notes=tuple(f.message for f in findings))
+                      effects=_effect_entries(result, streams), notes=tuple(f.message for f in findings))
     return RunResult(doc, rec, problem.still, tuple(findings), series)

@@ -19,6 +19,7 @@ from . import so3, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Source
 from .errors import MagcalError
 from .models.accel import G
+from .models.params import BASE, MAG
 from .streams import Kind, Recording, Stream
 from .synth_effects import EffectSpec
 from .synth_inject import Base, InjectedEffect, inject, truth_entry
@@ -49,8 +50,12 @@ class Truth:
 
     @property
     def theta(self) -> FloatArray:
-        """The 19 calibration parameters in the joint-MAP order: b_a, b_g, vec(D) column-major, o, dip."""
-        return np.concatenate([self.accel_bias, self.gyro_bias, self.D.ravel(order="F"), self.o, [self.dip]])
+        """The calibration parameters in `params.BASE` order: b_a, b_g, vec(D) column-major, o, dip."""
+        theta = BASE.zeros()
+        for name, value in (("accelerometer_bias", self.accel_bias), ("gyroscope_bias", self.gyro_bias),
+                            ("D", self.D.ravel(order="F")), ("o", self.o), ("dip", self.dip)):
+            BASE.put(theta, name, value)
+        return theta
 
     @property
     def field_strength(self) -> float:
@@ -85,7 +90,7 @@ def truth_calibration(sim: Simulation, log: Recording, version: str, created_utc
     imu_id = next((i for i in log.ids(Kind.ACCELEROMETER) if i in gyro_ids), acc_sim.id)
     f = units.from_si(mag.native_unit)
     cal = MagCalibration(mag.id, units.canonical(mag.native_unit), tr.D * f, tr.o * f,
-                         float(np.rad2deg(tr.dip)), np.zeros((13, 13)), tr.field_strength * f, "data")
+                         float(np.rad2deg(tr.dip)), np.zeros((MAG.size, MAG.size)), tr.field_strength * f, "data")
     imu = ImuCalibration(imu_id, tr.accel_bias, tr.gyro_bias, np.zeros(3), np.zeros(3))
     source = Source(str(log.path), log.format, "", 0.0, float(acc_sim.t[-1]))
     sim_info = {"scenario": sim.scenario, "seed": sim.seed, "rate_hz": acc_sim.rate_hz,

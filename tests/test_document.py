@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -14,6 +15,9 @@ from magcal_cli import so3
 from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from magcal_cli.document import dumps_json, dumps_yaml, from_dict, load, to_dict
 from magcal_cli.errors import CalibrationFileError
+from magcal_cli.models.params import MAG
+
+SAMPLE_TRUTH = Path(__file__).resolve().parents[1] / "sample_logs" / "handheld.bin.truth.json"
 
 
 def _calibration(seed: int) -> Calibration:
@@ -89,3 +93,47 @@ def test_wrong_schema_and_malformed_documents_are_refused(tmp_path: Path) -> Non
     bad.write_text("{not json")
     with pytest.raises(CalibrationFileError, match="cal.json: not valid JSON"):
         load(bad)
+
+
+def test_covariance_order_is_the_named_layout() -> None:
+    """covariance.order lists [block, size, unit kind] of params.MAG and survives JSON and YAML round trips."""
+    cal = _calibration(5)
+    doc = json.loads(dumps_json(cal))
+    order = doc["magnetometers"][0]["covariance"]["order"]
+    assert order == [["D", 9, "field"], ["o", 3, "field"], ["dip", 1, "angle"]] == MAG.to_order()
+    assert yaml.safe_load(dumps_yaml(cal))["magnetometers"][0]["covariance"]["order"] == order
+    assert from_dict(doc) == cal
+
+
+def test_old_documents_with_a_string_order_still_load() -> None:
+    """Documents written before the named layout carry the order as a string; they load unchanged."""
+    cal = _calibration(6)
+    doc = to_dict(cal)
+    doc["magnetometers"][0]["covariance"]["order"] = "vec(D) column-major (9), o (3), dip_deg (1)"
+    assert from_dict(json.loads(json.dumps(doc))) == cal
+    old = json.loads(SAMPLE_TRUTH.read_text())
+    assert isinstance(old["magnetometers"][0]["covariance"]["order"], str)
+    assert load(SAMPLE_TRUTH).magnetometers[0].cov.shape == (MAG.size, MAG.size)
+
+
+@pytest.mark.parametrize("order", [[["o", 3, "field"], ["D", 9, "field"], ["dip", 1, "angle"]],
+                                   [["D", 9, "field"], ["o", 3, "field"]], "o (3), vec(D) (9), dip_deg (1)",
+                                   [["D", 9]]])
+def test_a_covariance_in_another_order_is_refused(order: object) -> None:
+    """A covariance whose order is not MAG's is refused with a message naming both orders."""
+    doc = to_dict(_calibration(7))
+    doc["magnetometers"][0]["covariance"]["order"] = order
+    with pytest.raises(CalibrationFileError, match=r"cal.json: magnetometers\[0\]: covariance.order is .*, but "
+                                                   r"this magcal reads only \[\['D', 9, 'field'\]"):
+        from_dict(doc, "cal.json")
+
+
+def test_named_accessors_follow_the_layout() -> None:
+    """std_of gives D (3, 3) column-major, o (3,) and the dip as a scalar; cov_of the joint blocks in order."""
+    mag = _calibration(8).magnetometers[0]
+    sd = np.sqrt(np.diag(mag.cov))
+    np.testing.assert_array_equal(mag.std_of("D"), sd[MAG.slice("D")].reshape(3, 3, order="F"))
+    np.testing.assert_array_equal(mag.std_of("o"), sd[MAG.slice("o")])
+    assert mag.std_of("dip").shape == () and float(mag.std_of("dip")) == sd[MAG.slice("dip")][0]
+    cols = np.r_[MAG.slice("o"), MAG.slice("D")]
+    np.testing.assert_array_equal(mag.cov_of("o", "D"), mag.cov[np.ix_(cols, cols)])

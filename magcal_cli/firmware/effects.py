@@ -18,7 +18,15 @@ from ..errors import StreamError
 from . import FirmwareError
 
 FloatArray = npt.NDArray[np.float64]
-KINDS = {"current_interference": "current", "throttle_interference": "throttle"}
+
+def _kinds() -> dict[str, str]:
+    """Effect id -> the signal the firmware's compensation multiplies, from the effect plug-ins."""
+    from ..effects import EFFECTS, get
+
+    return {eid: kind for eid in EFFECTS if (kind := get(eid).compensates) is not None}
+
+
+KINDS = _kinds()
 
 
 @dataclass(frozen=True, eq=False)

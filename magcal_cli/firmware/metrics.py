@@ -10,6 +10,7 @@ import numpy.typing as npt
 from .. import so3
 from ..calibration import Calibration, MagCalibration
 from ..errors import MagcalError
+from ..models.params import MAG
 from ..streams import Kind
 from .effects import accepted, tested
 from .split import HEADINGS_DEG
@@ -18,6 +19,9 @@ if TYPE_CHECKING:
     from ..pipeline import RunResult
 
 FloatArray = npt.NDArray[np.float64]
+
+#: the heading depends on D and o (not the dip): their joint covariance, in this order
+_D_O = MAG.sub(("D", "o"))
 
 #: metric -> meaning, for --fail-on and the documentation
 METRICS = {
@@ -41,18 +45,19 @@ def heading_std_deg(mag: MagCalibration) -> float | None:
     With m = A (y - o) and y = D m_b + o: dm = -A (dD m_b + do); the heading atan2(-m_y, m_x) moves by
     (m_y dm_x - m_x dm_y) / (m_x^2 + m_y^2).
     """
-    cov = mag.cov[:12, :12]
+    cov = mag.cov_of(*_D_O.names)
     if not np.all(np.isfinite(cov)):
         return None
     psi = np.deg2rad(HEADINGS_DEG)
     dip = np.arctan2(np.sin(np.deg2rad(mag.dip_deg)), abs(np.cos(np.deg2rad(mag.dip_deg))))
     mb = np.stack([np.cos(dip) * np.cos(psi), -np.cos(dip) * np.sin(psi), np.full_like(psi, np.sin(dip))], axis=1)
     A = mag.A
-    jac = np.zeros((psi.size, 3, 12))
+    jac = np.zeros((psi.size, 3, _D_O.size))
+    d_at = _D_O.slice("D").start
     for j in range(3):                        # vec(D) is column-major: D[i, j] at index i + 3 j
         for i in range(3):
-            jac[:, :, i + 3 * j] = -A[:, i][None, :] * mb[:, j][:, None]
-    jac[:, :, 9:12] = -A[None, :, :]
+            jac[:, :, d_at + i + 3 * j] = -A[:, i][None, :] * mb[:, j][:, None]
+    jac[:, :, _D_O.slice("o")] = -A[None, :, :]
     h2 = mb[:, 0] ** 2 + mb[:, 1] ** 2
     g = (mb[:, 1, None] * jac[:, 0, :] - mb[:, 0, None] * jac[:, 1, :]) / h2[:, None]
     var = np.einsum("ni,ij,nj->n", g, cov, g)

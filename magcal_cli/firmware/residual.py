@@ -23,6 +23,7 @@ from scipy.optimize import least_squares
 
 from .. import so3
 from ..errors import InsufficientDataError
+from ..models.params import XYZ, Layout, ParamBlock
 from .split import heading_error_deg
 
 FloatArray = npt.NDArray[np.float64]
@@ -31,6 +32,15 @@ FloatArray = npt.NDArray[np.float64]
 PRIOR_S, PRIOR_C0, PRIOR_Q = 0.3, 1.0, 0.2
 MIN_SAMPLES = 50
 MAX_SAMPLES = 3000
+
+#: the residual fit's parameters (field quantities in units of the median field strength, tilt in rad): S's five
+#: free entries, the tilt (qx, qy), c0, k (only with a signal), then the levelled field's H and Z
+_S = ParamBlock("S", 5, labels=("11", "22", "12", "13", "23"))
+_TILT = ParamBlock("tilt", 2, labels=("x", "y"))
+_C0 = ParamBlock("c0", 3, labels=XYZ)
+_K = ParamBlock("k", 3, labels=XYZ)
+_H, _Z = ParamBlock("H", 1), ParamBlock("Z", 1)
+LAYOUTS = {False: Layout((_S, _TILT, _C0, _H, _Z)), True: Layout((_S, _TILT, _C0, _K, _H, _Z))}
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,12 +74,14 @@ class Residual:
 
 
 def _unpack(theta: FloatArray, with_k: bool) -> tuple[FloatArray, FloatArray, FloatArray, float, float]:
-    """(Q (I + S), c0, k, H, Z) from the parameter vector [s11 s22 s12 s13 s23 | qx qy | c0 | k | H Z]."""
-    s11, s22, s12, s13, s23 = theta[:5]
+    """(Q (I + S), c0, k, H, Z) from the parameter vector (LAYOUTS[with_k])."""
+    lay = LAYOUTS[with_k]
+    s11, s22, s12, s13, s23 = lay.get(theta, "S")
     S = np.array([[s11, s12, s13], [s12, s22, s23], [s13, s23, -s11 - s22]])
-    E = so3.exp([theta[5], theta[6], 0.0]) @ (np.eye(3) + S)
-    k = theta[10:13] if with_k else np.zeros(3)
-    return E, theta[7:10], k, float(theta[-2]), float(theta[-1])
+    qx, qy = lay.get(theta, "tilt")
+    E = so3.exp([qx, qy, 0.0]) @ (np.eye(3) + S)
+    k = lay.get(theta, "k") if with_k else np.zeros(3)
+    return E, lay.get(theta, "c0"), k, float(lay.value(theta, "H")), float(lay.value(theta, "Z"))
 
 
 def _residuals(theta: FloatArray, c: FloatArray, lev: FloatArray, s: FloatArray, with_k: bool,
@@ -79,7 +91,8 @@ def _residuals(theta: FloatArray, c: FloatArray, lev: FloatArray, s: FloatArray,
     b = np.linalg.solve(E, (c - c0 - s[:, None] * k).T).T
     g = np.einsum("nij,nj->ni", lev, b)
     data = np.concatenate([np.hypot(g[:, 0], g[:, 1]) - H, g[:, 2] - Z]) / sigma
-    prior = np.concatenate([theta[:5] / PRIOR_S, theta[5:7] / PRIOR_Q, c0 / PRIOR_C0])
+    lay = LAYOUTS[with_k]
+    prior = np.concatenate([lay.get(theta, "S") / PRIOR_S, lay.get(theta, "tilt") / PRIOR_Q, c0 / PRIOR_C0])
     return np.concatenate([data, prior])
 
 
@@ -113,8 +126,10 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
     s_scale = float(np.max(np.abs(s))) or 1.0
     sn = s / s_scale
     g0 = np.einsum("nij,nj->ni", lev, cn)
-    theta0 = np.concatenate([np.zeros(10), np.zeros(3) if with_k else [],
-                             [np.median(np.hypot(g0[:, 0], g0[:, 1])), np.median(g0[:, 2])]])
+    lay = LAYOUTS[with_k]
+    theta0 = lay.zeros()
+    lay.put(theta0, "H", np.median(np.hypot(g0[:, 0], g0[:, 1])))
+    lay.put(theta0, "Z", np.median(g0[:, 2]))
     args = (cn, lev, sn, with_k)
     first = least_squares(_residuals, theta0, args=(*args, 0.01), loss="soft_l1", f_scale=3.0, x_scale="jac",
                           tr_solver="lsmr", max_nfev=200)
@@ -140,11 +155,12 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
         peak = max(abs(lo), abs(hi))
         inter = float(100.0 * np.linalg.norm(k) * peak / F)
         gk = np.zeros(fit.x.size)
-        gk[10:13] = 100.0 * peak / F * k / max(float(np.linalg.norm(k)), 1e-12)
+        gk[lay.slice("k")] = 100.0 * peak / F * k / max(float(np.linalg.norm(k)), 1e-12)
         inter_std = float(np.sqrt(max(float(gk @ cov @ gk), 0.0)))
     rms = float(100.0 * np.sqrt(np.mean((fit.fun[: 2 * n] * sigma) ** 2)) / F)
     S = so3.polar(E)[1] - np.eye(3)
-    tilt = (float(np.rad2deg(fit.x[5])), float(np.rad2deg(fit.x[6])))
+    qx, qy = lay.get(fit.x, "tilt")
+    tilt = (float(np.rad2deg(qx)), float(np.rad2deg(qy)))
     typical = float(np.median(sn))
     return Residual(S, tilt, c0 * f0, k * f0 / s_scale if with_k else None, H * f0, Z * f0,
                     (lo * s_scale, hi * s_scale), n, rms, he, he_std, _heading(fit.x, with_k, typical, typical),

@@ -28,17 +28,18 @@ from . import map_init
 from .accel import G
 from .epochs import BIAS_SCALE, GYRO_START_DIVISOR, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, preintegrate
-from .map import BA, BG, LAYOUT
 from .observability import check_observability
+from .params import BASE, MAG
 from .problem import Problem
 from .result import ImuFit, MagFit, MethodResult
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
-#: calibration parameters theta = (b_a, b_g, vec D column-major, o, dip): the joint MAP layout, total gyro bias
-P_THETA = 19
-D_AT, O_AT, DIP_AT = LAYOUT.D, LAYOUT.o, LAYOUT.dip
+#: calibration parameters theta = (b_a, b_g, vec D column-major, o, dip) in `params.BASE` order, total gyro bias
+ACC_BIAS, GYRO_BIAS = BASE.slice("accelerometer_bias"), BASE.slice("gyroscope_bias")
+D_COLS, O_COLS = BASE.slice("D"), BASE.slice("o")
+DIP = BASE.slice("dip").start
 #: std (rad) of the start orientation from the first epoch's accelerometer and magnetometer: an accelerometer bias
 #: b tilts the vertical by |b|/g, and a steep field turns that into a heading error of about |b|/(g cos dip) --
 #: 8.8 deg for 0.45 m/s^2 at 72 deg dip on the paper protocol. The first updates then fix it.
@@ -54,7 +55,7 @@ REPREINTEGRATE_RAD = 0.01
 class Prepared:
     """One magnetometer's filter inputs: epochs t (K,) s, measurements y (K, 6) = [acc m/s^2, mag / scale],
     the accelerometer's interpolation std factor (K,), gyro preintegration between epochs, the gyro samples (for
-    re-preintegration), start noise levels, start theta (19,) and orientation (3, 3)."""
+    re-preintegration), start noise levels, start theta (BASE) and orientation (3, 3)."""
 
     where: str
     mag_id: str
@@ -136,11 +137,11 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
     noise = kinematic_noise(ep.acc, ep.acc_factor, ep.mag, intr.o0, d0, pre.delta, noise)
     m_b = (ep.mag - intr.o0) @ np.linalg.inv(d0).T
     dip = dip_prior if dip_prior is not None else map_init.dip_from_data(m_b, ep.acc)
-    theta = np.zeros(P_THETA)
-    theta[BG:BG + 3] = bias
-    theta[D_AT:D_AT + 9] = d0.ravel(order="F")
-    theta[O_AT:O_AT + 3] = intr.o0
-    theta[DIP_AT] = dip
+    theta = BASE.zeros()
+    BASE.put(theta, "gyroscope_bias", bias)
+    BASE.put(theta, "D", d0.ravel(order="F"))
+    BASE.put(theta, "o", intr.o0)
+    BASE.put(theta, "dip", dip)
     rot0 = map_init.attitudes(m_b[:1], ep.acc[:1], dip)[0]
     y = np.concatenate([ep.acc, ep.mag], axis=1)
     return Prepared(where, mag.id, ep.t, y, ep.acc_factor, pre, gyr.t, gyr.xyz, noise, intr.scale, theta, rot0,
@@ -228,19 +229,18 @@ class Calib:
 
     @classmethod
     def of(cls, theta: FloatArray) -> Calib:
-        """Unpack theta (B, >= 19) (D column-major, methods.md section 1)."""
+        """Unpack theta (B, >= BASE.size), BASE first (D column-major, methods.md section 1)."""
         b = theta.shape[0]
-        dip = theta[:, DIP_AT]
+        dip = theta[:, DIP]
         c, s, z = np.cos(dip), np.sin(dip), np.zeros(b)
         fields = np.stack([np.stack([c, z, s], axis=1), np.stack([-s, z, c], axis=1)], axis=1)
-        return cls(theta[:, D_AT:D_AT + 9].reshape(b, 3, 3).transpose(0, 2, 1), fields, theta[:, BA:BA + 3],
-                   theta[:, O_AT:O_AT + 3])
+        return cls(BASE.value(theta, "D"), fields, theta[:, ACC_BIAS], theta[:, O_COLS])
 
 
 @dataclass(frozen=True, eq=False)
 class Measured:
     """The measurement model at B orientations: h (B, 6) = [-R^T g_n + b_a, D R^T m_n + o], H = dh/dphi (B, 6, 3)
-    for R = R_hat Exp(phi), J = dh/dtheta (B, 6, 19), and u = R^T g_n, v = R^T m_n, dv = R^T dm_n/ddip (B, 3)."""
+    for R = R_hat Exp(phi), J = dh/dtheta (B, 6, BASE.size), and u = R^T g_n, v = R^T m_n, dv = R^T dm_n/ddip (B, 3)."""
 
     h: FloatArray
     H: FloatArray
@@ -251,8 +251,8 @@ class Measured:
 
 
 #: the constant part of J: identity blocks for b_a (accelerometer rows) and o (magnetometer rows)
-_J_CONST = np.zeros((6, P_THETA))
-_J_CONST[:3, BA:BA + 3] = _J_CONST[3:, O_AT:O_AT + 3] = np.eye(3)
+_J_CONST = np.zeros((6, BASE.size))
+_J_CONST[:3, ACC_BIAS] = _J_CONST[3:, O_COLS] = np.eye(3)
 
 
 def measure(rot: FloatArray, cal: Calib) -> Measured:
@@ -272,13 +272,14 @@ def measure(rot: FloatArray, cal: Calib) -> Measured:
     big_h[:, :3] = -hat(u)
     big_h[:, 3:] = cal.D @ hat(vd[:, 0])
     jac = np.repeat(_J_CONST[None], b, axis=0)
-    jac[:, 3:, D_AT:D_AT + 9] = (vd[:, 0, None, :, None] * np.eye(3)[None, :, None, :]).reshape(b, 3, 9)  # v^T kron I
-    jac[:, 3:, DIP_AT] = dvd[:, 1]
+    jac[:, 3:, D_COLS] = (vd[:, 0, None, :, None] * np.eye(3)[None, :, None, :]).reshape(b, 3, 9)  # v^T kron I
+    jac[:, 3:, DIP] = dvd[:, 1]
     return Measured(h, big_h, jac, u, vd[:, 0], vd[:, 1])
 
 
 def measurement(rot: FloatArray, theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """h (B, 6), H (B, 6, 3) and J (B, 6, 19) at orientations rot (B, 3, 3) and parameters theta (B, >= 19)."""
+    """h (B, 6), H (B, 6, 3) and J (B, 6, BASE.size) at orientations rot (B, 3, 3) and parameters theta
+    (B, >= BASE.size)."""
     m = measure(rot, Calib.of(theta))
     return m.h, m.H, m.J
 
@@ -297,13 +298,13 @@ def needs_repreintegration(batch: Batch, bias: FloatArray) -> BoolArray:
 
 
 def si_jacobian(scale: float) -> FloatArray:
-    """Diagonal of d theta_SI / d theta_scaled (19,): D and o scale with the field unit."""
-    return np.concatenate([np.ones(6), np.full(12, scale), [1.0]])
+    """Diagonal of d theta_SI / d theta_scaled (BASE.size,): the field blocks (D, o) scale with the field unit."""
+    return BASE.si_factors(scale)
 
 
 @dataclass(frozen=True, eq=False)
 class Estimate:
-    """One filter's outcome in SI: theta (19,), its covariance (19, 19), noise levels used, magnetometer innovation
+    """One filter's outcome in SI: theta and its covariance in BASE order, noise levels used, magnetometer innovation
     RMS (T), the optimiser's record and remarks."""
 
     prep: Prepared
@@ -336,18 +337,20 @@ def estimate(prep: Prepared, theta: FloatArray, cov: FloatArray, noise: Noise, m
 
 def method_result(method: str, problem: Problem, ests: Sequence[Estimate], notes: Sequence[str] = ()) -> MethodResult:
     """The estimates as a MethodResult; IMU biases from the magnetometer fit with the smallest bias uncertainty."""
-    best = min(ests, key=lambda e: float(np.sum(e.std[:6] / BIAS_SCALE)))
-    imu = ImuFit(problem.imu_id, best.theta[BA:BA + 3], best.theta[BG:BG + 3], best.std[BA:BA + 3],
-                 best.std[BG:BG + 3])
+    biases = BASE.cols("accelerometer_bias", "gyroscope_bias")
+    best = min(ests, key=lambda e: float(np.sum(e.std[biases] / BIAS_SCALE)))
+    imu = ImuFit(problem.imu_id, best.theta[ACC_BIAS], best.theta[GYRO_BIAS], best.std[ACC_BIAS],
+                 best.std[GYRO_BIAS])
     noise: dict[str, list[float]] = {"accelerometer_std": best.noise.acc.tolist(),
                                      "gyroscope_std": best.noise.gyr.tolist()}
     fits: list[MagFit] = []
     findings: list[Finding] = []
     all_notes = list(notes)
+    mag_cols = BASE.cols(*MAG.names)
     for est, stream in zip(ests, problem.mags, strict=True):
-        d, o, dip = LAYOUT.unpack(est.theta)
-        fits.append(MagFit(est.prep.mag_id, d, o, dip, est.cov[6:, 6:], est.mag_rms, int(est.prep.t.size),
-                           est.iterations, est.converged, est.log))
+        d, o, dip = (BASE.value(est.theta, n) for n in MAG.names)
+        fits.append(MagFit(est.prep.mag_id, d, o, float(dip), est.cov[np.ix_(mag_cols, mag_cols)], est.mag_rms,
+                           int(est.prep.t.size), est.iterations, est.converged, est.log))
         noise[f"magnetometer_std[{est.prep.mag_id}]"] = (est.noise.mag * units.from_si(stream.native_unit)).tolist()
         all_notes.extend(est.notes)
         findings.extend(est.findings)

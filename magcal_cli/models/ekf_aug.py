@@ -20,14 +20,19 @@ from .. import so3
 from ..config import Config
 from ..errors import ConvergenceError
 from . import ekf
-from .ekf import D_AT, DIP_AT, O_AT, P_THETA, Batch, Prepared
-from .map import BA, BG
+from .ekf import Batch, Prepared
+from .params import BASE, Layout, ParamBlock
 from .problem import Problem
 from .result import MethodResult
 
 FloatArray = npt.NDArray[np.float64]
 
-N = 3 + P_THETA
+#: the filter's error state: the orientation error phi (R = R_hat Exp(phi)), then theta in BASE order
+STATE = Layout((ParamBlock("orientation_error", 3, labels=("x", "y", "z")), *BASE.blocks))
+N = STATE.size
+PHI = STATE.slice("orientation_error")
+THETA = STATE.span(BASE.names[0], BASE.names[-1])
+GYRO_BIAS = STATE.slice("gyroscope_bias")
 #: the authors' simulated field strength (uT): their absolute magnetometer stds are relative to it
 AUTHORS_FIELD_UT = 27.0
 
@@ -56,28 +61,28 @@ class Settings:
 
 def initial_covariance(b: int, s: Settings) -> FloatArray:
     """Diagonal start covariance (B, N, N) of (phi, theta) in scaled units (field ~ 1)."""
-    sd = np.zeros(N)
-    sd[:3] = ekf.ROT0_STD
-    sd[3 + BA:3 + BA + 3] = s.acc_bias_std
-    sd[3 + BG:3 + BG + 3] = s.gyro_bias_std
-    sd[3 + D_AT:3 + D_AT + 9] = s.D_std
-    sd[3 + O_AT:3 + O_AT + 3] = s.o_std
-    sd[3 + DIP_AT] = s.dip_std
+    sd = STATE.zeros()
+    STATE.put(sd, "orientation_error", ekf.ROT0_STD)
+    STATE.put(sd, "accelerometer_bias", s.acc_bias_std)
+    STATE.put(sd, "gyroscope_bias", s.gyro_bias_std)
+    STATE.put(sd, "D", s.D_std)
+    STATE.put(sd, "o", s.o_std)
+    STATE.put(sd, "dip", s.dip_std)
     return np.repeat(np.diag(sd**2)[None], b, axis=0)
 
 
 def walk_density(s: Settings) -> FloatArray:
     """Random-walk variance densities (N,) per second of theta's entries (zero for phi: the gyro covers it)."""
-    q = np.zeros(N)
-    q[3 + BA:3 + BA + 3] = s.acc_bias_walk**2
-    q[3 + BG:3 + BG + 3] = s.gyro_bias_walk**2
-    q[3 + D_AT:3 + DIP_AT + 1] = s.calibration_walk**2
+    q = STATE.zeros()
+    STATE.put(q, "accelerometer_bias", s.acc_bias_walk**2)
+    STATE.put(q, "gyroscope_bias", s.gyro_bias_walk**2)
+    q[STATE.span("D", "dip")] = s.calibration_walk**2
     return q
 
 
 @dataclass(frozen=True, eq=False)
 class Final:
-    """The filters' final theta (B, 19), covariance (B, N, N), magnetometer innovation RMS (B,) and mean normalised
+    """The filters' final theta (B, BASE.size), covariance (B, N, N), magnetometer innovation RMS (B,) and mean normalised
     innovation squared per measurement (B,) (6 when the noise levels fit)."""
 
     theta: FloatArray
@@ -87,29 +92,28 @@ class Final:
 
 
 def filter_pass(batch: Batch, theta0: FloatArray, settings: Settings = Settings()) -> Final:
-    """One augmented-state EKF pass over B filters from theta0 (B, 19)."""
+    """One augmented-state EKF pass over B filters from theta0 (B, BASE.size)."""
     b, k_all = batch.size
     rot = batch.rot0.copy()
     x = theta0.copy()
     cov = initial_covariance(b, settings)
     walk = walk_density(settings)
     w_all = batch.valid.astype(float)
-    bg = slice(3 + BG, 3 + BG + 3)
     ss_mag, nis = np.zeros(b), np.zeros(b)
     eye6 = np.eye(6)
     for k in range(k_all):
         if k > 0:                                                   # predict: R <- R Gamma, P <- F P F^T + Q
-            g = (batch.d_bias[:, k - 1] @ (x[:, BG:BG + 3] - batch.bias)[:, :, None])[:, :, 0]
+            g = (batch.d_bias[:, k - 1] @ (BASE.get(x, "gyroscope_bias") - batch.bias)[:, :, None])[:, :, 0]
             step, jr = so3.exp_and_right_jacobian(g)
             gm = batch.delta[:, k - 1] @ step
             psi = jr @ batch.d_bias[:, k - 1]                       # d phi_k / d b_g (Forster eq. 44)
             rot = rot @ gm
             gt = gm.transpose(0, 2, 1)
-            rows = gt @ cov[:, :3] + psi @ cov[:, bg]               # F P: phi rows
-            cov[:, :3] = rows
-            cols = cov[:, :, :3] @ gm + cov[:, :, bg] @ psi.transpose(0, 2, 1)
-            cov[:, :, :3] = cols
-            cov[:, :3, :3] += batch.cov[:, k - 1]
+            rows = gt @ cov[:, PHI] + psi @ cov[:, GYRO_BIAS]       # F P: phi rows
+            cov[:, PHI] = rows
+            cols = cov[:, :, PHI] @ gm + cov[:, :, GYRO_BIAS] @ psi.transpose(0, 2, 1)
+            cov[:, :, PHI] = cols
+            cov[:, PHI, PHI] += batch.cov[:, k - 1]
             cov += (batch.dt[:, k - 1, None] * walk)[:, :, None] * np.eye(N)
         w = w_all[:, k]
         m = ekf.measure(rot, ekf.Calib.of(x))
@@ -120,8 +124,8 @@ def filter_pass(batch: Batch, theta0: FloatArray, settings: Settings = Settings(
         s_inv = np.linalg.inv(s)
         gain = (pht @ s_inv) * w[:, None, None]
         dx = (gain @ e[:, :, None])[:, :, 0]
-        rot = rot @ so3.exp_and_right_jacobian(dx[:, :3])[0]
-        x = x + dx[:, 3:]
+        rot = rot @ so3.exp_and_right_jacobian(dx[:, PHI])[0]
+        x = x + dx[:, THETA]
         cov = cov - gain @ pht.transpose(0, 2, 1)
         cov = 0.5 * (cov + cov.transpose(0, 2, 1))
         ss_mag += w * np.sum(e[:, 3:] ** 2, axis=1)
@@ -136,7 +140,7 @@ def fit_batch(preps: Sequence[Prepared], settings: Settings = Settings()) -> lis
     final = filter_pass(batch, np.array([p.theta0 for p in preps]), settings)
     out = []
     for i, p in enumerate(preps):
-        cov = final.cov[i, 3:, 3:]
+        cov = final.cov[i, THETA, THETA]
         if not np.all(np.isfinite(cov)) or not np.all(np.isfinite(final.theta[i])):
             msg = f"{p.where}: the augmented EKF diverged; check the time stamps and that the sensor was rotated"
             raise ConvergenceError(msg)

@@ -25,17 +25,24 @@ from .. import so3
 from ..config import Config
 from ..errors import ConvergenceError
 from . import ekf
-from .ekf import D_AT, DIP_AT, P_THETA, Batch, Prepared
+from .ekf import Batch, Prepared
 from .epochs import Noise
-from .map import BG
+from .params import BASE, ParamBlock
 from .problem import Problem
 from .result import MethodResult
 
 FloatArray = npt.NDArray[np.float64]
 
 #: log variance factors of the accelerometer, gyro and magnetometer noise follow theta
-NA, NG, NM = P_THETA, P_THETA + 1, P_THETA + 2
-P = P_THETA + 3
+LOG_VARS = (ParamBlock("log_var_acc", 1), ParamBlock("log_var_gyr", 1), ParamBlock("log_var_mag", 1))
+LAYOUT = BASE.extended(LOG_VARS)
+P = LAYOUT.size
+NA, NG, NM = (LAYOUT.slice(b.name).start for b in LOG_VARS)
+#: theta's columns: `extended` appends, so the base parameters come first
+THETA = LAYOUT.span(BASE.names[0], BASE.names[-1])
+NOISE = LAYOUT.span(LOG_VARS[0].name, LOG_VARS[-1].name)
+GYRO_BIAS = LAYOUT.slice("gyroscope_bias")
+DIP = LAYOUT.slice("dip").start
 #: Fisher scoring stops when the Newton decrement g^T F^-1 g (twice the predicted decrease of the negative
 #: log-likelihood) falls below this: the last step moved theta by ~0.03 standard deviations
 DECREMENT_TOL = 1e-3
@@ -58,7 +65,7 @@ class Pass:
 
 
 #: dH_m/dvec(D)_c = E_ij [v]x: entry (column c = 3j + i of vec D, row 3 + i of H) takes row j of [v]x
-_D_COLS = np.array([D_AT + 3 * j + i for j in range(3) for i in range(3)])
+_D_COLS = LAYOUT.cols("D")
 _D_ROWS = np.array([3 + i for j in range(3) for i in range(3)])
 _D_SRC = np.array([j for j in range(3) for i in range(3)])
 
@@ -82,7 +89,7 @@ def _d_measurement_jacobian(m: ekf.Measured, d_basis: FloatArray, psi: FloatArra
     hv = ekf.hat(m.v)
     du = ekf.hat(m.u) @ psi
     dv = hv @ psi
-    dv[:, :, DIP_AT] += m.dv
+    dv[:, :, DIP] += m.dv
     out = np.empty((b, P, 6, 3))
     out[:, :, :3] = -ekf.hat(du.transpose(0, 2, 1))
     out[:, :, 3:] = (dv.transpose(0, 2, 1) @ d_basis).reshape(b, P, 3, 3)
@@ -103,7 +110,7 @@ def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True) -> Pa
     b, k_all = batch.size
     cal = ekf.Calib.of(theta)
     d_basis = (cal.D[:, None] @ ekf.HAT_BASIS.reshape(3, 3, 3)[None]).reshape(b, 3, 9)
-    gamma, psi_b = ekf.bias_steps(batch, theta[:, BG:BG + 3])
+    gamma, psi_b = ekf.bias_steps(batch, theta[:, GYRO_BIAS])
     gamma_t = gamma.transpose(0, 1, 3, 2)
     hat_psi_b = ekf.hat(psi_b.transpose(0, 1, 3, 2))                  # (B, K-1, 3, 3, 3): [a_c]x per bias column
     s_a, s_g, s_m = (np.exp(theta[:, c]) for c in (NA, NG, NM))
@@ -126,10 +133,10 @@ def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True) -> Pa
             cov = mid + q[:, k - 1]
             if derivatives:
                 psi = gt @ psi
-                psi[:, :, BG:BG + 3] += psi_b[:, k - 1]
+                psi[:, :, GYRO_BIAS] += psi_b[:, k - 1]
                 d_cov = (d_cov.reshape(b, P, 9) @ _kron(gm, gm)).reshape(b, P, 3, 3)     # Gamma^T dP Gamma
                 a = hat_psi_b[:, k - 1]                             # dGamma/db_c = Gamma [a_c]x
-                d_cov[:, BG:BG + 3] += mid[:, None] @ a - a @ mid[:, None]
+                d_cov[:, GYRO_BIAS] += mid[:, None] @ a - a @ mid[:, None]
                 d_cov[:, NG] += q[:, k - 1]
         w = weight[:, k]
         m = ekf.measure(rot, cal)
@@ -147,7 +154,7 @@ def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True) -> Pa
         step, jr = so3.exp_and_right_jacobian(dphi)
         if derivatives:
             de = -(big_h @ psi)                                         # (B, 6, P)
-            de[:, :, :P_THETA] -= m.J
+            de[:, :, THETA] -= m.J
             dh = _d_measurement_jacobian(m, d_basis, psi).reshape(b, P * 6, 3)
             a6 = (dh @ pht).reshape(b, P, 6, 6)
             ds = a6 + a6.transpose(0, 1, 3, 2) + (d_cov.reshape(b, P, 9) @ _kron(big_ht, big_ht)).reshape(b, P, 6, 6)
@@ -181,7 +188,9 @@ def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True) -> Pa
 
 def start_theta(preps: Sequence[Prepared]) -> FloatArray:
     """Start parameters (B, P): the joint MAP initialisation and unit noise factors."""
-    return np.array([np.concatenate([p.theta0, np.zeros(3)]) for p in preps])
+    theta = np.zeros((len(preps), LAYOUT.size))
+    theta[:, THETA] = [p.theta0 for p in preps]
+    return theta
 
 
 def warm_start(batch: Batch, theta: FloatArray) -> FloatArray:
@@ -192,11 +201,11 @@ def warm_start(batch: Batch, theta: FloatArray) -> FloatArray:
     """
     from . import ekf_aug
 
-    aug = ekf_aug.filter_pass(batch, theta[:, :P_THETA]).theta
-    moved = np.abs(aug[:, D_AT:DIP_AT] - theta[:, D_AT:DIP_AT]).max(axis=1)
+    aug = ekf_aug.filter_pass(batch, theta[:, THETA]).theta
+    moved = np.abs(aug[:, BASE.span("D", "o")] - theta[:, LAYOUT.span("D", "o")]).max(axis=1)
     ok = np.all(np.isfinite(aug), axis=1) & (moved < WARM_START_LIMIT)
     out = theta.copy()
-    out[ok, :P_THETA] = aug[ok]
+    out[ok, THETA] = aug[ok]
     return out
 
 
@@ -210,8 +219,8 @@ def _step(pas: Pass, active: npt.NDArray[np.bool_]) -> tuple[FloatArray, FloatAr
         x = np.linalg.lstsq(f / np.outer(d, d), -pas.grad[i] / d, rcond=1e-12)[0] / d
         steps[i] = x
         dec[i] = -float(pas.grad[i] @ x)
-    lv = steps[:, NA:NM + 1]
-    steps[:, NA:NM + 1] = np.clip(lv, -MAX_LOG_VAR_STEP, MAX_LOG_VAR_STEP)
+    lv = steps[:, NOISE]
+    steps[:, NOISE] = np.clip(lv, -MAX_LOG_VAR_STEP, MAX_LOG_VAR_STEP)
     return steps, dec
 
 
@@ -270,10 +279,10 @@ def fit_batch(preps: Sequence[Prepared]) -> list[ekf.Estimate]:
         fit = fisher_scoring(batch, theta)
         iterations += fit.iterations + 1                   # filter passes: the start and one per trial
         theta = fit.theta
-        redo = ekf.needs_repreintegration(batch, theta[:, BG:BG + 3])
+        redo = ekf.needs_repreintegration(batch, theta[:, GYRO_BIAS])
         if not np.any(redo):
             break
-        preps = [p.repreintegrated(theta[i, BG:BG + 3]) if redo[i] else p for i, p in enumerate(preps)]
+        preps = [p.repreintegrated(theta[i, GYRO_BIAS]) if redo[i] else p for i, p in enumerate(preps)]
     assert fit is not None
     out = []
     for i, p in enumerate(preps):
@@ -282,9 +291,9 @@ def fit_batch(preps: Sequence[Prepared]) -> list[ekf.Estimate]:
         if not np.all(np.isfinite(cov)):
             msg = f"{p.where}: the EKF likelihood is flat in some parameter; rotate the sensor about all three axes"
             raise ConvergenceError(msg, fit.log)
-        f = np.exp(0.5 * theta[i, NA:NM + 1])
+        f = np.exp(0.5 * theta[i, NOISE])
         noise = Noise(p.noise.acc * f[0], p.noise.gyr * f[1], p.noise.mag * f[2])
-        out.append(ekf.estimate(p, theta[i, :P_THETA], cov[:P_THETA, :P_THETA], noise, float(fit.last.mag_rms[i]),
+        out.append(ekf.estimate(p, theta[i, THETA], cov[THETA, THETA], noise, float(fit.last.mag_rms[i]),
                                 iterations, bool(fit.converged[i]), fit.log,
                                 (f"{p.mag_id}: EKF likelihood maximised by Fisher scoring in {iterations} passes "
                                  "with analytic sensitivities, from one augmented-EKF pass",)))

@@ -41,12 +41,14 @@ class Preintegrated:
     l_inv: FloatArray
     duration: FloatArray
     noise_std: FloatArray
+    d_scale: FloatArray | None = None
+
 
     def scaled(self, variance_factor: float) -> Preintegrated:
         """The same preintegration with its noise covariance multiplied by `variance_factor`."""
         return Preintegrated(self.epochs, self.bias, self.delta, self.d_bias, self.cov * variance_factor,
                              self.l_inv / np.sqrt(variance_factor), self.duration,
-                             self.noise_std * np.sqrt(variance_factor))
+                             self.noise_std * np.sqrt(variance_factor), self.d_scale)
 
 
 def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray, IntArray]:
@@ -60,7 +62,7 @@ def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray,
 
 
 def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: FloatArray,
-                 noise_std: FloatArray, where: str = "gyro") -> Preintegrated:
+                 noise_std: FloatArray, where: str = "gyro", scale_jacobian: bool = False) -> Preintegrated:
     """Preintegrate gyro samples gyr (N, 3) rad/s at t_imu (N,) between consecutive epochs (K,) s.
 
     noise_std (3,) is the per-sample white-noise std (rad/s) at the nominal IMU period dt; a piece of
@@ -70,6 +72,8 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
 
     The pieces are laid out as (K-1, Lmax) with zero-duration padding (an identity step), and Forster's
     recursions (eqs. 35, 44, 63) run over the Lmax piece slots, vectorised over all intervals at once.
+    `scale_jacobian`: also d dR / d s for a gyro scale error (the bias Jacobian with each piece weighted by its
+    rotation vector: the scale acts as a per-sample bias diag(w_j) s; effects/gyro_scale.py).
     """
     if epochs.size < 2 or epochs[0] < t_imu[0] or np.any(np.diff(epochs) <= 0.0):
         msg = (f"{where}: preintegration needs at least two increasing magnetometer epochs inside the IMU "
@@ -90,10 +94,13 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
     delta = np.broadcast_to(np.eye(3), (k, 3, 3)).copy()
     d_bias = np.zeros((k, 3, 3))
     cov = np.zeros((k, 3, 3))
+    d_scale = np.zeros((k, 3, 3)) if scale_jacobian else None
     for j in range(lmax):                                      # piece slots, not samples: L ~ rate ratio
         e_t = steps[j].transpose(0, 2, 1)
         delta = delta @ steps[j]
         d_bias = e_t @ d_bias - jr[j] * d[j][:, None, None]
+        if d_scale is not None:
+            d_scale = e_t @ d_scale - jr[j] * phi[j][:, None, :]
         cov = e_t @ cov @ steps[j] + (jr[j] * q[j][:, None, :]) @ jr[j].transpose(0, 2, 1)
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
     try:
@@ -103,19 +110,23 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
                "time stamps")
         raise InsufficientDataError(msg) from None
     return Preintegrated(epochs, np.array(bias, dtype=np.float64), delta, d_bias, cov, np.linalg.inv(chol),
-                         np.diff(epochs), np.array(noise_std, dtype=np.float64))
+                         np.diff(epochs), np.array(noise_std, dtype=np.float64), d_scale)
 
 
 def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_at: int,
-                jacobians: bool = True) -> Factor:
+                jacobians: bool = True, extra: tuple[FloatArray, FloatArray, IntArray] | None = None) -> Factor:
     """Whitened r = L^-1 Log((dR Exp(d_bias db))^T R_i^T R_j) on consecutive states (methods.md section 3).
 
     db = theta[bias_at:bias_at+3] is the bias correction relative to `pre.bias`. With right perturbations:
     dr/dphi_i = -L^-1 J_r^-1(r) R_j^T R_i, dr/dphi_j = L^-1 J_r^-1(r),
     dr/ddb = -L^-1 J_r^-1(r) Exp(r)^T J_r(d_bias db) d_bias.
+    `extra` (g (K-1, 3), dg/dbeta (K-1, 3, q), beta's theta columns): effect terms added to the perturbation
+    d_bias db, with the same Jacobian pattern.
     """
     db = theta[bias_at:bias_at + 3]
     g_db = pre.d_bias @ db
+    if extra is not None:
+        g_db = g_db + extra[0]
     exp_g, jr_g = so3.exp(g_db), so3.right_jacobian(g_db)
     corrected = pre.delta @ exp_g
     rel = states[:-1].transpose(0, 2, 1) @ states[1:]
@@ -125,6 +136,10 @@ def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_
     if not jacobians:
         return Factor("gyro", rw)
     a = pre.l_inv @ so3.right_jacobian_inv(r)
-    jt = -a @ err.transpose(0, 2, 1) @ jr_g @ pre.d_bias
-    return Factor("gyro", rw, np.arange(r.shape[0]), -a @ rel.transpose(0, 2, 1), a, jt,
-                  np.arange(bias_at, bias_at + 3))
+    lead = -a @ err.transpose(0, 2, 1) @ jr_g
+    jt = lead @ pre.d_bias
+    cols = np.arange(bias_at, bias_at + 3)
+    if extra is not None:
+        jt = np.concatenate([jt, lead @ extra[1]], axis=2)
+        cols = np.concatenate([cols, extra[2]])
+    return Factor("gyro", rw, np.arange(r.shape[0]), -a @ rel.transpose(0, 2, 1), a, jt, cols.astype(np.int64))

@@ -22,13 +22,15 @@ from ..streams import Stream
 from .accel import UP_N, G, vertical_factor
 from .ellipsoid import Ellipsoid, fit_ellipsoid
 from .mag import MagLayout, field_nav, mag_factor
+from .params import MAG
 from .problem import Problem
 from .result import ImuFit, MagFit, MethodResult
 from .sandwich import cluster_robust_cov, time_clusters
 from .solve import Factor, Linearize, Options, Solution, solve
 
 FloatArray = npt.NDArray[np.float64]
-LAYOUT = MagLayout.packed(0)
+#: theta = (vec D column-major, o, dip): `params.MAG`, the calibration document's covariance order
+LAYOUT = MagLayout(*(MAG.slice(n).start for n in MAG.names))
 #: verticals all within this angle (deg, 95th percentile) of their mean: level or yaw-only motion, refused
 MIN_TILT_SPREAD_DEG = 10.0
 
@@ -122,7 +124,10 @@ def fit_kok2012(data: KokData, sigma_rounds: int = 3, where: str = "kok2012") ->
     d0 = dt0 @ rot                                                   # eq. 24
     dip0 = float(-np.arcsin(np.clip(d, -1.0, 1.0)))                  # d = up . m_n = -sin(dip)
     states0 = initial_orientations(d0, o0, dip0, y, data.v)
-    theta0 = np.concatenate([d0.ravel(order="F"), o0, [dip0]])
+    theta0 = MAG.zeros()
+    MAG.put(theta0, "D", d0.ravel(order="F"))
+    MAG.put(theta0, "o", o0)
+    MAG.put(theta0, "dip", dip0)
     idx = np.arange(k)
     sig_m, sig_v = 1e-3, 1e-2                                        # replaced by the ML estimate below
 
@@ -153,7 +158,7 @@ def fit_kok2012(data: KokData, sigma_rounds: int = 3, where: str = "kok2012") ->
         # errors correlate over tens of seconds, so use time clusters with Newey-West lags (docs/methods.md)
         ids = time_clusters(data.t)
         cov_w = cluster_robust_cov(sol, [ids, ids], lags=4)
-    scale_vec = np.concatenate([np.full(12, scale), [1.0]])
+    scale_vec = MAG.si_factors(scale)
     cov = cov_w * np.outer(scale_vec, scale_vec)
     dmat, o, dip = LAYOUT.unpack(sol.theta)
     resid = sol.factors[0].r * sig_m * scale

@@ -11,7 +11,7 @@ Internally the magnetometer is expressed in units of its ellipsoid-fit scale (D 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -26,21 +26,18 @@ from . import map_init
 from .accel import G, accel_factor
 from .epochs import BIAS_SCALE, Epochs, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, gyro_factor, preintegrate
-from .mag import MagLayout, mag_factor
+from .mag import MagLayout, field_nav, mag_factor
+from .map_effects import Bound, bind, gyro_extra, layout_for, prior_factor, results, terms, with_terms
 from .observability import check_observability
+from .params import BASE, MAG, Layout
 from .problem import Problem
-from .result import ImuFit, MagFit, MethodResult
+from .result import EffectFit, ImuFit, MagFit, MethodResult
 from .sandwich import time_clusters, widening
 from .solve import Factor, Linearize, Options, Solution, marginal_covariance, solve
 
 FloatArray = npt.NDArray[np.float64]
 
 #: theta layout: accelerometer bias, gyro bias correction, then D (column-major), o, dip
-BA, BG = 0, 3
-LAYOUT = MagLayout.packed(6)
-P = 19
-PARAM_GROUPS = {"accelerometer bias": slice(0, 3), "gyroscope bias": slice(3, 6), "D": slice(6, 15),
-                "o": slice(15, 18), "dip": slice(18, 19)}
 #: rounds of (solve, re-estimate the noise levels); stop when no level changes by more than NOISE_TOL
 NOISE_ROUNDS = 6
 NOISE_TOL = 0.03
@@ -52,8 +49,9 @@ MIN_STILL_S = 2.0
 REPREINTEGRATE_RAD = 0.01
 @dataclass(frozen=True, eq=False)
 class MapEstimate:
-    """One magnetometer's joint MAP result in SI: theta (b_a, b_g, vec D, o, dip) with the *total* gyro bias,
-    its 19x19 covariance, the noise levels used (SI), the trajectory and the solver's record."""
+    """One magnetometer's joint MAP result in SI: theta in `layout` (b_a, b_g, D, o, dip and any effect blocks)
+    with the *total* gyro bias, its covariance, the noise levels used (SI), the trajectory and the solver's
+    record, and the effects fitted or found not testable."""
 
     mag_id: str
     theta: FloatArray
@@ -69,11 +67,26 @@ class MapEstimate:
     findings: tuple[Finding, ...] = ()
     notes: tuple[str, ...] = ()
     condition: float = float("nan")
+    layout: Layout = BASE
+    effects: tuple[EffectFit, ...] = ()
 
     @property
     def std(self) -> FloatArray:
         """Marginal standard deviations of theta (SI)."""
         return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+
+    def value(self, name: str) -> FloatArray:
+        """Block `name` of theta (SI)."""
+        return self.layout.get(self.theta, name)
+
+    def std_of(self, name: str) -> FloatArray:
+        """Marginal standard deviations of block `name` (SI)."""
+        return self.std[self.layout.slice(name)]
+
+    def base(self) -> tuple[FloatArray, FloatArray]:
+        """theta and covariance of the base blocks only, in BASE order."""
+        c = self.layout.cols(*BASE.names)
+        return self.theta[c], self.cov[np.ix_(c, c)]
 
 
 def _scaled(f: Factor, s: FloatArray) -> Factor:
@@ -83,19 +96,41 @@ def _scaled(f: Factor, s: FloatArray) -> Factor:
     return Factor(f.name, f.r * s[:, None], f.idx, mul(f.J_x), mul(f.J_next), mul(f.J_theta), f.theta_cols)
 
 
-def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise) -> Linearize:
-    """Accelerometer, magnetometer and gyro-preintegration factors of the MAP cost (methods.md section 3)."""
+def mag_layout(layout: Layout) -> MagLayout:
+    """Where the magnetometer factor finds D, o and the dip in theta."""
+    return MagLayout(layout.slice("D").start, layout.slice("o").start, layout.slice("dip").start)
+
+
+def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout = BASE,
+                   bound: tuple[Bound, ...] = ()) -> Linearize:
+    """Accelerometer, magnetometer and gyro-preintegration factors of the MAP cost (methods.md section 3), with
+    the terms of the bound effects added to the factors they enter (map_effects.py)."""
     l_acc, l_mag = np.diag(1.0 / noise.acc), np.diag(1.0 / noise.mag)
     idx = np.arange(ep.t.size)
     s_acc = 1.0 / ep.acc_factor
     interpolated = bool(np.any(ep.acc_factor < 1.0 - 1e-12))
+    ml = mag_layout(layout)
+    ba, bg = layout.slice("accelerometer_bias").start, layout.slice("gyroscope_bias").start
 
     def linearize(states: FloatArray, theta: FloatArray, jac: bool) -> list[Factor]:
-        fa = accel_factor(states, ep.acc, l_acc, theta, BA, idx, jacobians=jac, compact=True)
+        fa = accel_factor(states, ep.acc, l_acc, theta, ba, idx, jacobians=jac, compact=True)
+        fm = mag_factor(states, ep.mag, l_mag, theta, ml, idx, jac, compact=True)
+        extra = None
+        if bound:
+            from ..effects.base import Point, Target
+
+            d, _, dip = ml.unpack(theta)
+            at = Point(states, np.einsum("mji,j->mi", states, field_nav(dip)),
+                       np.einsum("mji,j->mi", states, np.array([-np.sin(dip), 0.0, np.cos(dip)])),
+                       G * states[:, 2, :], d, pre)
+            fa = with_terms(fa, l_acc, terms(bound, layout, theta, at, Target.ACCEL), layout)
+            fm = with_terms(fm, l_mag, terms(bound, layout, theta, at, Target.MAG), layout)
+            extra = gyro_extra(bound, layout, theta, at)
         if interpolated:
             fa = _scaled(fa, s_acc)
-        return [fa, mag_factor(states, ep.mag, l_mag, theta, LAYOUT, idx, jac, compact=True),
-                gyro_factor(states, theta, pre, BG, jac)]   # gyro noise is in pre.l_inv
+        out = [fa, fm, gyro_factor(states, theta, pre, bg, jac, extra)]   # gyro noise is in pre.l_inv
+        prior = prior_factor(bound, layout, theta, jac)
+        return out if prior is None else [*out, prior]
 
     return linearize
 
@@ -190,11 +225,11 @@ def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise
     d0 = intr.D0 @ r_d
     m_b = (ep.mag - intr.o0) @ np.linalg.inv(d0).T
     dip = dip_prior if dip_prior is not None else map_init.dip_from_data(m_b, ep.acc)
-    theta = np.zeros(P)
-    theta[BG:BG + 3] = db
-    theta[LAYOUT.D:LAYOUT.D + 9] = d0.ravel(order="F")
-    theta[LAYOUT.o:LAYOUT.o + 3] = intr.o0
-    theta[LAYOUT.dip] = dip
+    theta = BASE.zeros()
+    BASE.put(theta, "gyroscope_bias", db)
+    BASE.put(theta, "D", d0.ravel(order="F"))
+    BASE.put(theta, "o", intr.o0)
+    BASE.put(theta, "dip", dip)
     att = map_init.attitudes(m_b, ep.acc, dip)
     delta = pre.delta @ so3.exp(pre.d_bias @ db)
     candidates = {"gyro-integrated": map_init.integrated(delta, att), "accelerometer/magnetometer": att}
@@ -207,19 +242,42 @@ def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise
 
 def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | None = None,
             noise_rounds: int = NOISE_ROUNDS, imu_start: Noise | None = None,
-            cache: dict[bytes, Preintegrated] | None = None) -> MapEstimate:
+            cache: dict[bytes, Preintegrated] | None = None, effects: tuple[str, ...] = (),
+            declination: float = 0.0) -> MapEstimate:
     """The joint MAP calibration of one magnetometer against the problem's IMU.
 
     `imu_start`: accelerometer and gyro noise levels to start from (another magnetometer's fit, same IMU);
-    `cache`: preintegrations shared between magnetometers with the same epochs.
+    `cache`: preintegrations shared between magnetometers with the same epochs; `effects`: ids of the effect
+    plug-ins to model (those the log cannot test come back as not_testable); `declination` (rad): turns the
+    log's true-north vectors into the model's magnetic-north frame.
     """
     with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
         return _fit_map(problem, mag, loss, dip_prior, noise_rounds, imu_start,
-                        {} if cache is None else cache)
+                        {} if cache is None else cache, effects, declination)
+
+
+def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated, theta: FloatArray,
+                  effects: tuple[str, ...], declination: float
+                  ) -> tuple[Layout, tuple[Bound, ...], list[EffectFit], FloatArray, Preintegrated]:
+    """Bind the effects at the start values: the extended layout and theta, and a preintegration with the scale
+    Jacobian when a gyro effect needs it."""
+    bias = pre.bias + BASE.get(theta, "gyroscope_bias")
+    bound, untestable = bind(problem, mag, ep.t, bias, effects, declination)
+    layout = layout_for(bound)
+    full = layout.zeros()
+    for name in BASE.names:
+        layout.put(full, name, BASE.get(theta, name))
+    for b in bound:
+        full[layout.cols(*b.names())] = b.effect.start()
+    if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
+        pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias, pre.noise_std,
+                           f"{problem.where}: {mag.id}", scale_jacobian=True)
+    return layout, tuple(bound), untestable, full, pre
 
 
 def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, noise_rounds: int,
-             imu_start: Noise | None, cache: dict[bytes, Preintegrated]) -> MapEstimate:
+             imu_start: Noise | None, cache: dict[bytes, Preintegrated], effects: tuple[str, ...] = (),
+             declination: float = 0.0) -> MapEstimate:
     """`fit_map` without the BLAS thread limit."""
     where = f"{problem.where}: {mag.id}"
     clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
@@ -237,6 +295,9 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         noise = Noise(np.maximum(noise.acc, spread), noise.gyr, noise.mag)
     clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
     states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache)
+    layout, bound, untestable, theta, pre = _with_effects(problem, mag, ep, pre, theta, effects, declination)
+    scale_jac = pre.d_scale is not None
+    bg = layout.slice("gyroscope_bias")
     if spikes:
         notes.append(f"{mag.id}: {spikes} isolated spikes in the readings were smoothed for the start values "
                      "only" + ("" if loss != "l2" else "; consider --robust-loss huber"))
@@ -255,13 +316,13 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     last_step = None
     for rnd in range(noise_rounds + 1):
         opts = (start if noise_rounds else first) if rnd == 0 else later
-        sol = solve(make_linearize(ep, pre, noise), states, theta, opts)
+        sol = solve(make_linearize(ep, pre, noise, layout, bound), states, theta, opts)
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
         log.extend(f"round {rnd}: {line}" for line in sol.log)
-        db = theta[BG:BG + 3]
+        db = theta[bg]
         if float(np.linalg.norm(db)) * float(pre.duration.max()) > REPREINTEGRATE_RAD:
-            pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias + db, noise.gyr, where)
-            theta[BG:BG + 3] = 0.0
+            pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias + db, noise.gyr, where, scale_jac)
+            theta[bg] = 0.0
             log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue
         if rnd == noise_rounds or not np.all(np.isfinite(sol.cov_theta)):
@@ -283,7 +344,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         applied += float(step[3])
         noise, pre = rescaled(noise, pre, step)
     if sol is not None and not sol.converged:
-        sol = solve(make_linearize(ep, pre, noise), states, theta, first)
+        sol = solve(make_linearize(ep, pre, noise, layout, bound), states, theta, first)
         iters += sol.iterations
         log.extend(f"final: {line}" for line in sol.log)
     assert sol is not None
@@ -292,67 +353,75 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         # the last small change of the levels moves the optimum negligibly but the covariance proportionally:
         # report the covariance with the final levels at the same point (one assembly, no iterations)
         noise, pre = rescaled(noise, pre, last_step)
-        cov = marginal_covariance(make_linearize(ep, pre, noise), sol.states, sol.theta)
+        cov = marginal_covariance(make_linearize(ep, pre, noise, layout, bound), sol.states, sol.theta)
     # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
     # or disturbances) make the information overstate what the data know: widen where the data say so
     ids = time_clusters(ep.t)
     widen = widening(sol, [ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1) for f in sol.factors])
-    return _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen)
+    est = _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen, layout)
+    fitted = results(bound, layout, est.theta, est.cov, mag.id, problem.imu_id)
+    return replace(est, effects=tuple(fitted + untestable))
 
 
 def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, sol: Solution, iters: int,
               log: tuple[str, ...], notes: tuple[str, ...], cov_theta: FloatArray | None = None,
-              widen: FloatArray | None = None) -> MapEstimate:
+              widen: FloatArray | None = None, layout: Layout = BASE) -> MapEstimate:
     """Convert the scaled solution to SI, with the total gyro bias and the observability findings."""
     s = ep.scale
-    jac = np.concatenate([np.ones(6), np.full(12, s), [1.0]])
+    jac = layout.si_factors(s)
     theta = sol.theta * jac
-    theta[BG:BG + 3] += pre.bias
+    bg, dip_at = layout.slice("gyroscope_bias"), layout.slice("dip")
+    theta[bg] += pre.bias
     cov = (sol.cov_theta if cov_theta is None else cov_theta) * np.outer(jac, jac)
     states = sol.states
-    dip = float(theta[LAYOUT.dip])
+    dip = float(theta[dip_at][0])
     if abs(dip) > np.pi / 2:
         # (dip, R_k) and (pi - dip, Rz(pi) R_k) explain the data alike (north is only fixed by m_n): report
         # the representative with |dip| <= 90 deg; d dip'/d dip = -1 flips the dip's covariances
-        theta[LAYOUT.dip] = float(np.angle(np.exp(1j * (np.pi - dip))))
+        theta[dip_at] = float(np.angle(np.exp(1j * (np.pi - dip))))
         states = so3.exp([0.0, 0.0, np.pi]) @ states
-        cov[LAYOUT.dip, :] *= -1.0
-        cov[:, LAYOUT.dip] *= -1.0
+        cov[dip_at, :] *= -1.0
+        cov[:, dip_at] *= -1.0
     fm = sol.factors[1]
     resid = fm.r * noise.mag * s
     noise_si = Noise(noise.acc, noise.gyr, noise.mag * s)
     where = f"{problem.where}: {ep.mag_id}"
-    # observability is a property of the motion: judge it on the model information, then widen for honesty
-    condition, findings = check_observability(cov, s, ep.acc, where)
+    # observability is a property of the motion: judge it on the model information of the base blocks, then
+    # widen for honesty
+    base = layout.cols(*BASE.names)
+    condition, findings = check_observability(cov[np.ix_(base, base)], s, ep.acc, where)
     if widen is not None and np.any(widen > 1.0):
         cov = cov * np.outer(widen, widen)
-        names = [n for n, sl in PARAM_GROUPS.items() if np.any(widen[sl] > 1.0)]
+        names = [n for n, c in layout.groups().items() if np.any(widen[c] > 1.0)]
         findings.append(Finding(
             Severity.WARNING, "correlated_residuals",
             f"{where}: the residuals are correlated in time beyond the noise model (quantised readings, "
             f"unmodelled motion or a disturbance); the uncertainty of {', '.join(names)} was widened up to "
             f"{float(widen.max()):.1f}x (time-clustered sandwich estimate)", {"max_factor": float(widen.max())}))
     return MapEstimate(ep.mag_id, theta, cov, noise_si, states, ep.t, sol.cost, iters, sol.converged,
-                       float(np.sqrt(np.mean(resid**2))), log, tuple(findings), notes, condition)
+                       float(np.sqrt(np.mean(resid**2))), log, tuple(findings), notes, condition, layout)
 
 
 def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: FloatArray,
                    noise_si: Noise) -> FloatArray:
-    """Inverse Fisher information of theta (SI, total gyro bias) at given states and theta: the CRLB."""
-    scale = float(np.cbrt(abs(np.linalg.det(LAYOUT.unpack(theta_si)[0]))))
+    """Inverse Fisher information of the base theta (SI, BASE order, total gyro bias) at given states and
+    theta: the CRLB."""
+    d = BASE.get(theta_si, "D").reshape(3, 3, order="F")
+    scale = float(np.cbrt(abs(np.linalg.det(d))))
     ep = epochs_for(problem, mag, scale)
-    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, theta_si[BG:BG + 3], noise_si.gyr)
-    jac = np.concatenate([np.ones(6), np.full(12, scale), [1.0]])
+    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr)
+    jac = BASE.si_factors(scale)
     theta = theta_si / jac
-    theta[BG:BG + 3] = 0.0
+    BASE.put(theta, "gyroscope_bias", 0.0)
     noise = Noise(noise_si.acc, noise_si.gyr, noise_si.mag / scale)
     return marginal_covariance(make_linearize(ep, pre, noise), states, theta) * np.outer(jac, jac)
 
 
 def to_fits(est: MapEstimate, stream: Stream) -> MagFit:
     """The magnetometer part of an estimate as a MagFit (D, o in tesla; covariance of vec D, o, dip)."""
-    d, o, dip = LAYOUT.unpack(est.theta)
-    return MagFit(est.mag_id, d, o, dip, est.cov[6:, 6:], est.residual_rms, int(est.epochs.size),
+    d, o, dip = mag_layout(est.layout).unpack(est.theta)
+    c = est.layout.cols(*MAG.names)
+    return MagFit(est.mag_id, d, o, dip, est.cov[np.ix_(c, c)], est.residual_rms, int(est.epochs.size),
                   est.iterations, est.converged, est.log)
 
 
@@ -368,10 +437,16 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     cache: dict[bytes, Preintegrated] = {}
     for m in problem.mags:        # later magnetometers start from the IMU noise levels the first one found
         start = ests[0].noise if ests else None
-        ests.append(fit_map(problem, m, loss, dip_prior, imu_start=start, cache=cache))
-    best = min(ests, key=lambda e: float(np.sum(e.std[:6] / BIAS_SCALE)))
-    imu = ImuFit(problem.imu_id, best.theta[BA:BA + 3], best.theta[BG:BG + 3], best.std[BA:BA + 3],
-                 best.std[BG:BG + 3])
+        ests.append(fit_map(problem, m, loss, dip_prior, imu_start=start, cache=cache, effects=cfg.effects,
+                            declination=0.0 if ref is None else ref.declination))
+
+    def bias_std(e: MapEstimate) -> float:
+        return float(np.sum(np.concatenate([e.std_of("accelerometer_bias"), e.std_of("gyroscope_bias")])
+                            / BIAS_SCALE))
+
+    best = min(ests, key=bias_std)
+    imu = ImuFit(problem.imu_id, best.value("accelerometer_bias"), best.value("gyroscope_bias"),
+                 best.std_of("accelerometer_bias"), best.std_of("gyroscope_bias"))
     notes: list[str] = []
     findings: list[Finding] = []
     noise: dict[str, list[float]] = {"accelerometer_std": best.noise.acc.tolist(),
@@ -388,4 +463,7 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
         notes.append(f"IMU biases from the fit against {best.mag_id} (smallest bias uncertainty of "
                      f"{len(ests)} magnetometers)")
     fits = tuple(to_fits(e, s) for e, s in zip(ests, problem.mags, strict=True))
-    return MethodResult("map", fits, imu, noise, tuple(notes), tuple(findings))
+    # magnetometer effects from each magnetometer's fit; IMU effects from the fit that gave the IMU biases
+    effects = tuple(f for e in ests for f in e.effects if f.sensor == e.mag_id) + \
+        tuple(f for f in best.effects if f.sensor == problem.imu_id)
+    return MethodResult("map", fits, imu, noise, tuple(notes), tuple(findings), effects)

@@ -2,7 +2,7 @@
 manoeuvre that would fix them (findings), or an InsufficientDataError when the motion determines nothing
 useful.
 
-Works on the marginal covariance of theta = (b_a, b_g, vec D, o, dip) in SI (the joint MAP layout).
+Works on the marginal covariance of theta = (b_a, b_g, vec D, o, dip) in SI, in `params.BASE` order.
 """
 
 from __future__ import annotations
@@ -14,12 +14,12 @@ import numpy.typing as npt
 
 from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
+from .params import BASE
 
 FloatArray = npt.NDArray[np.float64]
 
-#: names of the 19 entries of theta
-NAMES = (["b_a.x", "b_a.y", "b_a.z", "b_g.x", "b_g.y", "b_g.z"]
-         + [f"D[{i}][{j}]" for j in range(3) for i in range(3)] + ["o.x", "o.y", "o.z", "dip"])
+#: names of the entries of theta
+NAMES = BASE.entry_names()
 #: beyond this (scaled) condition number the information matrix is numerically singular
 SINGULAR_CONDITION = 1e14
 #: a parameter whose variance correlation inflates more than this (std x ~30) is confounded with others
@@ -50,15 +50,19 @@ class Group(NamedTuple):
     display: float
 
 
-GROUPS = (
-    Group(slice(0, 3), "accelerometer bias", 0.05, 1.0, False, TILT_ADVICE, "m/s^2", 1.0),
-    Group(slice(3, 6), "gyroscope bias", 1e-3, 0.05, False, GYRO_ADVICE, "deg/s", float(np.degrees(1.0))),
-    Group(slice(6, 15), "soft-iron/misalignment matrix D", 0.02, 0.1, True, ROTATE_ADVICE, "% of the field",
-          100.0),
-    Group(slice(15, 18), "hard-iron offset o", 0.02, 0.1, True, ROTATE_ADVICE, "% of the field", 100.0),
-    Group(slice(18, 19), "dip angle", float(np.deg2rad(1.0)), float(np.deg2rad(20.0)), False, DIP_ADVICE,
-          "deg", float(np.degrees(1.0))),
-)
+#: block name -> (poor, fatal, relative, advice, unit, display) of its group
+_JUDGED = {
+    "accelerometer_bias": (0.05, 1.0, False, TILT_ADVICE, "m/s^2", 1.0),
+    "gyroscope_bias": (1e-3, 0.05, False, GYRO_ADVICE, "deg/s", float(np.degrees(1.0))),
+    "D": (0.02, 0.1, True, ROTATE_ADVICE, "% of the field", 100.0),
+    "o": (0.02, 0.1, True, ROTATE_ADVICE, "% of the field", 100.0),
+    "dip": (float(np.deg2rad(1.0)), float(np.deg2rad(20.0)), False, DIP_ADVICE, "deg", float(np.degrees(1.0))),
+}
+#: block name -> its group, in BASE order; labels are the blocks' observability groups
+GROUP_OF = {b.name: Group(BASE.slice(b.name), b.group, *_JUDGED[b.name]) for b in BASE.blocks}
+GROUPS = tuple(GROUP_OF.values())
+#: the groups only a rotation about all three axes determines: what to advise when nothing is determined
+_ROTATION = [GROUP_OF["D"], GROUP_OF["o"]]
 
 
 def tilt_spread_deg(acc: FloatArray) -> float:
@@ -95,12 +99,13 @@ def _advice(groups: list[Group]) -> str:
 
 def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: str
                         ) -> tuple[float, list[Finding]]:
-    """Condition number and findings for a 19x19 covariance; raises when the log cannot determine theta."""
+    """Condition number and findings for a covariance in BASE order (SI); raises when the log cannot determine
+    theta."""
     tilt = tilt_spread_deg(acc)
     flat = f" (the measured vertical stayed within {tilt:.0f} deg of its mean direction)" if tilt < 45 else ""
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0.0):
         msg = (f"{where}: the motion in this log cannot determine the calibration (the information matrix is "
-               f"singular){flat}. To fix: {_advice(list(GROUPS[2:4]))}")
+               f"singular){flat}. To fix: {_advice(_ROTATION)}")
         raise InsufficientDataError(msg)
     info = scaled_information(cov)
     eig = np.linalg.eigvalsh(info)
@@ -117,12 +122,12 @@ def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: s
     if fatal or condition > SINGULAR_CONDITION:
         what = ", ".join(g.label for g in fatal) or f"calibration (condition number {condition:.2g})"
         msg = (f"{where}: the motion in this log cannot determine the {what}{flat}. To fix: "
-               f"{_advice(fatal or list(GROUPS[2:4]))}")
+               f"{_advice(fatal or _ROTATION)}")
         raise InsufficientDataError(msg)
     worst = int(np.argmax(vif))
     findings = [Finding(
         Severity.INFO, "fisher_condition",
-        f"{where}: the Fisher information of the 19 calibration parameters has condition number "
+        f"{where}: the Fisher information of the {len(NAMES)} calibration parameters has condition number "
         f"{condition:.3g} (scaled to unit diagonal); the most confounded parameter is {NAMES[worst]} "
         f"(variance inflation {vif[worst]:.3g}).",
         {"condition_number": condition, "max_variance_inflation": float(vif[worst]),

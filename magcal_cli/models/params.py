@@ -10,6 +10,7 @@ Estimators address theta, its covariance and its SI scaling only through a `Layo
 
 from __future__ import annotations
 
+import builtins
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,6 +33,8 @@ class ParamBlock:
     si_scale: str = "none"
     group: str = ""
     labels: tuple[str, ...] = ()
+    #: the value's array shape, filled column-major from the entries; () means a vector (a scalar when size is 1)
+    shape: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.si_scale not in SI_SCALES:
@@ -40,6 +43,18 @@ class ParamBlock:
         if self.labels and len(self.labels) != self.size:
             msg = f"parameter block {self.name!r}: {len(self.labels)} labels for {self.size} entries"
             raise ValueError(msg)
+        if self.shape and int(np.prod(self.shape)) != self.size:
+            msg = f"parameter block {self.name!r}: shape {self.shape} does not hold {self.size} entries"
+            raise ValueError(msg)
+
+    def unflatten(self, values: FloatArray) -> FloatArray:
+        """The block's entries (..., size) as its value: (..., *shape) column-major, (...) for a scalar block."""
+        lead = values.shape[:-1]
+        if self.shape:
+            k = len(self.shape)
+            axes = (*range(len(lead)), *range(len(lead) + k - 1, len(lead) - 1, -1))
+            return values.reshape(lead + self.shape[::-1]).transpose(axes)
+        return values.reshape(lead) if self.size == 1 else values
 
     def entry_names(self) -> list[str]:
         """'name.label' per entry ('name' alone for a scalar block)."""
@@ -55,7 +70,7 @@ D_LABELS = tuple(f"{i}{j}" for j in range(3) for i in range(3))
 
 ACCEL_BIAS = ParamBlock("accelerometer_bias", 3, "none", "accelerometer bias", XYZ)
 GYRO_BIAS = ParamBlock("gyroscope_bias", 3, "none", "gyroscope bias", XYZ)
-D_BLOCK = ParamBlock("D", 9, "field", "soft-iron/misalignment matrix D", D_LABELS)
+D_BLOCK = ParamBlock("D", 9, "field", "soft-iron/misalignment matrix D", D_LABELS, (3, 3))
 O_BLOCK = ParamBlock("o", 3, "field", "hard-iron offset o", XYZ)
 DIP = ParamBlock("dip", 1, "angle", "dip angle")
 
@@ -105,6 +120,14 @@ class Layout:
             raise KeyError(msg) from None
         return slice(at, at + self.block(name).size)
 
+    def span(self, first: str, last: str) -> builtins.slice:
+        """The contiguous run of theta from block `first` through block `last`."""
+        start, stop = self.slice(first).start, self.slice(last).stop
+        if stop <= start:
+            msg = f"parameter block {first!r} comes after {last!r} in {self!r}"
+            raise ValueError(msg)
+        return slice(start, stop)
+
     def cols(self, *names: str) -> IntArray:
         """Theta columns of the named blocks, in the order given."""
         parts = [np.arange(self.slice(n).start, self.slice(n).stop) for n in names]
@@ -113,6 +136,10 @@ class Layout:
     def get(self, theta: FloatArray, name: str) -> FloatArray:
         """Block `name` of theta (a view)."""
         return theta[..., self.slice(name)]
+
+    def value(self, theta: FloatArray, name: str) -> FloatArray:
+        """Block `name` of theta (..., size) in its shape (`ParamBlock.unflatten`): D as (..., 3, 3), dip as (...)."""
+        return self.block(name).unflatten(self.get(theta, name))
 
     def put(self, theta: FloatArray, name: str, value: npt.ArrayLike) -> None:
         """Write block `name` of theta in place."""

@@ -5,12 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..detect import StillResult
-from ..streams import Stream
+from ..streams import Kind, Stream
 
 
 @dataclass(frozen=True, eq=False)
 class Problem:
-    """Streams in SI units on the log's time base, ready for any method; `where` names the log in messages."""
+    """Streams in SI units on the log's time base, ready for any method; `where` names the log in messages.
+
+    `aux` holds the log's other channels (current, throttle, temperature, position, ...) that effect terms use.
+    """
 
     where: str
     imu_id: str
@@ -18,3 +21,8 @@ class Problem:
     gyr: Stream
     mags: tuple[Stream, ...]
     still: StillResult
+    aux: tuple[Stream, ...] = ()
+
+    def channels(self, kind: Kind) -> tuple[Stream, ...]:
+        """The auxiliary streams of one kind, in log order."""
+        return tuple(s for s in self.aux if s.kind is kind and len(s) >= 2)

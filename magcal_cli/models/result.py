@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from ..findings import Finding
+from .params import Estimate
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -26,6 +28,23 @@ class MagFit:
     iterations: int
     converged: bool
     log: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class EffectFit:
+    """One effect fitted (or found not testable) for one sensor: its parameters in SI by block name, the
+    channels it used, the Wald test of "zero" and the status (accepted, rejected, not_testable)."""
+
+    id: str
+    sensor: str
+    status: str
+    estimate: Estimate | None = None
+    channels: tuple[str, ...] = ()
+    statistic: float = float("nan")
+    dof: int = 0
+    p_value: float = float("nan")
+    reason: str = ""
+    constants: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,3 +68,4 @@ class MethodResult:
     noise: dict[str, list[float]] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     findings: tuple[Finding, ...] = ()
+    effects: tuple[EffectFit, ...] = ()

@@ -88,7 +88,6 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
     """The section of one magnetometer."""
     unit, sym = DISPLAY.get(mag.unit, (mag.unit, mag.unit))
     f = units.to_si(mag.unit) * units.from_si(unit)
-    std = mag.std
     u = mag.misalignment
     misalign = float(np.rad2deg(so3.angle(u)))
     w_sd = float(np.rad2deg(np.sqrt(max(np.trace(mag.misalignment_cov()), 0.0))))
@@ -99,9 +98,9 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
         before = float(100.0 * np.std(r) / np.mean(r))
     q = mag.quality
     lines = [f"Magnetometer {mag.id} (log unit: {mag.unit})", "  What was found",
-             f"    hard iron b        {_vec(mag.o * f)} +- {_vec(std[9:12] * f, '{:.3f}')} {sym}",
+             f"    hard iron b        {_vec(mag.o * f)} +- {_vec(mag.std_of('o') * f, '{:.3f}')} {sym}",
              f"    field strength     {mag.field_strength * f:.3f} {sym} (source: {mag.field_strength_source})",
-             f"    dip                {mag.dip_deg:.2f} +- {std[12]:.2f} deg",
+             f"    dip                {mag.dip_deg:.2f} +- {float(mag.std_of('dip')):.2f} deg",
              f"    misalignment       {misalign:.2f} +- {w_sd:.2f} deg to the IMU axes "
              f"(roll, pitch, yaw {_vec(np.rad2deg(so3.as_rpy(u)), '{:+.2f}')} deg)",
              f"    soft iron P/|F|    {_mat(mag.soft_iron, 23)}",

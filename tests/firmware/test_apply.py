@@ -36,7 +36,7 @@ def test_the_truth_gives_the_field_strength_and_the_true_direction() -> None:
     cal = replace(fl.truth(), effects=(effect,))
     text, notes = apply_to_recording(cal, fl.recording)
     assert text.splitlines()[0] == "t [s],id,mx [mG],my [mG],mz [mG],norm [mG]"
-    assert notes == ["MAG[0]: current interference subtracted"]
+    assert notes == ["MAG[0]: current_interference removed"]
     data = rows(text)
     F = cal.magnetometers[0].field_strength
     assert np.abs(data[:, 4] / F - 1).max() < 0.005
@@ -73,4 +73,4 @@ def test_apply_errors() -> None:
         apply_to_recording(two, rec)
     text, notes = apply_to_recording(replace(fl.truth(), effects=({"id": "throttle_interference", "sensor": "MAG[0]",
                                      "status": "accepted", "params": {"c": [1, 2, 3]}},)), fl.recording)
-    assert notes == ["MAG[0]: the accepted throttle interference is not subtracted (no throttle stream in the log)"]
+    assert notes == ["MAG[0]: the accepted throttle_interference is not removed (the log lacks its throttle channel)"]

@@ -12,7 +12,8 @@ from magcal_cli.config import Config
 from magcal_cli.models import ekf, ekf_ml
 from magcal_cli.models.accel import accel_factor
 from magcal_cli.models.gyro import preintegrate
-from magcal_cli.models.mag import mag_factor
+from magcal_cli.models.mag import MagLayout, mag_factor
+from magcal_cli.models.params import BASE, MAG
 from magcal_cli.pipeline import select_problem
 from magcal_cli.synth import simulate
 
@@ -34,13 +35,14 @@ def test_measurement_is_the_factors_prediction_and_jacobians() -> None:
     """h = y - r, H = -dr/dphi, J = -dr/dtheta of accel_factor and mag_factor (L = I) for 5 random filters."""
     rng = np.random.default_rng(0)
     rot = so3.exp(rng.normal(size=(5, 3)))
-    theta = rng.normal(size=(5, ekf.P_THETA))
+    theta = rng.normal(size=(5, BASE.size))
     y = rng.normal(size=(5, 6))
     h, big_h, jac = ekf.measurement(rot, theta)
     eye = np.eye(3)
+    acc_at, mag_at = BASE.slice("accelerometer_bias").start, MagLayout(*(BASE.slice(n).start for n in MAG.names))
     for b in range(5):
-        fa = accel_factor(rot[b:b + 1], y[b:b + 1, :3], eye, theta[b], ekf.BA, np.zeros(1, np.int64))
-        fm = mag_factor(rot[b:b + 1], y[b:b + 1, 3:], eye, theta[b], ekf.LAYOUT, np.zeros(1, np.int64))
+        fa = accel_factor(rot[b:b + 1], y[b:b + 1, :3], eye, theta[b], acc_at, np.zeros(1, np.int64))
+        fm = mag_factor(rot[b:b + 1], y[b:b + 1, 3:], eye, theta[b], mag_at, np.zeros(1, np.int64))
         np.testing.assert_allclose(h[b], y[b] - np.concatenate([fa.r[0], fm.r[0]]), atol=1e-12)
         np.testing.assert_allclose(big_h[b], -np.concatenate([fa.J_x[0], fm.J_x[0]]), atol=1e-12)
         np.testing.assert_allclose(jac[b], -np.concatenate([fa.J_theta[0], fm.J_theta[0]]), atol=1e-12)
@@ -86,9 +88,9 @@ def test_start_values_are_close_to_the_truth() -> None:
     sim = simulate("paper", 0, rate=10.0, mag_rate=10.0, duration=60.0)
     p = ekf.prepare(select_problem(sim.recording, Config()), sim.recording.streams[2])
     theta = p.theta0 * ekf.si_jacobian(p.scale)
-    d, _, _ = ekf.LAYOUT.unpack(theta)
+    d = BASE.value(theta, "D")
     assert np.linalg.norm(d - sim.truth.D) / np.linalg.norm(sim.truth.D) < 0.03
-    assert np.linalg.norm(theta[ekf.BG:ekf.BG + 3] - sim.truth.gyro_bias) < 2e-3
+    assert np.linalg.norm(BASE.get(theta, "gyroscope_bias") - sim.truth.gyro_bias) < 2e-3
 
 
 @pytest.mark.parametrize("scale", [1e-6, 1e-3, 5e-3, 0.5, 3.0])

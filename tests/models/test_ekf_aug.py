@@ -13,6 +13,7 @@ from magcal_cli.cli import cli
 from magcal_cli.config import Config
 from magcal_cli.document import load
 from magcal_cli.models import ekf, ekf_aug
+from magcal_cli.models.params import BASE
 from magcal_cli.pipeline import select_problem
 from magcal_cli.synth import simulate
 
@@ -30,7 +31,7 @@ def test_recovers_handheld_truth_within_its_reported_uncertainty() -> None:
         z = (est.theta - tr.theta) / est.std
         inside += int(np.sum(np.abs(z) <= 3.0))
         total += z.size
-        d, o, _ = ekf.LAYOUT.unpack(est.theta)
+        d, o = BASE.value(est.theta, "D"), BASE.get(est.theta, "o")
         assert np.linalg.norm(d - tr.D) / np.linalg.norm(tr.D) < 0.01
         assert np.linalg.norm(o - tr.o) / tr.field_strength < 0.001
     assert inside / total >= 0.9, f"{inside}/{total} within 3 sigma"

@@ -1,0 +1,151 @@
+"""What an effect plug-in is: its id, parameter blocks, channels, the term it adds to a factor, and its tests.
+
+An effect extends the base model y = D R^T m_n + o (plus the accelerometer and gyro models) by a term that is
+exactly zero at parameter zero (calibration-file.md "Effects"; mismatch.md section 1). The joint MAP adds the
+term and its Jacobians to the magnetometer, accelerometer or gyro factor (`models/map_effects.py`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from ..models.params import ParamBlock
+from ..streams import Kind, Stream
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class Target(Enum):
+    """The factor an effect's term enters."""
+
+    MAG = "mag"          # added to the predicted reading, in (scaled) field units
+    ACCEL = "accel"      # added to the predicted specific force, m/s^2
+    GYRO = "gyro"        # added to the preintegrated rotation's right-perturbation vector, rad
+
+
+class NotTestable(Exception):  # noqa: N818 -- a finding, not an error
+    """The log cannot test this effect (channel missing or not excited); the message says why, in plain words."""
+
+
+@dataclass(frozen=True, eq=False)
+class Kinematics:
+    """The motion at one magnetometer's K epochs t (s): body rate omega (K, 3) rad/s with the start gyro bias
+    removed and its derivative omega_dot (K, 3) rad/s^2; the gyro samples themselves (bias removed) for effects
+    that integrate between epochs: gyr_t (N,) s, gyr (N, 3) rad/s, each held over [t_j, t_j+1)."""
+
+    t: FloatArray
+    omega: FloatArray
+    omega_dot: FloatArray
+    gyr_t: FloatArray
+    gyr: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class Inputs:
+    """What a term is evaluated from, at one magnetometer's K epochs: times (s), the gyro rate with the start
+    bias removed and its derivative there (rad/s, rad/s^2), the channels the effect asked for (K,) or (K, w),
+    the ids of the streams they came from, and effect-specific constants (e.g. a reference temperature)."""
+
+    t: FloatArray
+    omega: FloatArray
+    omega_dot: FloatArray
+    channels: dict[str, FloatArray] = field(default_factory=dict)
+    channel_ids: tuple[str, ...] = ()
+    constants: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class Point:
+    """The model at the current iterate: rotations (K, 3, 3) body->NED, predicted unit body field m_b (K, 3),
+    its derivative by the dip (K, 3), gravity in the body frame g_b = R^T g_n (K, 3), D (3, 3) in scaled field
+    units, and the gyro preintegration (for gyro terms)."""
+
+    rot: FloatArray
+    m_b: FloatArray
+    dm_b_ddip: FloatArray
+    g_b: FloatArray
+    D: FloatArray
+    pre: Any = None
+
+
+@dataclass(frozen=True, eq=False)
+class Term:
+    """value (M, 3) added to the prediction; d_beta (M, 3, p) its derivative by the effect's parameters;
+    d_state (M, 3, 3) by the right perturbation of R_k (None: independent of the orientation); d_base: by base
+    blocks, name -> (M, 3, size) (e.g. a time offset scales with D)."""
+
+    value: FloatArray
+    d_beta: FloatArray
+    d_state: FloatArray | None = None
+    d_base: dict[str, FloatArray] = field(default_factory=dict)
+
+
+class Effect:
+    """Base class of the effect plug-ins: class attributes declare, methods compute. One module per effect."""
+
+    id: ClassVar[str]
+    target: ClassVar[Target]
+    params: ClassVar[tuple[ParamBlock, ...]]
+    #: param -> unit; "{field}" stands for the magnetometer's unit
+    units: ClassVar[dict[str, str]]
+    #: the `inspect` kinds of the log channels it needs (empty: only the IMU and magnetometer)
+    channels: ClassVar[tuple[Kind, ...]] = ()
+    physics_left_out: ClassVar[str]
+    #: firmware parameters that hold it, where a firmware has a knob
+    firmware: ClassVar[dict[str, str]] = {}
+    #: the signal the firmware's interference compensation multiplies ("current" or "throttle"), if any:
+    #: `export` writes COMPASS_MOT* / CAL_MAGn_*COMP from the accepted effect (firmware/effects.py)
+    compensates: ClassVar[str | None] = None
+
+    def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
+               declination: float = 0.0) -> Inputs:
+        """The inputs at the epochs; raises NotTestable when the log lacks a channel or its excitation.
+
+        `declination` (rad, from the WMM where the log's position is known) turns true-north vectors into the
+        model's navigation frame, whose x axis points to magnetic north.
+        """
+        return Inputs(kin.t, kin.omega, kin.omega_dot)
+
+    def prior(self) -> tuple[FloatArray, FloatArray] | None:
+        """A Gaussian prior (mean, std) per parameter entry where a parameter only exists under the alternative
+        (None: no prior)."""
+        return None
+
+    def start(self) -> FloatArray:
+        """The parameter values to start from: the base model."""
+        return np.zeros(sum(b.size for b in self.params))
+
+    def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
+        """The term and its Jacobians at parameters beta."""
+        raise NotImplementedError
+
+    def correct(self, params: dict[str, Any], t: FloatArray, y: FloatArray,
+                channels: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+        """`apply`: remove the effect from readings y (N, 3) in the document's unit stamped t (N,) with the
+        document entry's params; `channels` maps each of `self.channels`' kind values (e.g. "battery_current")
+        to that channel at t. Effects of the IMU leave the field alone."""
+        return t, y
+
+
+def resample(stream: Stream, t: FloatArray) -> FloatArray:
+    """A channel linearly interpolated at times t, held at its first/last value outside its span."""
+    v = stream.values
+    return np.stack([np.interp(t, stream.t, v[:, i]) for i in range(v.shape[1])], axis=1)
+
+
+def pick(aux: tuple[Stream, ...], kind: Kind, prefer: tuple[str, ...] = ()) -> Stream:
+    """The channel of `kind` whose id contains one of `prefer` (the first such stream otherwise)."""
+    found = [s for s in aux if s.kind is kind and len(s) >= 2]
+    if not found:
+        msg = f"this log has no {kind.value} channel"
+        raise NotTestable(msg)
+    for p in prefer:
+        for s in found:
+            if p and p.lower() in s.id.lower():
+                return s
+    return found[0]

@@ -1,0 +1,54 @@
+"""`current_interference`: current in the power leads adds a body-fixed field, y += c I(t) (mismatch.md E1)."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+
+from ..models.params import XYZ, ParamBlock
+from ..streams import Kind, Stream
+from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term, pick, resample
+
+#: below this spread (A, std) the current never changes enough: its mean is absorbed by the offset o
+MIN_SPREAD_A = 0.5
+
+
+class Current(Effect):
+    """y += c I(t); I positive while discharging in every reader (ROS BatteryState is negated on read)."""
+
+    id = "current_interference"
+    target = Target.MAG
+    params = (ParamBlock("c", 3, "field", "current interference", XYZ),)
+    units: ClassVar[dict[str, str]] = {"c": "{field}/ampere"}
+    channels = (Kind.BATTERY_CURRENT,)
+    physics_left_out = ("Current in the power leads adds a field fixed to the vehicle, proportional to the "
+                        "current.")
+    firmware: ClassVar[dict[str, str]] = {"ardupilot": "COMPASS_MOTCT=2, COMPASS_MOT_X/Y/Z",
+                                          "px4": "CAL_MAG_COMP_TYP=2, CAL_MAGn_X/Y/ZCOMP"}
+
+    compensates = "current"
+
+    def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
+               declination: float = 0.0) -> Inputs:
+        """The current at the epochs; not testable when it hardly changes."""
+        s = pick(aux, Kind.BATTERY_CURRENT)
+        i = resample(s, kin.t)[:, 0]
+        if float(np.std(i)) < MIN_SPREAD_A:
+            msg = (f"the current ({s.id}) never changes by more than {MIN_SPREAD_A} A (std {np.std(i):.2f} A): "
+                   "a constant current is indistinguishable from hard iron")
+            raise NotTestable(msg)
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"current": i}, (s.id,))
+
+    def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
+        """c I and d/dc = I I3."""
+        i = inp.channels["current"]
+        return Term(i[:, None] * beta[None, :], i[:, None, None] * np.eye(3))
+
+    def correct(self, params: dict[str, Any], t: FloatArray, y: FloatArray,
+                channels: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+        """Subtract c I."""
+        return t, y - channels["battery_current"][:, None] * np.asarray(params["c"], dtype=np.float64)[None, :]
+
+
+EFFECT = Current()

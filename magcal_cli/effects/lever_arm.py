@@ -1,0 +1,45 @@
+"""`lever_arm`: the accelerometer sits at r from the rotation centre and sees omega_dot x r + omega x (omega x r)
+(mismatch.md E4)."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from .. import so3
+from ..models.params import XYZ, ParamBlock
+from ..streams import Stream
+from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+
+#: the kinematic regressors must reach this RMS (1/s^2) for a lever arm of a few cm to show
+MIN_EXCITATION = 0.2
+
+
+class LeverArm(Effect):
+    """Centripetal and tangential acceleration of an accelerometer away from the rotation centre."""
+
+    id = "lever_arm"
+    target = Target.ACCEL
+    params = (ParamBlock("r_m", 3, "none", "lever arm", XYZ),)
+    units: ClassVar[dict[str, str]] = {"r_m": "m"}
+    physics_left_out = ("The accelerometer is away from the centre of rotation, so turning adds centripetal and "
+                        "tangential acceleration to gravity.")
+
+    def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
+               declination: float = 0.0) -> Inputs:
+        """Needs fast or accelerating rotation."""
+        k = so3.hat(kin.omega_dot) + so3.hat(kin.omega) @ so3.hat(kin.omega)
+        rms = float(np.sqrt(np.mean(k**2)) * 3.0)
+        if rms < MIN_EXCITATION:
+            msg = f"the rotation is too slow and smooth (RMS {rms:.2f} 1/s^2) for a lever arm to show"
+            raise NotTestable(msg)
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"kinematics": k})
+
+    def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
+        """K r with K = [omega_dot]x + [omega]x^2."""
+        k = inp.channels["kinematics"]
+        return Term(k @ beta, k)
+
+
+EFFECT = LeverArm()

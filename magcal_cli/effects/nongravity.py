@@ -1,0 +1,83 @@
+"""`nongravity_acceleration`: in flight the accelerometer sees R^T (a_n - g_n), not just gravity (mismatch.md E4).
+
+a_n comes from the log's position (GPS/EKF): converted to local NED metres, resampled on a uniform grid and
+differentiated twice with a Savitzky-Golay filter. The term is kappa R^T a_n, nested at kappa = 0; kappa = 1
+says the log's acceleration is right (its CI checks the GPS lag and scale).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from .. import so3
+from ..models.params import ParamBlock
+from ..streams import Kind, Stream
+from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term, pick
+
+EARTH_RADIUS_M = 6_371_000.0
+#: grid rate (Hz) and Savitzky-Golay window (s) for the second derivative of position
+GRID_HZ = 10.0
+WINDOW_S = 1.0
+#: below this RMS (m/s^2) the vehicle hardly accelerates: nothing to test
+MIN_RMS = 0.2
+
+
+def acceleration_ned(pos: Stream, t: FloatArray) -> FloatArray:
+    """NED acceleration (K, 3) m/s^2 at times t from a (lat deg, lon deg, alt m) stream."""
+    lat0 = np.deg2rad(float(np.median(pos.values[:, 0])))
+    north = np.deg2rad(pos.values[:, 0]) * EARTH_RADIUS_M
+    east = np.deg2rad(pos.values[:, 1]) * EARTH_RADIUS_M * np.cos(lat0)
+    down = -pos.values[:, 2]
+    grid = np.arange(pos.t[0], pos.t[-1], 1.0 / GRID_HZ)
+    ned = np.stack([np.interp(grid, pos.t, x) for x in (north, east, down)], axis=1)
+    window = max(5, int(WINDOW_S * GRID_HZ) | 1)
+    if grid.size <= window:
+        msg = f"the position ({pos.id}) is too short to differentiate"
+        raise NotTestable(msg)
+    acc = savgol_filter(ned, window, 3, deriv=2, delta=1.0 / GRID_HZ, axis=0)
+    return np.stack([np.interp(t, grid, acc[:, i]) for i in range(3)], axis=1)
+
+
+class NonGravity(Effect):
+    """The vehicle's own acceleration from the log's position."""
+
+    id = "nongravity_acceleration"
+    target = Target.ACCEL
+    params = (ParamBlock("kappa", 1, "none", "non-gravity acceleration"),)
+    units: ClassVar[dict[str, str]] = {"kappa": "1", "sigma_a": "m/s^2"}
+    channels = (Kind.POSITION,)
+    physics_left_out = ("The vehicle accelerated (manoeuvres, turns), so the accelerometer's vertical was not "
+                        "gravity alone.")
+
+    def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
+               declination: float = 0.0) -> Inputs:
+        """a_n at the epochs from the position channel."""
+        s = pick(aux, Kind.POSITION)
+        finite = np.all(np.isfinite(s.values), axis=1)
+        if finite.sum() < 10:
+            msg = f"the position ({s.id}) has fewer than 10 valid fixes"
+            raise NotTestable(msg)
+        s = Stream(s.kind, s.id, s.t[finite], s.values[finite], s.source, s.native_unit)
+        a_n = acceleration_ned(s, kin.t) @ so3.exp([0.0, 0.0, declination])     # true NED -> magnetic NED
+        rms = float(np.sqrt(np.mean(np.sum(a_n**2, axis=1))))
+        if rms < MIN_RMS:
+            msg = f"the vehicle hardly accelerates (RMS {rms:.2f} m/s^2 from {s.id})"
+            raise NotTestable(msg)
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"a_n": a_n}, (s.id,),
+                      {"source": f"position ({s.id}), differentiated twice", "sigma_a": rms})
+
+    def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
+        """kappa R^T a_n; d/dkappa = R^T a_n; d/dphi = kappa [R^T a_n]x."""
+        v = np.einsum("mji,mj->mi", at.rot, inp.channels["a_n"])
+        return Term(float(beta[0]) * v, v[:, :, None], float(beta[0]) * so3.hat(v))
+
+    def correct(self, params: dict[str, Any], t: FloatArray, y: FloatArray,
+                channels: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+        """The field is not affected."""
+        return t, y
+
+
+EFFECT = NonGravity()

@@ -1,0 +1,76 @@
+"""`time_offset`: the magnetometer sample stamped t measured the field at t - tau (mismatch.md E3).
+
+R(t - tau) = R(t) E^T with E = R(t - tau)^T R(t) the body rotation over [t - tau, t], integrated from the gyro
+samples themselves (zero-order hold, as the preintegration takes them), so the sensor saw m_b' = E m_b and the
+term is D (E - I) m_b: exact in the rotation, not a linearisation in tau omega. d m_b' / d tau =
+omega(t - tau) x m_b' (the rate at the time the field was sensed).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .. import so3
+from ..models.params import ParamBlock
+from ..streams import Stream
+from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+
+#: the rotation rate must change by at least this (rad/s, std of |omega|): a constant rate about a fixed axis
+#: turns a delay into a constant rotation that D absorbs
+MIN_RATE_SPREAD = 0.05
+
+
+def attitude_at(t_gyr: FloatArray, q: FloatArray, w: FloatArray, t: FloatArray) -> FloatArray:
+    """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample: Q_j Exp(w_j (t - t_j)), t_j <= t."""
+    j = np.clip(np.searchsorted(t_gyr, t, side="right") - 1, 0, t_gyr.size - 1)
+    return np.asarray(q[j] @ so3.exp(w[j] * (t - t_gyr[j])[:, None]), dtype=np.float64)
+
+
+class TimeOffset(Effect):
+    """y = D R(t - tau)^T m_n + o; tau > 0: the magnetometer lags the IMU."""
+
+    id = "time_offset"
+    target = Target.MAG
+    params = (ParamBlock("tau_s", 1, "none", "time offset"),)
+    units: ClassVar[dict[str, str]] = {"tau_s": "s"}
+    physics_left_out = ("The magnetometer's time stamps lag (or lead) the IMU's, so during rotation it reports "
+                        "the field of a slightly earlier orientation.")
+
+    def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
+               declination: float = 0.0) -> Inputs:
+        """The integrated body attitude at the gyro samples; needs rotation whose rate changes."""
+        spread = float(np.std(np.linalg.norm(kin.omega, axis=1)))
+        if spread < MIN_RATE_SPREAD:
+            msg = (f"the rotation rate hardly changes (std {spread:.3f} rad/s): a delay cannot be told from a "
+                   "mounting rotation")
+            raise NotTestable(msg)
+        steps = so3.exp(kin.gyr[:-1] * np.diff(kin.gyr_t)[:, None])
+        q = np.concatenate([np.eye(3)[None], so3.cumulative_product(steps)])
+        q_t = attitude_at(kin.gyr_t, q, kin.gyr, kin.t)
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"q": q, "q_t": q_t, "gyr_t": kin.gyr_t, "gyr": kin.gyr})
+
+    def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
+        """D (E - I) m_b; d/dtau = D (omega(t - tau) x E m_b); d/dphi_k = D (E - I) [m_b]x."""
+        c = inp.channels
+        sensed = inp.t - float(beta[0])
+        q_s = attitude_at(c["gyr_t"], c["q"], c["gyr"], sensed)
+        e = q_s.transpose(0, 2, 1) @ c["q_t"]                            # R(t - tau)^T R(t)
+        j = np.clip(np.searchsorted(c["gyr_t"], sensed, side="right") - 1, 0, c["gyr_t"].size - 1)
+        mb_s = np.einsum("mij,mj->mi", e, at.m_b)
+        v = mb_s - at.m_b                                                # (E - I) m_b
+        d_tau = (np.cross(c["gyr"][j], mb_s) @ at.D.T)[:, :, None]
+        e_i = e - np.eye(3)
+        m = v.shape[0]
+        d_d = np.einsum("ik,mj->mijk", np.eye(3), v).reshape(m, 3, 9)  # d (D v) / d vec(D), column-major
+        d_dip = (np.einsum("mij,mj->mi", e_i, at.dm_b_ddip) @ at.D.T)[:, :, None]
+        return Term(v @ at.D.T, d_tau, at.D @ e_i @ so3.hat(at.m_b), {"D": d_d, "dip": d_dip})
+
+    def correct(self, params: dict[str, Any], t: FloatArray, y: FloatArray,
+                channels: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+        """Re-stamp: the reading stamped t belongs to t - tau."""
+        return t - float(params["tau_s"]), y
+
+
+EFFECT = TimeOffset()

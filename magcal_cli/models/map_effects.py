@@ -1,0 +1,191 @@
+"""Effect plug-ins inside the joint MAP: inputs at the epochs, the extended layout, terms added to factors.
+
+The layout puts each effect's blocks next to the base block its factor already touches (accelerometer effects
+before b_a, gyro effects after b_g, magnetometer effects after the dip), so every factor's theta columns stay one
+contiguous run and the solver keeps its compact Jacobians.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from .. import effects as registry
+from ..effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
+from ..streams import Stream
+from .params import ACCEL_BIAS, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Estimate, Layout, ParamBlock
+from .problem import Problem
+from .result import EffectFit
+from .solve import Factor
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: an effect whose Wald test of "zero" has a p-value below this is `accepted` (significant), else `rejected`
+ALPHA = 0.01
+#: window (s) over which the gyro is differentiated for omega_dot (noise would dominate a 1-sample difference)
+OMEGA_DOT_WINDOW_S = 0.05
+
+
+@dataclass(frozen=True, eq=False)
+class Bound:
+    """An effect with its inputs at one magnetometer's epochs."""
+
+    effect: Effect
+    inputs: Inputs
+
+    def blocks(self) -> tuple[ParamBlock, ...]:
+        """The effect's parameter blocks named '<id>.<param>' for the shared layout."""
+        return tuple(ParamBlock(f"{self.effect.id}.{b.name}", b.size, b.si_scale, b.group or self.effect.id,
+                                b.labels) for b in self.effect.params)
+
+    def names(self) -> tuple[str, ...]:
+        """Its block names in the layout."""
+        return tuple(b.name for b in self.blocks())
+
+
+def kinematics(problem: Problem, t: FloatArray, bias: FloatArray) -> Kinematics:
+    """Body rate (gyro minus `bias`) and its derivative at times t (rad/s, rad/s^2)."""
+    g = problem.gyr
+    w = g.xyz - bias
+    dt = float(np.median(np.diff(g.t)))
+    half = max(1, int(round(OMEGA_DOT_WINDOW_S / dt / 2)))
+    lo, hi = np.arange(w.shape[0]) - half, np.arange(w.shape[0]) + half
+    lo, hi = np.clip(lo, 0, w.shape[0] - 1), np.clip(hi, 0, w.shape[0] - 1)
+    wdot = (w[hi] - w[lo]) / np.maximum(g.t[hi] - g.t[lo], 1e-12)[:, None]
+    # a gyro sample holds over [t_k, t_k+1) (zero-order hold, as the preintegration takes it): its rate is
+    # the one at the middle of that interval
+    mid = g.t + 0.5 * dt
+    omega = np.stack([np.interp(t, mid, w[:, i]) for i in range(3)], axis=1)
+    omega_dot = np.stack([np.interp(t, mid, wdot[:, i]) for i in range(3)], axis=1)
+    return Kinematics(t, omega, omega_dot, g.t, w)
+
+
+def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Sequence[str],
+         declination: float = 0.0) -> tuple[list[Bound], list[EffectFit]]:
+    """The effects this log can test, with their inputs; the others as `not_testable` results."""
+    if not ids:
+        return [], []
+    kin = kinematics(problem, t, bias)
+    bound, untestable = [], []
+    for eid in ids:
+        eff = registry.get(eid)
+        sensor = mag.id if eff.target is Target.MAG else problem.imu_id
+        try:
+            bound.append(Bound(eff, eff.inputs(problem.aux, mag, kin, declination)))
+        except NotTestable as exc:
+            untestable.append(EffectFit(eid, sensor, "not_testable", reason=str(exc)))
+    return bound, untestable
+
+
+def layout_for(bound: Sequence[Bound]) -> Layout:
+    """Accelerometer effects, b_a, b_g, gyro effects, D, o, dip, magnetometer effects."""
+    def of(target: Target) -> list[ParamBlock]:
+        return [b for e in bound if e.effect.target is target for b in e.blocks()]
+
+    return Layout((*of(Target.ACCEL), ACCEL_BIAS, GYRO_BIAS, *of(Target.GYRO), D_BLOCK, O_BLOCK, DIP,
+                   *of(Target.MAG)))
+
+
+def terms(bound: Sequence[Bound], layout: Layout, theta: FloatArray, at: Point,
+          target: Target) -> list[tuple[Term, IntArray]]:
+    """Each bound effect's term for one factor, with the theta columns of its parameters."""
+    out = []
+    for e in bound:
+        if e.effect.target is target:
+            cols = layout.cols(*e.names())
+            out.append((e.effect.term(e.inputs, theta[cols], at), cols))
+    return out
+
+
+def with_terms(f: Factor, l_inv: FloatArray, extra: Sequence[tuple[Term, IntArray]], layout: Layout) -> Factor:
+    """A factor r = L^-1 (y - prediction) with the terms added to the prediction (Jacobians included).
+
+    Columns are merged and sorted, so that a layout from `layout_for` keeps them contiguous.
+    """
+    if not extra:
+        return f
+    r = f.r.copy()
+    for term, _ in extra:
+        r -= term.value @ l_inv.T
+    if f.J_theta is None or f.theta_cols is None:
+        return Factor(f.name, r)
+    jx = None if f.J_x is None else f.J_x.copy()
+    jt = f.J_theta.copy()
+    cols = f.theta_cols
+    where = {int(c): i for i, c in enumerate(cols)}
+    new_j, new_c = [jt], [cols]
+    for term, beta_cols in extra:
+        if term.d_state is not None and jx is not None:
+            jx -= l_inv @ term.d_state
+        for name, d in term.d_base.items():
+            pos = [where[int(c)] for c in layout.cols(name)]
+            jt[:, :, pos] -= np.einsum("ij,mjk->mik", l_inv, d)
+        new_j.append(-np.einsum("ij,mjk->mik", l_inv, term.d_beta))
+        new_c.append(beta_cols)
+    all_c = np.concatenate(new_c)
+    order = np.argsort(all_c, kind="stable")
+    return Factor(f.name, r, f.idx, jx, f.J_next, np.concatenate(new_j, axis=2)[:, :, order],
+                  all_c[order].astype(np.int64))
+
+
+def gyro_extra(bound: Sequence[Bound], layout: Layout, theta: FloatArray, at: Point
+               ) -> tuple[FloatArray, FloatArray, IntArray] | None:
+    """The gyro effects' summed perturbation, its Jacobian and columns (None without gyro effects)."""
+    parts = terms(bound, layout, theta, at, Target.GYRO)
+    if not parts:
+        return None
+    value = sum((t.value for t, _ in parts), np.zeros_like(parts[0][0].value))
+    jac = np.concatenate([t.d_beta for t, _ in parts], axis=2)
+    return value, jac, np.concatenate([c for _, c in parts]).astype(np.int64)
+
+
+def prior_factor(bound: Sequence[Bound], layout: Layout, theta: FloatArray, jacobians: bool) -> Factor | None:
+    """Gaussian priors of parameters that only exist under the alternative (e.g. a throttle exponent)."""
+    cols, mean, std = [], [], []
+    for e in bound:
+        p = e.effect.prior()
+        if p is None:
+            continue
+        c = layout.cols(*e.names())
+        keep = np.isfinite(p[1])
+        cols.append(c[keep])
+        mean.append(p[0][keep])
+        std.append(p[1][keep])
+    if not cols:
+        return None
+    c, mu, sd = np.concatenate(cols), np.concatenate(mean), np.concatenate(std)
+    r = ((theta[c] - mu) / sd)[:, None]
+    if not jacobians:
+        return Factor("prior", r)
+    jt = np.zeros((c.size, 1, c.size))
+    jt[np.arange(c.size), 0, np.arange(c.size)] = 1.0 / sd
+    return Factor("prior", r, None, None, None, jt, c.astype(np.int64))
+
+
+def results(bound: Sequence[Bound], layout: Layout, theta_si: FloatArray, cov_si: FloatArray, mag_id: str,
+            imu_id: str) -> list[EffectFit]:
+    """Each fitted effect's estimate (SI, by its short parameter names) and Wald test of beta = 0."""
+    out = []
+    for e in bound:
+        cols = layout.cols(*e.names())
+        short = Layout(e.effect.params)
+        est = Estimate(short, theta_si[cols], cov_si[np.ix_(cols, cols)])
+        prior = e.effect.prior()
+        # the test covers the entries that vanish under the base model (not exponents held by a prior)
+        test = np.ones(cols.size, bool) if prior is None else ~np.isfinite(prior[1])
+        b, c = est.value[test], est.cov[np.ix_(test, test)]
+        try:
+            stat = float(b @ np.linalg.solve(c, b))
+        except np.linalg.LinAlgError:
+            stat = float("nan")
+        p = float(stats.chi2.sf(stat, b.size)) if np.isfinite(stat) else float("nan")
+        status = "accepted" if np.isfinite(p) and p < ALPHA else "rejected"
+        sensor = mag_id if e.effect.target is Target.MAG else imu_id
+        out.append(EffectFit(e.effect.id, sensor, status, est, e.inputs.channel_ids, stat, int(b.size), p,
+                             constants=dict(e.inputs.constants)))
+    return out

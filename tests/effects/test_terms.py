@@ -1,0 +1,123 @@
+"""Every effect term's analytic Jacobians against central finite differences, and the effect registry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magcal_cli import effects, so3
+from magcal_cli.effects.base import Effect, Inputs, Point, Target
+from magcal_cli.models.gyro import preintegrate
+from magcal_cli.models.map_effects import bind
+from magcal_cli.models.problem import Problem
+from magcal_cli.streams import Kind
+from magcal_cli.synth import simulate
+from magcal_cli.synth_effects import EffectSpec
+
+#: relative tolerance of a central difference with step 1e-6 on these smooth terms
+RTOL = 1e-5
+
+
+@pytest.fixture(scope="module")
+def bound() -> dict[str, tuple[Effect, Inputs, object]]:
+    """Every effect bound to a short handheld log that carries all channels, with the preintegration."""
+    specs = (EffectSpec("current_interference"), EffectSpec("throttle_interference"),
+             EffectSpec("temperature_drift"), EffectSpec("nongravity_acceleration"))
+    sim = simulate("handheld", 3, rate=50.0, mag_rate=25.0, duration=60.0, effects=specs)
+    rec = sim.recording
+    acc, gyr, mag = (rec.select(k) for k in (Kind.ACCELEROMETER, Kind.GYROSCOPE, Kind.MAGNETOMETER))
+    aux = tuple(s for s in rec.streams if s.kind not in (Kind.ACCELEROMETER, Kind.GYROSCOPE, Kind.MAGNETOMETER))
+    problem = Problem("sim", acc.id, acc, gyr, (mag,), None, aux)  # type: ignore[arg-type]
+    t = mag.t[(mag.t > gyr.t[1]) & (mag.t < gyr.t[-2])][::5]
+    got, untestable = bind(problem, mag, t, sim.truth.gyro_bias, tuple(effects.EFFECTS))
+    assert not untestable, untestable
+    pre = preintegrate(gyr.t, gyr.xyz, t, sim.truth.gyro_bias, np.full(3, 1e-3), scale_jacobian=True)
+    return {b.effect.id: (b.effect, b.inputs, pre) for b in got}
+
+
+def _point(rot: np.ndarray, d: np.ndarray, dip: float, pre: object) -> Point:
+    """The model quantities a term sees."""
+    m_n = np.array([np.cos(dip), 0.0, np.sin(dip)])
+    dm_n = np.array([-np.sin(dip), 0.0, np.cos(dip)])
+    return Point(rot, np.einsum("mji,j->mi", rot, m_n), np.einsum("mji,j->mi", rot, dm_n),
+                 9.80665 * rot[:, 2, :], d, pre)
+
+
+@pytest.mark.parametrize("effect_id", list(effects.EFFECTS))
+def test_jacobians_match_finite_differences(bound: dict[str, tuple[Effect, Inputs, object]],
+                                            effect_id: str) -> None:
+    """d value / d beta, d state and d base blocks (D, dip) by central differences."""
+    eff, inp, pre = bound[effect_id]
+    rng = np.random.default_rng(7)
+    k = inp.t.size
+    rot = so3.exp(rng.normal(size=(k, 3)))
+    d = np.eye(3) + 0.05 * rng.normal(size=(3, 3))
+    dip = 1.1
+    scale = {"time_offset": 0.02, "gyro_scale": 0.01, "accel_scale": 0.01, "lever_arm": 0.05}.get(effect_id, 0.3)
+    beta = eff.start() + scale * rng.normal(size=eff.start().size)
+    term = eff.term(inp, beta, _point(rot, d, dip, pre))
+    h = 1e-6
+
+    def value(b: np.ndarray = beta, r: np.ndarray = rot, dd: np.ndarray = d, dp: float = dip) -> np.ndarray:
+        return eff.term(inp, b, _point(r, dd, dp, pre)).value
+
+    num = np.stack([(value(beta + h * e) - value(beta - h * e)) / (2 * h) for e in np.eye(beta.size)], axis=2)
+    np.testing.assert_allclose(term.d_beta, num, rtol=RTOL, atol=RTOL * np.abs(num).max())
+    if term.d_state is not None:
+        num = np.stack([(value(r=rot @ so3.exp(h * e)) - value(r=rot @ so3.exp(-h * e))) / (2 * h)
+                        for e in np.eye(3)], axis=2)
+        np.testing.assert_allclose(term.d_state, num, rtol=RTOL, atol=RTOL * np.abs(num).max())
+    else:
+        assert np.allclose(value(r=rot @ so3.exp([1e-3, 0.0, 0.0])), term.value)
+    if "D" in term.d_base:
+        num = np.stack([(value(dd=d + h * e.reshape(3, 3, order="F")) - value(dd=d - h * e.reshape(3, 3, order="F")))
+                        / (2 * h) for e in np.eye(9)], axis=2)
+        np.testing.assert_allclose(term.d_base["D"], num, rtol=RTOL, atol=RTOL * np.abs(num).max())
+    if "dip" in term.d_base:
+        num = ((value(dp=dip + h) - value(dp=dip - h)) / (2 * h))[:, :, None]
+        np.testing.assert_allclose(term.d_base["dip"], num, rtol=RTOL, atol=RTOL * np.abs(num).max())
+
+
+def test_every_term_is_zero_at_the_base_model(bound: dict[str, tuple[Effect, Inputs, object]]) -> None:
+    """Nesting: the start parameters (the base model) add nothing to any factor."""
+    for eff, inp, pre in bound.values():
+        k = inp.t.size
+        rot = so3.exp(np.random.default_rng(1).normal(size=(k, 3)))
+        beta = eff.start()
+        beta[: min(3, beta.size)] = 0.0
+        assert np.allclose(eff.term(inp, beta, _point(rot, np.eye(3), 1.0, pre)).value, 0.0), eff.id
+
+
+def test_gyro_scale_jacobian_predicts_a_scaled_preintegration() -> None:
+    """Preintegrating (1 + s) omega equals dR Exp(d_scale s) to first order in s."""
+    sim = simulate("handheld", 2, rate=50.0, mag_rate=25.0, duration=40.0)
+    gyr = sim.recording.select(Kind.GYROSCOPE)
+    t = sim.recording.select(Kind.MAGNETOMETER).t[5:400]
+    b = sim.truth.gyro_bias
+    s = np.array([0.01, -0.02, 0.015])
+    pre = preintegrate(gyr.t, gyr.xyz, t, b, np.full(3, 1e-3), scale_jacobian=True)
+    # a gyro whose true rate is (I + diag(s))^-1 (y - b): the measured rate minus the bias, shrunk
+    shrunk = preintegrate(gyr.t, b + (gyr.xyz - b) / (1.0 + s), t, b, np.full(3, 1e-3))
+    assert pre.d_scale is not None
+    predicted = pre.delta @ so3.exp(pre.d_scale @ s)
+    err = so3.log(np.swapaxes(predicted, -1, -2) @ shrunk.delta)
+    change = so3.log(np.swapaxes(pre.delta, -1, -2) @ shrunk.delta)
+    assert np.abs(err).max() < 0.02 * np.abs(change).max()
+
+
+def test_registry_ids_match_modules_and_targets() -> None:
+    """Every registered effect loads, declares its id, a target and parameters."""
+    for eid in effects.EFFECTS:
+        eff = effects.get(eid)
+        assert eff.id == eid
+        assert isinstance(eff.target, Target)
+        assert eff.params and eff.physics_left_out
+        assert set(b.name for b in eff.params) <= set(eff.units)
+
+
+def test_parse_rejects_unknown_ids() -> None:
+    """--effects names the valid ids in its error."""
+    assert effects.parse("none") == ()
+    assert effects.parse("time_offset, gyro_scale,time_offset") == ("time_offset", "gyro_scale")
+    with pytest.raises(effects.EffectError, match="unknown effect 'bogus'.*current_interference"):
+        effects.parse("time_offset,bogus")
