@@ -36,6 +36,7 @@ TRUTH = {
     "accel_scale": {"s": lambda p: p["s"]},
     "lever_arm": {"r_m": lambda p: p["r_m"]},
     "nongravity_acceleration": {"kappa": lambda p: 1.0},
+    "transient_disturbance": {},
 }
 
 

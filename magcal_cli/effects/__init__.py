@@ -19,6 +19,7 @@ EFFECTS: dict[str, str] = {
     "accel_scale": "magcal_cli.effects.accel_scale:EFFECT",
     "lever_arm": "magcal_cli.effects.lever_arm:EFFECT",
     "nongravity_acceleration": "magcal_cli.effects.nongravity:EFFECT",
+    "transient_disturbance": "magcal_cli.effects.transient:EFFECT",
 }
 
 

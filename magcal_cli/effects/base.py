@@ -116,6 +116,10 @@ class Effect:
         (None: no prior)."""
         return None
 
+    def weights(self, inp: Inputs) -> FloatArray | None:
+        """Per-epoch weights (K,) of the magnetometer rows, 0 = excluded (None: all rows count)."""
+        return None
+
     def start(self) -> FloatArray:
         """The parameter values to start from: the base model."""
         return np.zeros(sum(b.size for b in self.params))

@@ -26,14 +26,16 @@ def entry(fit: EffectFit, mag_unit: str | None) -> dict[str, Any]:
     factor = units.from_si(unit) if mag_unit else 1.0
     out: dict[str, Any] = {"id": fit.id, "sensor": fit.sensor, "status": fit.status,
                            "channels": list(fit.channels), "physics_left_out": eff.physics_left_out}
-    if fit.estimate is None:
+    if fit.status == "not_testable":
         out["physics_left_out"] = f"{eff.physics_left_out} Not testable in this log: {fit.reason}."
         out.update({"params": {}, "std": {}, "ci95": {}, "units": {}, "reason": fit.reason})
         return out
     params, std, ci, unit_of = {}, {}, {}, {}
-    for b in eff.params:
+    est = fit.estimate
+    for b in eff.params if est is not None else ():
+        assert est is not None
         f = factor if b.si_scale == "field" else (float(np.rad2deg(1.0)) if b.si_scale == "angle" else 1.0)
-        v, s = fit.estimate[b.name] * f, fit.estimate.std(b.name) * f
+        v, s = est[b.name] * f, est.std(b.name) * f
         params[b.name], std[b.name] = _plain(v), _plain(s)
         ci[b.name] = [float(v[0] - Z95 * s[0]), float(v[0] + Z95 * s[0])] if v.size == 1 else \
             [[float(a - Z95 * e), float(a + Z95 * e)] for a, e in zip(v, s, strict=True)]
@@ -43,7 +45,8 @@ def entry(fit: EffectFit, mag_unit: str | None) -> dict[str, Any]:
         if k in eff.units:
             unit_of[k] = eff.units[k].replace("{field}", unit)
     out.update({"params": params, "std": std, "ci95": ci, "units": unit_of,
-                "test": {"kind": "wald", "statistic": fit.statistic, "dof": fit.dof, "p_value": fit.p_value},
+                "test": {"kind": "wald", "statistic": fit.statistic, "dof": fit.dof, "p_value": fit.p_value}
+                if fit.estimate is not None else {"kind": "excluded readings", "statistic": fit.statistic},
                 "confounded_with": []})
     if eff.firmware:
         out["firmware"] = dict(eff.firmware)

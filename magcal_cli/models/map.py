@@ -27,7 +27,17 @@ from .accel import G, accel_factor
 from .epochs import BIAS_SCALE, Epochs, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, gyro_factor, preintegrate
 from .mag import MagLayout, field_nav, mag_factor
-from .map_effects import Bound, bind, gyro_extra, layout_for, prior_factor, results, terms, with_terms
+from .map_effects import (
+    Bound,
+    bind,
+    gyro_extra,
+    layout_for,
+    prior_factor,
+    results,
+    row_weights,
+    terms,
+    with_terms,
+)
 from .observability import check_observability
 from .params import BASE, MAG, Layout
 from .problem import Problem
@@ -111,6 +121,7 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
     interpolated = bool(np.any(ep.acc_factor < 1.0 - 1e-12))
     ml = mag_layout(layout)
     ba, bg = layout.slice("accelerometer_bias").start, layout.slice("gyroscope_bias").start
+    w_mag = row_weights(bound)
 
     def linearize(states: FloatArray, theta: FloatArray, jac: bool) -> list[Factor]:
         fa = accel_factor(states, ep.acc, l_acc, theta, ba, idx, jacobians=jac, compact=True)
@@ -128,6 +139,8 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
             extra = gyro_extra(bound, layout, theta, at)
         if interpolated:
             fa = _scaled(fa, s_acc)
+        if w_mag is not None:
+            fm = _scaled(fm, w_mag)
         out = [fa, fm, gyro_factor(states, theta, pre, bg, jac, extra)]   # gyro noise is in pre.l_inv
         prior = prior_factor(bound, layout, theta, jac)
         return out if prior is None else [*out, prior]
@@ -147,7 +160,9 @@ def variance_ratios(sol: Solution, loss: str = "l2", c: float = 3.0) -> FloatArr
     out = {}
     for f in sol.factors:
         h = sol.leverage(f, marg)
-        rows, m = f.r.shape
+        m = f.r.shape[1]
+        # rows weighted to zero (excluded readings) carry no information and no residual: do not count them
+        rows = f.r.shape[0] if f.J_theta is None else int(np.count_nonzero(np.any(f.J_theta != 0.0, axis=(1, 2))))
         if loss != "l2":
             s2 = np.minimum(np.sum(f.r**2, axis=1), c * c)
             # E[min(X, c^2)] for X ~ chi2_m: m F_(m+2)(c^2) + c^2 (1 - F_m(c^2))

@@ -144,6 +144,12 @@ def gyro_extra(bound: Sequence[Bound], layout: Layout, theta: FloatArray, at: Po
     return value, jac, np.concatenate([c for _, c in parts]).astype(np.int64)
 
 
+def row_weights(bound: Sequence[Bound]) -> FloatArray | None:
+    """The product of the magnetometer row weights the effects ask for (None when none does)."""
+    ws = [w for e in bound if (w := e.effect.weights(e.inputs)) is not None]
+    return None if not ws else np.prod(np.stack(ws), axis=0)
+
+
 def prior_factor(bound: Sequence[Bound], layout: Layout, theta: FloatArray, jacobians: bool) -> Factor | None:
     """Gaussian priors of parameters that only exist under the alternative (e.g. a throttle exponent)."""
     cols, mean, std = [], [], []
@@ -173,6 +179,13 @@ def results(bound: Sequence[Bound], layout: Layout, theta_si: FloatArray, cov_si
     out = []
     for e in bound:
         cols = layout.cols(*e.names())
+        sensor = mag_id if e.effect.target is Target.MAG else imu_id
+        if cols.size == 0:                   # nothing estimated (e.g. excluded windows): found or not
+            w = e.effect.weights(e.inputs)
+            n = 0 if w is None else int(np.count_nonzero(w == 0.0))
+            out.append(EffectFit(e.effect.id, sensor, "accepted" if n else "rejected", None, e.inputs.channel_ids,
+                                 float(n), 0, float("nan"), constants=dict(e.inputs.constants)))
+            continue
         short = Layout(e.effect.params)
         est = Estimate(short, theta_si[cols], cov_si[np.ix_(cols, cols)])
         prior = e.effect.prior()
@@ -185,7 +198,6 @@ def results(bound: Sequence[Bound], layout: Layout, theta_si: FloatArray, cov_si
             stat = float("nan")
         p = float(stats.chi2.sf(stat, b.size)) if np.isfinite(stat) else float("nan")
         status = "accepted" if np.isfinite(p) and p < ALPHA else "rejected"
-        sensor = mag_id if e.effect.target is Target.MAG else imu_id
         out.append(EffectFit(e.effect.id, sensor, status, est, e.inputs.channel_ids, stat, int(b.size), p,
                              constants=dict(e.inputs.constants)))
     return out

@@ -70,3 +70,23 @@ def test_cli_effects_option(tmp_path: Path, runner: CliRunner) -> None:
     ekf = runner.invoke(cli, ["fit", str(log), "--effects", "current_interference", "--method", "kok2012",
                               "-o", str(tmp_path / "y")])
     assert ekf.exit_code == 1 and "--method map" in ekf.stderr and "Traceback" not in ekf.output
+
+
+def test_transient_windows_found_and_excluded() -> None:
+    """An external field in two windows: found within a second of the truth, D back to the clean level."""
+    sim = simulate("handheld", 2, effects=(EffectSpec("transient_disturbance"),))
+    res = calibrate_recording(sim.recording, Config(method="map", effects=("transient_disturbance",)))
+    entry = res.calibration.effects[0]
+    assert entry["status"] == "accepted"
+    found, truth = np.asarray(entry["params"]["windows_s"]), np.asarray(sim.effects[0].params["windows_s"])
+    assert found.shape == truth.shape and np.abs(found - truth).max() < 1.5
+    d = np.asarray(res.calibration.magnetometers[0].D)
+    assert np.linalg.norm(d - sim.truth.D) / np.linalg.norm(sim.truth.D) < 1e-3
+
+
+def test_transient_negative_control() -> None:
+    """No disturbance: no window, nothing excluded."""
+    sim = simulate("handheld", 2)
+    res = calibrate_recording(sim.recording, Config(method="map", effects=("transient_disturbance",)))
+    entry = res.calibration.effects[0]
+    assert entry["status"] == "rejected" and entry["params"]["windows_s"] == []
