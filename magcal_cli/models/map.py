@@ -313,6 +313,10 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     layout, bound, untestable, theta, pre = _with_effects(problem, mag, ep, pre, theta, effects, declination)
     scale_jac = pre.d_scale is not None
     bg = layout.slice("gyroscope_bias")
+    if floor is not None and any(b.effect.target.value == "mag" and b.effect.params for b in bound):
+        # a magnetometer effect also acts while the vehicle is still (current, temperature): the still
+        # readings' spread is not the sensor's white noise then, so it is no floor for the magnetometer level
+        floor = Noise(floor.acc, floor.gyr, np.full(3, 1e-12))
     if spikes:
         notes.append(f"{mag.id}: {spikes} isolated spikes in the readings were smoothed for the start values "
                      "only" + ("" if loss != "l2" else "; consider --robust-loss huber"))

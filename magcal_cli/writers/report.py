@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -77,6 +77,8 @@ def render(result: RunResult) -> str:
         lines.append(f"         accelerometer bias: not estimated by {cal.method}")
     for mag in cal.magnetometers:
         lines += [""] + _render_mag(mag, result)
+    if cal.effects:
+        lines += ["", "Effects beyond the base model"] + [_render_effect(e) for e in cal.effects]
     notes = [f for f in result.findings if f.severity is Severity.WARNING] + \
             [f for f in result.findings if f.severity is Severity.INFO]
     if notes:
@@ -126,3 +128,26 @@ class TextReport:
     def write(self, result: RunResult, outdir: Path) -> list[Path]:
         """Write the text report."""
         return [write_text(outdir / self.files[0], render(result))]
+
+
+def _fmt_param(value: Any, std: Any) -> str:
+    """'v +- s' for a number or a vector (std may be missing)."""
+    if isinstance(value, list) and value and not isinstance(value[0], list):
+        s = std if isinstance(std, list) else [float("nan")] * len(value)
+        return "[" + ", ".join(f"{v:.4g} +- {e:.2g}" for v, e in zip(value, s, strict=False)) + "]"
+    if isinstance(value, (int, float)):
+        return f"{value:.4g}" + (f" +- {std:.2g}" if isinstance(std, (int, float)) else "")
+    return str(value)
+
+
+def _render_effect(e: dict[str, Any]) -> str:
+    """One line per effect: id, sensor, status, parameters with std and units, test, the physics sentence."""
+    params = e.get("params") or {}
+    std = e.get("std") or {}
+    units_of = e.get("units") or {}
+    parts = [f"{k} = {_fmt_param(v, std.get(k))} {units_of.get(k, '')}".rstrip() for k, v in params.items()]
+    test = e.get("test") or {}
+    p = test.get("p_value")
+    tail = f"; Wald p = {p:.2g}" if isinstance(p, float) and np.isfinite(p) else ""
+    what = "; ".join(parts) if parts else e.get("reason", "")
+    return f"  - {e.get('id')} ({e.get('sensor')}): {e.get('status')}{tail}. {what}\n    {e.get('physics_left_out')}"

@@ -90,3 +90,38 @@ def test_transient_negative_control() -> None:
     res = calibrate_recording(sim.recording, Config(method="map", effects=("transient_disturbance",)))
     entry = res.calibration.effects[0]
     assert entry["status"] == "rejected" and entry["params"]["windows_s"] == []
+
+
+def test_a_new_effect_is_one_class_and_one_registry_line() -> None:
+    """docs/architecture.md's worked example: a plug-in defined here, registered by one dict entry, is fitted and
+    reported with no other change (a log without voltage interference: c ~ 0 within its std)."""
+    from unittest.mock import patch
+
+    from magcal_cli.effects import EFFECTS
+    from magcal_cli.effects.base import Effect, Inputs, Target, Term, pick, resample
+    from magcal_cli.models.params import XYZ, ParamBlock
+    from magcal_cli.streams import Kind
+
+    class Voltage(Effect):
+        id = "voltage_interference"
+        target = Target.MAG
+        params = (ParamBlock("c", 3, "field", "voltage interference", XYZ),)
+        units = {"c": "{field}/volt"}  # noqa: RUF012
+        channels = (Kind.BATTERY_VOLTAGE,)
+        physics_left_out = "The field near the battery changes with its voltage."
+
+        def inputs(self, aux, mag, kin, declination=0.0):  # type: ignore[no-untyped-def]  # noqa: ANN001, ANN201
+            s = pick(aux, Kind.BATTERY_VOLTAGE)
+            v = resample(s, kin.t)[:, 0]
+            return Inputs(kin.t, kin.omega, kin.omega_dot, {"v": v - v.mean()}, (s.id,))
+
+        def term(self, inp, beta, at):  # type: ignore[no-untyped-def]  # noqa: ANN001, ANN201
+            v = inp.channels["v"]
+            return Term(v[:, None] * beta, v[:, None, None] * np.eye(3))
+
+    sim = simulate("handheld", 4, effects=(EffectSpec("current_interference", {"c": [0.0, 0.0, 0.0]}),))
+    with patch.dict(EFFECTS, {"voltage_interference": Voltage()}):
+        res = calibrate_recording(sim.recording, Config(method="map", effects=("voltage_interference",)))
+    entry = res.calibration.effects[0]
+    assert entry["id"] == "voltage_interference" and entry["units"]["c"] == "tesla/volt"
+    assert np.all(np.abs(np.asarray(entry["params"]["c"])) < Z_MAX * np.asarray(entry["std"]["c"]))
