@@ -294,8 +294,13 @@ def _run_method(run: MethodRun, problem: Problem, cfg: Config, method: str) -> t
     imu = min((p.imu for p in parts), key=lambda i: float(np.sum(i.accel_bias_std)) if i.accel_bias_std is not None
               else np.inf)
     noise = {k: v for p in parts for k, v in p.noise.items()}
+    mag_ids = {f.id for p in parts for f in p.mags}
+    # magnetometer effects from every part, IMU effects from the part whose IMU biases are kept
+    effects = tuple(e for p in parts for e in p.effects if e.sensor in mag_ids) + \
+        tuple(e for p in parts if p.imu is imu for e in p.effects if e.sensor not in mag_ids)
     merged = MethodResult(parts[0].method, tuple(f for p in parts for f in p.mags), imu, noise,
-                          tuple(n for p in parts for n in p.notes), tuple(f for p in parts for f in p.findings))
+                          tuple(n for p in parts for n in p.notes), tuple(f for p in parts for f in p.findings),
+                          effects)
     return merged, failed
 
 

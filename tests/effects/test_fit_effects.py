@@ -125,3 +125,14 @@ def test_a_new_effect_is_one_class_and_one_registry_line() -> None:
     entry = res.calibration.effects[0]
     assert entry["id"] == "voltage_interference" and entry["units"]["c"] == "tesla/volt"
     assert np.all(np.abs(np.asarray(entry["params"]["c"])) < Z_MAX * np.asarray(entry["std"]["c"]))
+
+
+def test_effects_survive_a_magnetometer_that_cannot_be_calibrated(realdata: Path) -> None:
+    """Regression: on log171 MAG[2] cannot be calibrated, the others are refitted one by one; their effects
+    were lost in that merge (effects[] came out empty)."""
+    from magcal_cli.pipeline import calibrate
+
+    res = calibrate(realdata / "ardupilot" / "log171.bin", Config(method="map", effects=("current_interference",)))
+    sensors = {e["sensor"] for e in res.calibration.effects if e["id"] == "current_interference"}
+    assert sensors == {"MAG[0]", "MAG[1]"}
+    assert all(e["units"]["c"] == "milligauss/ampere" for e in res.calibration.effects)
