@@ -14,8 +14,9 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.ndimage import median_filter
 
+from ..errors import MagcalError
 from ..streams import Stream
-from .base import Effect, FloatArray, Inputs, Kinematics, Point, Target, Term
+from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
 
 SMOOTH_S = 0.5
 K_MAD = 6.0
@@ -88,7 +89,11 @@ class Transient(Effect):
                declination: float = 0.0) -> Inputs:
         """The disturbed windows of this magnetometer, and the weight of each epoch."""
         y = np.stack([np.interp(kin.t, mag.t, mag.xyz[:, i]) for i in range(3)], axis=1)
-        found = detect(kin.t, y)
+        try:
+            found = detect(kin.t, y)
+        except MagcalError:
+            msg = "the readings do not determine an ellipsoid for the field-norm test"
+            raise NotTestable(msg) from None
         weight = np.ones(kin.t.size)
         for lo, hi in found:
             weight[(kin.t >= lo) & (kin.t <= hi)] = 0.0

@@ -128,11 +128,41 @@ def test_a_new_effect_is_one_class_and_one_registry_line() -> None:
 
 
 def test_effects_survive_a_magnetometer_that_cannot_be_calibrated(realdata: Path) -> None:
-    """Regression: on log171 MAG[2] cannot be calibrated, the others are refitted one by one; their effects
-    were lost in that merge (effects[] came out empty)."""
+    """Regression: when one magnetometer cannot be calibrated the others are refitted one by one; their effects
+    were lost in that merge (log171 with transient_disturbance: effects[] came out empty). And a failing
+    transient test (MAG[2]'s readings give no ellipsoid) makes that effect not_testable, not the compass."""
     from magcal_cli.pipeline import calibrate
 
-    res = calibrate(realdata / "ardupilot" / "log171.bin", Config(method="map", effects=("current_interference",)))
+    effects = ("current_interference", "transient_disturbance")
+    res = calibrate(realdata / "ardupilot" / "log171.bin", Config(method="map", effects=effects))
     sensors = {e["sensor"] for e in res.calibration.effects if e["id"] == "current_interference"}
-    assert sensors == {"MAG[0]", "MAG[1]"}
-    assert all(e["units"]["c"] == "milligauss/ampere" for e in res.calibration.effects)
+    assert sensors == {m.id for m in res.calibration.magnetometers} == {"MAG[0]", "MAG[1]", "MAG[2]"}
+
+
+def test_merge_keeps_effects(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The one-by-one refit after a failure keeps every magnetometer's effects and one set of IMU effects."""
+    from dataclasses import replace
+
+    from magcal_cli import pipeline
+    from magcal_cli.errors import InsufficientDataError
+    from magcal_cli.models.result import EffectFit, ImuFit, MagFit, MethodResult
+    from magcal_cli.streams import Kind, Recording
+
+    sim = simulate("handheld", 1, rate=50.0, mag_rate=25.0)
+    mag = sim.recording.select(Kind.MAGNETOMETER)
+    bad = replace(mag, id="/bad/mag")
+    rec = Recording(sim.recording.path, sim.recording.format, (*sim.recording.streams, bad), sim.recording.t0)
+
+    def fake(problem: pipeline.Problem, cfg: Config) -> MethodResult:
+        if any(m.id == "/bad/mag" for m in problem.mags):
+            raise InsufficientDataError("bad")
+        m = problem.mags[0]
+        fit = MagFit(m.id, np.eye(3) * 5e-5, np.zeros(3), 1.0, np.eye(13) * 1e-20, 1e-8, len(m), 1, True)
+        effects = (EffectFit("time_offset", m.id, "rejected"), EffectFit("gyro_scale", problem.imu_id, "rejected"))
+        return MethodResult("map", (fit,), ImuFit(problem.imu_id, np.zeros(3), np.zeros(3), np.ones(3),
+                                                  np.ones(3)), effects=effects)
+
+    monkeypatch.setitem(pipeline.METHODS, "map", fake)
+    res = pipeline.calibrate_recording(rec, Config(method="map"))
+    assert [(e["id"], e["sensor"]) for e in res.calibration.effects] == [("time_offset", mag.id),
+                                                                          ("gyro_scale", "/imu/data")]
