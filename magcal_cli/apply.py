@@ -12,8 +12,7 @@ import numpy as np
 
 from . import units
 from .calibration import Calibration
-from .effects import EFFECTS, get
-from .effects.base import Target
+from .effects.correct import remove
 from .errors import StreamError
 from .streams import Kind, Recording
 
@@ -41,7 +40,7 @@ def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | No
     for mag in (m for m in mags if m.id in have):
         stream = rec.select(Kind.MAGNETOMETER, mag.id)
         y = stream.xyz * units.from_si(mag.unit)
-        t, y, done = _corrected(cal, mag.id, rec, stream.t, y)
+        t, y, done = remove(cal.effects, mag.id, rec, stream.t, y)
         notes += done
         b = mag.field_strength * mag.apply(y)
         rows += [(float(ti), mag.id, v) for ti, v in zip(t, b, strict=True)]
@@ -50,29 +49,3 @@ def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | No
     lines += [f"{t:.6f},{i},{v[0]:.7g},{v[1]:.7g},{v[2]:.7g},{np.linalg.norm(v):.7g}" for t, i, v in rows]
     return "\n".join(lines) + "\n", notes
 
-
-def _corrected(cal: Calibration, mag_id: str, rec: Recording, t: np.ndarray, y: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Readings and stamps with the accepted magnetometer effects of `mag_id` removed, and what was done."""
-    notes = []
-    for e in cal.effects:
-        eid = str(e.get("id"))
-        if e.get("sensor") != mag_id or e.get("status") != "accepted" or eid not in EFFECTS:
-            continue
-        eff = get(eid)
-        if eff.target is not Target.MAG:
-            continue
-        chans: dict[str, np.ndarray] = {}
-        for kind in eff.channels:
-            named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
-            found = named or [s for s in rec.of_kind(kind) if len(s) >= 2]
-            if found:
-                chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
-        missing = [k.value for k in eff.channels if k.value not in chans]
-        if missing:
-            notes.append(f"{mag_id}: the accepted {eid} is not removed (the log lacks its {', '.join(missing)} "
-                         "channel)")
-            continue
-        t, y = eff.correct(dict(e.get("params") or {}), t, y, chans)
-        notes.append(f"{mag_id}: {eid} removed")
-    return t, y, notes

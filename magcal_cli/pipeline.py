@@ -18,6 +18,7 @@ from .config import Config
 from .detect import StillResult, check_signal, detect_still, pooled_std
 from .errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
 from .findings import Finding, Severity
+from .models.params import MAG
 from .models.problem import Problem
 from .models.result import MagFit, MethodResult
 from .readers import ReadOptions, open_recording
@@ -161,21 +162,29 @@ def _with_position(rec: Recording, cfg: Config) -> Config:
     return cfg
 
 
-def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = None
+def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = None,
+                     effects: tuple[dict[str, object], ...] = (), rec: Recording | None = None
                      ) -> tuple[MagCalibration, MagSeries]:
-    """Convert an SI fit to the stream's native unit and measure its quality on every reading."""
+    """Convert an SI fit to the stream's native unit and measure its quality on every reading, with the
+    accepted magnetometer effects removed (the calibration is the base model plus them)."""
+    from .effects.correct import remove
+
     f = units.from_si(stream.native_unit)
-    scale = np.concatenate([np.full(12, f), [np.rad2deg(1.0)]])
+    scale = MAG.factors({"field": f, "angle": float(np.rad2deg(1.0))})
     d, o = fit.D * f, fit.o * f
     raw = stream.xyz * f
-    m_b = (raw - o) @ np.linalg.inv(d).T
-    norm_err = np.linalg.norm(m_b, axis=1) - 1.0
+    t, y = stream.t, raw
+    if effects and rec is not None:
+        t, y, _ = remove(effects, stream.id, rec, stream.t, raw)
+    m_b = (y - o) @ np.linalg.inv(d).T
+    used = np.all(np.isfinite(m_b), axis=1)                # excluded (transient) readings are NaN
+    norm_err = np.linalg.norm(m_b[used], axis=1) - 1.0
     quality = Quality(len(stream), fit.residual_rms * f, float(100.0 * np.sqrt(np.mean(norm_err**2))),
-                      coverage_pct(m_b), bool(fit.converged), int(fit.iterations))
+                      coverage_pct(m_b[used]), bool(fit.converged), int(fit.iterations))
     strength, source = (float(np.cbrt(np.linalg.det(d))), "data") if ref is None else (ref.intensity * f, "wmm")
     cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
                          fit.cov * np.outer(scale, scale), strength, source, quality)
-    return cal, MagSeries(stream.t, raw, m_b)
+    return cal, MagSeries(t, raw, m_b)
 
 
 #: a fitted dip further than this from the World Magnetic Model's says the model missed something
@@ -333,9 +342,10 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     mags, series = [], {}
     ref = reference_for(cfg)
     streams = {m.id: m for m in problem.mags}
+    effect_entries = _effect_entries(result, streams)
     for fit in result.mags:
         stream = streams[fit.id]
-        cal, ser = _mag_calibration(fit, stream, ref)
+        cal, ser = _mag_calibration(fit, stream, ref, effect_entries, rec)
         mags.append(cal)
         series[stream.id] = ser
     imu = ImuCalibration(result.imu.id, result.imu.accel_bias, result.imu.gyro_bias,
@@ -355,5 +365,5 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     source = Source(str(path), rec.format, digest, float(t_used.min()), float(t_used.max()))
     findings = chosen + dropped + failed + _findings(rec, problem, result, mags) + _dip_check(mags, ref)
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
-                      effects=_effect_entries(result, streams), notes=tuple(f.message for f in findings))
+                      effects=effect_entries, notes=tuple(f.message for f in findings))
     return RunResult(doc, rec, problem.still, tuple(findings), series)

@@ -1,0 +1,42 @@
+"""Accepted magnetometer effects removed from readings: what `apply` writes and what the quality figures see."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ..streams import Recording
+from . import EFFECTS, get
+from .base import Target
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: FloatArray, y: FloatArray
+           ) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Readings and stamps with the accepted magnetometer effects of `mag_id` removed, and what was done."""
+    notes = []
+    for e in effects:
+        eid = str(e.get("id"))
+        if e.get("sensor") != mag_id or e.get("status") != "accepted" or eid not in EFFECTS:
+            continue
+        eff = get(eid)
+        if eff.target is not Target.MAG:
+            continue
+        chans: dict[str, np.ndarray] = {}
+        for kind in eff.channels:
+            named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
+            found = named or [s for s in rec.of_kind(kind) if len(s) >= 2]
+            if found:
+                chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
+        missing = [k.value for k in eff.channels if k.value not in chans]
+        if missing:
+            notes.append(f"{mag_id}: the accepted {eid} is not removed (the log lacks its {', '.join(missing)} "
+                         "channel)")
+            continue
+        t, y = eff.correct(dict(e.get("params") or {}), t, y, chans)
+        notes.append(f"{mag_id}: {eid} removed")
+    return t, y, notes
