@@ -137,9 +137,14 @@ class Effect:
 
 
 def resample(stream: Stream, t: FloatArray) -> FloatArray:
-    """A channel linearly interpolated at times t, held at its first/last value outside its span."""
-    v = stream.values
-    return np.stack([np.interp(t, stream.t, v[:, i]) for i in range(v.shape[1])], axis=1)
+    """A channel linearly interpolated at times t, held at its first/last value outside its span; samples that
+    are not finite (dropouts) are skipped, never interpolated through as NaN."""
+    ok = np.all(np.isfinite(stream.values), axis=1)
+    if ok.sum() < 2:
+        msg = f"the {stream.kind.value} channel {stream.id} has fewer than two valid samples"
+        raise NotTestable(msg)
+    v, ts = stream.values[ok], stream.t[ok]
+    return np.stack([np.interp(t, ts, v[:, i]) for i in range(v.shape[1])], axis=1)
 
 
 def pick(aux: tuple[Stream, ...], kind: Kind, prefer: tuple[str, ...] = ()) -> Stream:

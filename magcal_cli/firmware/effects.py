@@ -19,14 +19,12 @@ from . import FirmwareError
 
 FloatArray = npt.NDArray[np.float64]
 
-def _kinds() -> dict[str, str]:
-    """Effect id -> the signal the firmware's compensation multiplies, from the effect plug-ins."""
+def kind_of(effect_id: str) -> str | None:
+    """The signal ("current", "throttle") the firmware's compensation multiplies for this effect, from its
+    plug-in (None: no firmware knob, or not an effect id)."""
     from ..effects import EFFECTS, get
 
-    return {eid: kind for eid in EFFECTS if (kind := get(eid).compensates) is not None}
-
-
-KINDS = _kinds()
+    return get(effect_id).compensates if effect_id in EFFECTS else None
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +59,7 @@ def accepted(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None
     """The accepted interference effect of `mag` (current preferred over throttle) and notes on what was left."""
     found: dict[str, Interference] = {}
     for i, effect in enumerate(cal.effects):
-        kind = KINDS.get(str(effect.get("id")))
+        kind = kind_of(str(effect.get("id")))
         if kind is None or effect.get("sensor") != mag.id or effect.get("status") != "accepted":
             continue
         where = f"calibration: effects[{i}] ({effect.get('id')}, {mag.id})"
@@ -82,5 +80,5 @@ def accepted(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None
 
 def tested(cal: Calibration, mag_id: str, kind: str) -> bool:
     """True when the diagnosis tested the interference term of `kind` for `mag_id` (any status but not_testable)."""
-    return any(KINDS.get(str(e.get("id"))) == kind and e.get("sensor") == mag_id
+    return any(kind_of(str(e.get("id"))) == kind and e.get("sensor") == mag_id
                and e.get("status") not in (None, "not_testable") for e in cal.effects)

@@ -124,3 +124,15 @@ def test_parse_rejects_unknown_ids() -> None:
     assert effects.parse("time_offset, gyro_scale,time_offset") == ("time_offset", "gyro_scale")
     with pytest.raises(effects.EffectError, match="unknown effect 'bogus'.*current_interference"):
         effects.parse("time_offset,bogus")
+
+
+def test_resample_skips_dropouts() -> None:
+    """NaN samples of a channel are skipped; a channel with no valid samples is not testable."""
+    from magcal_cli.effects.base import NotTestable, resample
+    from magcal_cli.streams import Stream
+
+    s = Stream(Kind.BATTERY_CURRENT, "BAT[0]", np.arange(4.0), np.array([1.0, np.nan, 3.0, 4.0]), "x", "A")
+    np.testing.assert_allclose(resample(s, np.array([1.0, 2.5]))[:, 0], [2.0, 3.5])
+    empty = Stream(Kind.BATTERY_CURRENT, "BAT[0]", np.arange(3.0), np.full(3, np.nan), "x", "A")
+    with pytest.raises(NotTestable, match="fewer than two valid samples"):
+        resample(empty, np.array([1.0]))
