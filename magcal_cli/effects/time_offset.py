@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
+import numpy.typing as npt
 
 from .. import so3
 from ..models.params import ParamBlock
@@ -22,10 +23,12 @@ from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Ta
 MIN_RATE_SPREAD = 0.05
 
 
-def attitude_at(t_gyr: FloatArray, q: FloatArray, w: FloatArray, t: FloatArray) -> FloatArray:
-    """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample: Q_j Exp(w_j (t - t_j)), t_j <= t."""
+def attitude_at(t_gyr: FloatArray, q: FloatArray, w: FloatArray, t: FloatArray
+                ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+    """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample, Q_j Exp(w_j (t - t_j)) with t_j <= t, and
+    the gyro sample j holding at each t."""
     j = np.clip(np.searchsorted(t_gyr, t, side="right") - 1, 0, t_gyr.size - 1)
-    return np.asarray(q[j] @ so3.exp(w[j] * (t - t_gyr[j])[:, None]), dtype=np.float64)
+    return np.asarray(q[j] @ so3.exp(w[j] * (t - t_gyr[j])[:, None]), dtype=np.float64), j
 
 
 class TimeOffset(Effect):
@@ -48,16 +51,15 @@ class TimeOffset(Effect):
             raise NotTestable(msg)
         steps = so3.exp(kin.gyr[:-1] * np.diff(kin.gyr_t)[:, None])
         q = np.concatenate([np.eye(3)[None], so3.cumulative_product(steps)])
-        q_t = attitude_at(kin.gyr_t, q, kin.gyr, kin.t)
+        q_t, _ = attitude_at(kin.gyr_t, q, kin.gyr, kin.t)
         return Inputs(kin.t, kin.omega, kin.omega_dot, {"q": q, "q_t": q_t, "gyr_t": kin.gyr_t, "gyr": kin.gyr})
 
     def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
         """D (E - I) m_b; d/dtau = D (omega(t - tau) x E m_b); d/dphi_k = D (E - I) [m_b]x."""
         c = inp.channels
         sensed = inp.t - float(beta[0])
-        q_s = attitude_at(c["gyr_t"], c["q"], c["gyr"], sensed)
+        q_s, j = attitude_at(c["gyr_t"], c["q"], c["gyr"], sensed)
         e = q_s.transpose(0, 2, 1) @ c["q_t"]                            # R(t - tau)^T R(t)
-        j = np.clip(np.searchsorted(c["gyr_t"], sensed, side="right") - 1, 0, c["gyr_t"].size - 1)
         mb_s = np.einsum("mij,mj->mi", e, at.m_b)
         v = mb_s - at.m_b                                                # (E - I) m_b
         d_tau = (np.cross(c["gyr"][j], mb_s) @ at.D.T)[:, :, None]
