@@ -23,6 +23,7 @@ from .models.params import BASE, MAG
 from .streams import Kind, Recording, Stream
 from .synth_effects import EffectSpec
 from .synth_inject import Base, InjectedEffect, inject, truth_entry
+from .synth_physics import POWER_PROFILES
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -184,15 +185,20 @@ def handheld_trajectory(rng: np.random.Generator, rate: float,
 
 def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
              duration: float | None = None, truth: Truth | None = None, effects: tuple[EffectSpec, ...] = (),
-             noise_scale: float = 1.0, trajectory: FloatArray | None = None) -> Simulation:
+             noise_scale: float = 1.0, trajectory: FloatArray | None = None,
+             power_profile: str = "flight") -> Simulation:
     """Simulate one recording (IMU stream `/imu/data`, magnetometer `/imu/mag`) with seeded truth.
 
     `truth` replaces the drawn calibration (its noise_std is still set from the rates). `effects` are injected
     (auxiliary channels join the recording); `noise_scale` multiplies every noise std (0: noise-free);
-    `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate replaces the scenario's.
+    `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate replaces the scenario's. `power_profile`
+    (synth_physics.POWER_PROFILES) shapes the throttle and current of the power effects (default "flight").
     """
     if scenario not in SCENARIOS:
         msg = f"simulate: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}"
+        raise MagcalError(msg)
+    if power_profile not in POWER_PROFILES:
+        msg = f"simulate: unknown power profile {power_profile!r}; choose one of {', '.join(POWER_PROFILES)}"
         raise MagcalError(msg)
     if not np.isfinite(noise_scale) or noise_scale < 0:
         msg = f"simulate: noise_scale must be a finite number >= 0, got {noise_scale}"
@@ -231,8 +237,8 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     mb = np.einsum("nji,j->ni", rot[::step], m_n)
     noise_m = sd["magnetometer"] * rng.standard_normal(mb.shape)
     src = f"simulate:{scenario}:seed={seed}"
-    done = inject(tuple(effects), Base(knots, rate, step, m_n, truth.field_strength, seed, noise_scale, src),
-                  omega, force)
+    done = inject(tuple(effects), Base(knots, rate, step, m_n, truth.field_strength, seed, noise_scale, src,
+                                       power_profile), omega, force)
     gyro = done.omega + truth.gyro_bias
     gyro += noise_g
     acc = done.force + truth.accel_bias

@@ -65,6 +65,7 @@ class Base:
     seed: int
     noise_scale: float
     source: str
+    power_profile: str = "flight"
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,7 +156,7 @@ def _mag(p: dict[str, dict[str, Any]], base: Base, t_mag: FloatArray, duration: 
         mag_body = _body(rot, nav)
     terms: list[FloatArray] = []
     if "current_interference" in p or "throttle_interference" in p:
-        pw = phys.power(_rng(base.seed, 1), duration)
+        pw = phys.power(_rng(base.seed, 1), duration, base.power_profile)
         n = len(t_mag)
         current = pw.current(t_mag) + ns * AUX_NOISE["current"] * noise.standard_normal(n)
         voltage = pw.voltage(t_mag) + ns * AUX_NOISE["voltage"] * noise.standard_normal(n)

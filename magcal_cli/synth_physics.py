@@ -132,7 +132,13 @@ class Power:
     voltage: Signal
 
 
-def power(rng: np.random.Generator, duration: float) -> Power:
+#: power-system profiles: "flight" (the default) and "hover" (constant hover, no payload: designed collinearity)
+POWER_PROFILES = ("flight", "hover")
+#: "hover": the throttle rises by this fraction, with this time constant (s), as the pack's polarisation builds up
+HOVER_RISE, HOVER_TAU_S = 0.25, 120.0
+
+
+def power(rng: np.random.Generator, duration: float, profile: str = "flight") -> Power:
     """A hovering multirotor's power system, independent of the simulated attitude.
 
     Throttle: hover at 0.38 plus climbs and descents (steps to -0.12..+0.12 every 6-20 s) plus pilot and
@@ -140,16 +146,27 @@ def power(rng: np.random.Generator, duration: float) -> Power:
     48 A * u^1.5 behind a 60 ms first-order ESC and motor lag, plus 0.8 A of avionics and a 2.5 A payload that
     switches on and off independently of the throttle (so current and throttle are not one signal). Voltage:
     a 4S pack's open-circuit 16.8 V falling with the charge drawn from a 5 Ah pack, minus 20 mOhm x I of sag.
+    `profile` "hover" holds a constant hover without payload whose throttle rises by HOVER_RISE with time
+    constant HOVER_TAU_S as the pack's polarisation builds up (activity std 0.002), so current, throttle and a
+    warming board's temperature are nearly proportional (designed collinearity, correlation > 0.99).
     """
     from scipy.signal import butter, sosfiltfilt
 
+    if profile not in POWER_PROFILES:
+        msg = f"power profile {profile!r}: choose one of {', '.join(POWER_PROFILES)}"
+        raise ValueError(msg)
     t = _grid(duration)
     fs = SIGNAL_RATE_HZ
     sos = butter(2, [0.1, 5.0], btype="bandpass", fs=fs, output="sos")
     activity = sosfiltfilt(sos, rng.standard_normal(t.size))
-    activity *= 0.05 / float(np.std(activity))
-    u = np.clip(0.38 + _steps(rng, t, (6.0, 20.0), (-0.12, 0.12)) + activity, 0.08, 0.75)
-    payload = 2.5 * (_steps(rng, t, (8.0, 30.0), (0.0, 1.0)) > 0.5)
+    if profile == "hover":
+        activity *= 0.002 / float(np.std(activity))
+        rise = HOVER_RISE * (1.0 - np.exp(-np.clip(t, 0.0, None) / HOVER_TAU_S))
+        u = np.clip(0.38 * (1.0 + rise) + activity, 0.08, 0.75)
+    else:
+        activity *= 0.05 / float(np.std(activity))
+        u = np.clip(0.38 + _steps(rng, t, (6.0, 20.0), (-0.12, 0.12)) + activity, 0.08, 0.75)
+    payload = 0.0 * t if profile == "hover" else 2.5 * (_steps(rng, t, (8.0, 30.0), (0.0, 1.0)) > 0.5)
     current = _lowpass(48.0 * u**1.5, 0.06, fs) + 0.8 + payload
     drawn_ah = np.concatenate([[0.0], np.cumsum(current[1:]) / fs / 3600.0])
     voltage = 16.8 - 1.6 * drawn_ah / 5.0 - 0.020 * current
