@@ -149,7 +149,12 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
 @click.option("--start", "start_s", type=float, default=None, help="Use data from this time on (s from log start).")
 @click.option("--end", "end_s", type=float, default=None, help="Use data up to this time (s from log start).")
 @click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
-@click.option("--allow-truncated", is_flag=True, help="Calibrate from the complete part of a truncated log.")
+@click.option("--strict", is_flag=True,
+              help="Refuse a cut log (one that ends inside a record) instead of reading it up to its last "
+                   "complete record with a warning.")
+@click.option("--allow-truncated", is_flag=True, hidden=True, expose_value=False,
+              callback=lambda c, p, v: _deprecated(c, v),
+              help="Deprecated: a cut log is read up to its last complete record by default.")
 @click.option("--json", "as_json", is_flag=True, help="Print the calibration document on stdout.")
 @click.option("--force", is_flag=True, help="Overwrite existing outputs.")
 @click.option("--location", default=None, metavar="LAT,LON[,ALT]", callback=_location,
@@ -172,7 +177,7 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
 @click.pass_context
 @handle_errors
 def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str | None, method: str, outputs: str,
-        start_s: float | None, end_s: float | None, fmt: str | None, allow_truncated: bool, as_json: bool,
+        start_s: float | None, end_s: float | None, fmt: str | None, strict: bool, as_json: bool,
         force: bool, location: tuple[float, float, float] | None, date: str | None, robust_loss: str,
         effects: tuple[str, ...], fail_on: tuple[Any, ...]) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
@@ -184,12 +189,14 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     auto = _firmware_output(ctx, log, fmt, names)
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
     check_targets(outdir, names + ([auto] if auto else []), force)
-    cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=allow_truncated,
+    cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=not strict,
                  location=location, date=date, robust_loss=robust_loss, effects=effects)
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
         names.append(auto)
     written = write_outputs(result, outdir, names)
+    if result.recording.cut is not None:
+        _stderr(ctx, f"warning: {result.recording.cut.message}")
     if as_json:
         click.echo(dumps_json(result.calibration), nl=False)
         _fit_gates(result, fail_on)
@@ -205,6 +212,13 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     for p in written:
         click.echo(f"wrote {p}")
     _fit_gates(result, fail_on)
+
+
+def _deprecated(ctx: click.Context, value: bool) -> bool:
+    """--allow-truncated: accepted for old scripts; a cut log is read by default now (--strict refuses it)."""
+    if value:
+        _stderr(ctx, "--allow-truncated is deprecated: a cut log is read up to its last complete record by default")
+    return value
 
 
 def _gates(value: str | None, command: str) -> tuple[Any, ...]:
@@ -445,7 +459,10 @@ def apply_cmd(ctx: click.Context, calibration: Path, log: Path, out: Path, mags:
         msg = f"{out}: exists already. Pass --force to overwrite it"
         raise OutputError(msg)
     cal = load(calibration)
-    text, notes = apply_to_recording(cal, open_recording(log, fmt), list(mags) or None)
+    rec = open_recording(log, fmt)
+    if rec.cut is not None:
+        _stderr(ctx, f"warning: {rec.cut.message}")
+    text, notes = apply_to_recording(cal, rec, list(mags) or None)
     for n in notes:
         _stderr(ctx, n)
     write_text(out, text)

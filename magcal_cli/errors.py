@@ -11,6 +11,10 @@ class LogReadError(MagcalError):
     """File unreadable, truncated or corrupt."""
 
 
+class TruncatedLogError(LogReadError):
+    """The log ends inside a record (cut at power-off, a killed recorder) and --strict refuses it."""
+
+
 class UnsupportedFormatError(LogReadError):
     """No reader recognises the file."""
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 from types import MappingProxyType
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -106,13 +107,35 @@ class Stream:
         return Stream(self.kind, self.id, self.t[lo:hi], self.values[lo:hi], self.source, self.native_unit)
 
 
+class Cut(NamedTuple):
+    """Where a log ends inside a record: the byte that record starts at, the file size and what was lost."""
+
+    offset: int | None     # the first byte of the incomplete record (None: not known, e.g. inside a bag's chunk)
+    size: int              # bytes in the file (for a bag directory: in its storage files)
+    lost: str              # what the incomplete record held, e.g. "an IMU record, 47 of its 54 bytes present"
+    end_s: float | None = None   # time of the last complete sample, s from the start of the recording
+
+    @property
+    def where(self) -> str:
+        """Where the log ends inside a record, as words."""
+        at = f" at byte {self.offset} of {self.size}" if self.offset is not None else ""
+        return f"it ends inside a record{at} ({self.lost})"
+
+    @property
+    def message(self) -> str:
+        """One sentence for the warning and the report."""
+        end = f"; the data end at {self.end_s:.3f} s" if self.end_s is not None else ""
+        return f"the log is cut: {self.where}; read up to its last complete record{end}"
+
+
 @dataclass(frozen=True, eq=False)
 class Recording:
     """Everything a reader found in one log; nothing downstream knows the file format.
 
     `t0` is the absolute time (s, the log's clock) that stream times are relative to; `params` are
     firmware parameters (name -> value, last value in the log); `notes` are the reader's remarks
-    (dropped samples, truncation) that the report repeats.
+    (dropped samples, truncation) that the report repeats; `cut` says where a log that ends inside a record
+    was cut (None for a complete log).
     """
 
     path: Path
@@ -121,6 +144,7 @@ class Recording:
     t0: float = 0.0
     params: Mapping[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    cut: Cut | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "streams", tuple(self.streams))

@@ -1,5 +1,8 @@
 """Fuzzing harness shared by tests/test_fuzz.py (a few hundred cases) and benchmarks/fuzz_campaign.py (thousands).
 
+A second class of cases (issue 12) is a dead sensor: one magnetometer, accelerometer or gyroscope reading zero or
+a constant throughout, in several formats; magcal must give the dead-sensor error, never exit 123.
+
 Seeds are tiny simulated logs of every format; a mutation damages one copy (bit flips, byte insertions and
 deletions, truncation, chunk duplication, zeroed runs, header damage) and `run_case` feeds it to `magcal inspect`
 or `magcal fit` in-process through click's CliRunner, then checks the command-line contract: exit 0, 1 or 3;
@@ -9,6 +12,7 @@ traceback, never exit 123, never a partial or temporary file in the output direc
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 import shutil
@@ -16,6 +20,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 #: the formats fuzzed; "log" is a text DataFlash log, "ros2" a ROS 2 bag directory with MCAP storage
 FORMATS = ("bin", "log", "ulg", "mcap", "bag", "ros2", "csv")
@@ -109,6 +114,65 @@ def make_seeds(root: Path) -> dict[str, Path]:
     seeds["log"] = root / "seed.log"
     text_log(seeds["bin"], seeds["log"])
     return seeds
+
+
+#: the dead-sensor class (issue 12): one sensor reads zero, or one constant value, throughout the log
+DEAD_KINDS = ("magnetometer", "accelerometer", "gyroscope")
+DEAD_VALUES = ("zero", "constant")
+DEAD_FORMATS = ("bin", "log", "ulg", "mcap", "bag", "csv")
+#: the message every dead sensor must end with (detect.check_signal)
+DEAD_MESSAGE = "the sensor is stuck, disconnected or not enabled"
+#: bytes of an ArduPilot MAG record from MagX on (MagX..MOZ int16, Health uint8, S uint32) after its header,
+#: TimeUS and I: the fields a dead compass logs as zero
+MAG_FIELDS = (3 + 8 + 1, 9 * 2 + 1 + 4)
+
+
+@dataclass(frozen=True)
+class DeadSensor:
+    """One sensor of a simulated log replaced by zeros or a constant (a dead, unplugged or disabled sensor)."""
+
+    kind: str
+    value: str
+
+    def write(self, fmt: str, root: Path) -> Path:
+        """A small simulated log of `fmt` with this sensor dead, written under `root`; the path to give magcal.
+
+        A dead ArduPilot compass logs MAG records whose fields are all zero (Health too): the .bin is patched
+        after writing, since the writer would apply the simulated onboard calibration to a zero field."""
+        from magcal_cli.logwriters import write_log
+        from magcal_cli.readers.dataflash_binary import parse_binary
+        from magcal_cli.streams import Kind
+        from magcal_cli.synth import simulate
+
+        sim = simulate("handheld", 0, rate=10.0, mag_rate=5.0)
+        kind = Kind(self.kind)
+        patch = fmt in ("bin", "log") and kind is Kind.MAGNETOMETER and self.value == "zero"
+        if not patch:
+            streams = [dataclasses.replace(s, values=self._values(s.values)) if s.kind is kind else s
+                       for s in sim.recording.streams]
+            sim = dataclasses.replace(sim, recording=dataclasses.replace(sim.recording, streams=tuple(streams)))
+        root.mkdir(parents=True, exist_ok=True)
+        binary = root / "dead.bin"
+        write_log(sim, binary)
+        if patch:
+            data = bytearray(binary.read_bytes())
+            at, n = MAG_FIELDS
+            for pos in parse_binary(binary).tables["MAG"].pos.tolist():
+                data[pos + at:pos + at + n] = bytes(n)
+            binary.write_bytes(bytes(data))
+        if fmt == "bin":
+            return binary
+        if fmt == "log":
+            text_log(binary, root / "dead.log")
+            return root / "dead.log"
+        write_log(sim, root / f"dead.{fmt}")
+        return root / f"dead.{fmt}"
+
+    def _values(self, values: Any) -> Any:
+        """Zeros, or the first reading repeated, in the shape of `values`."""
+        import numpy as np
+
+        return np.zeros_like(values) if self.value == "zero" else np.broadcast_to(values[0], values.shape).copy()
 
 
 def damaged_copy(seed: Path, mutation: Mutation, work: Path) -> Path:

@@ -64,28 +64,28 @@ def test_fit_recovers_the_sample_truth(runner: CliRunner, tmp_path: Path) -> Non
 
 
 def test_truncated_log_is_one_error_line_and_nothing_written(runner: CliRunner, tmp_path: Path) -> None:
-    """A cut-off copy: exit 1, a single 'Error:' line that says what and how to fix, no output directory."""
+    """A cut-off copy with --strict: exit 1, a single 'Error:' line that says what and how to fix, no output."""
     cut = tmp_path / "cut.mcap"
     data = SAMPLE.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
     out = tmp_path / "out"
-    result = runner.invoke(cli, ["fit", str(cut), "-o", str(out)])
+    result = runner.invoke(cli, ["fit", str(cut), "-o", str(out), "--strict"])
     assert result.exit_code == 1
     lines = result.stderr.strip().splitlines()
-    assert lines[-1].startswith("Error: ") and "truncated" in lines[-1] and "--allow-truncated" in lines[-1]
+    assert lines[-1].startswith("Error: ") and "the log is cut" in lines[-1] and "--strict" in lines[-1]
     assert "Traceback" not in result.output
     assert not out.exists()
 
 
-def test_allow_truncated_uses_the_complete_part(runner: CliRunner, tmp_path: Path) -> None:
-    """--allow-truncated calibrates from the complete chunks and says so in the report."""
+def test_cut_log_uses_the_complete_part(runner: CliRunner, tmp_path: Path) -> None:
+    """By default a cut log calibrates from its complete records and says so in the report (issue 12)."""
     cut = tmp_path / "cut.mcap"
     data = SAMPLE.read_bytes()
     cut.write_bytes(data[: int(len(data) * 0.8)])
     out = tmp_path / "out"
-    result = runner.invoke(cli, ["fit", str(cut), "-o", str(out), "--allow-truncated", "-q"])
+    result = runner.invoke(cli, ["fit", str(cut), "-o", str(out), "-q"])
     assert result.exit_code == 0, result.output
-    assert "truncated or corrupt" in (out / "report.txt").read_text()
+    assert "the log is cut" in (out / "report.txt").read_text()
 
 
 def test_outputs_are_not_overwritten_without_force(runner: CliRunner, tmp_path: Path) -> None:

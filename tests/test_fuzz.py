@@ -14,7 +14,20 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from .fuzzing import FORMATS, MUTATIONS, Mutation, cli_invoker, damaged_copy, make_seeds, run_case
+from .fuzzing import (
+    DEAD_FORMATS,
+    DEAD_KINDS,
+    DEAD_MESSAGE,
+    DEAD_VALUES,
+    FORMATS,
+    MUTATIONS,
+    DeadSensor,
+    Mutation,
+    cli_invoker,
+    damaged_copy,
+    make_seeds,
+    run_case,
+)
 
 MUTATION = st.builds(Mutation, op=st.sampled_from(MUTATIONS), where=st.floats(0.0, 1.0, exclude_max=True),
                      length=st.sampled_from([1, 2, 4, 8, 37, 64, 300]), seed=st.integers(0, 2**30))
@@ -60,11 +73,11 @@ def test_inspect_survives_damage(seeds: dict[str, Path], work: Path,
 
 @pytest.mark.parametrize("fmt", FORMATS)
 @settings(max_examples=6, **SETTINGS)
-@given(mutation=MUTATION, allow=st.booleans())
+@given(mutation=MUTATION, strict=st.booleans())
 def test_fit_survives_damage(seeds: dict[str, Path], work: Path, invoke: Callable[[list[str]], tuple[int, str, str]],
-                             fmt: str, mutation: Mutation, allow: bool) -> None:
+                             fmt: str, mutation: Mutation, strict: bool) -> None:
     """`magcal fit` on a damaged log: a calibration document that loads, or one Error: line."""
-    check(seeds, work, invoke, fmt, mutation, "fit", ("--allow-truncated",) if allow else ())
+    check(seeds, work, invoke, fmt, mutation, "fit", ("--strict",) if strict else ())
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
@@ -73,3 +86,18 @@ def test_undamaged_seeds_calibrate(seeds: dict[str, Path], work: Path,
     """The seeds themselves calibrate, so a damaged copy that fails fails because of the damage."""
     outcome = run_case(seeds[fmt], "fit", work / "clean", invoke)
     assert outcome.category == "ok", outcome.message
+
+
+@pytest.mark.parametrize("fmt", DEAD_FORMATS)
+@pytest.mark.parametrize("value", DEAD_VALUES)
+@pytest.mark.parametrize("kind", DEAD_KINDS)
+def test_dead_sensor_is_the_dead_sensor_error(work: Path, invoke: Callable[[list[str]], tuple[int, str, str]],
+                                              fmt: str, value: str, kind: str) -> None:
+    """A sensor reading zero or a constant throughout: exit 1 with the dead-sensor error, in every format
+    (issue 12: an ArduPilot log whose MAG fields were all zero exited 123)."""
+    path = DeadSensor(kind, value).write(fmt, work / "dead" / f"{kind}-{value}-{fmt}")
+    outcome = run_case(path, "fit", work / "dead-out", invoke)
+    assert outcome.category == "error", outcome
+    assert outcome.message.endswith(f"{DEAD_MESSAGE} (or the column is a placeholder). Check the sensor and its "
+                                    "logging, and record again"), outcome.message
+    assert kind in outcome.message

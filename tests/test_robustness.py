@@ -21,7 +21,7 @@ from click.testing import CliRunner, Result
 
 from magcal_cli import so3
 from magcal_cli.cli import cli
-from magcal_cli.errors import LogReadError, StreamError
+from magcal_cli.errors import LogReadError
 from magcal_cli.logwriters import write_log
 from magcal_cli.logwriters.csvfile import write_csv
 from magcal_cli.logwriters.mcap import write_mcap
@@ -151,60 +151,7 @@ def test_unreadable_file_by_mode(runner: CliRunner, tmp_path: Path, sim: Simulat
 
 # --- truncation and corruption --------------------------------------------------------------------------------
 
-TRUNCATED = {
-    "bin": r"the log is truncated \(the file ends inside a record, \d+ bytes from its end\)\. Re-copy the log, or "
-           r"pass --allow-truncated to use the complete messages",
-    "ulg": r"the ULog is truncated \(the last message is cut off at byte \d+ of \d+\); \d+ samples of the topics "
-           r"magcal reads are complete\. Re-copy the log, or pass --allow-truncated to use them",
-    "mcap": r"the MCAP file is truncated or corrupt \(it ends inside a record\) after \d+ complete messages\. Re-copy "
-            r"the log, or pass --allow-truncated to use the complete part",
-    "csv": r"the file ends inside a row \(line \d+ has \d of 10 cells\): the log is truncated\. Re-copy the log, or "
-           r"pass --allow-truncated to use the complete rows",
-    "bag": r"cannot open the rosbag \(.*\)\. The bag is truncated or was not closed cleanly; run `rosbag reindex` "
-           r"on a copy and read that \(magcal needs the bag's index\)",
-}
-
-
-def cut_point(data: bytes, fmt: str) -> int:
-    """About 60 % into the file, inside a record (a CSV row is cut after its second cell; a ULog cut exactly
-    between two messages could not be told from a complete file, which has no end marker)."""
-    at = int(0.6 * len(data))
-    if fmt == "csv":
-        return data.index(b",", data.index(b",", data.index(b"\n", at) + 1) + 1) + 1
-    return at + 7
-
-
-@pytest.mark.parametrize("fmt", sorted(TRUNCATED))
-def test_truncated_is_an_error_unless_allowed(runner: CliRunner, tmp_path: Path, sim: Simulation, fmt: str) -> None:
-    """One truncation rule for every format: fit refuses, naming --allow-truncated; with it, the complete part
-    calibrates (a ROS 1 bag without its index cannot be read at all)."""
-    if fmt == "mcap":
-        write_mcap(sim, tmp_path / "x.mcap", chunk_size=16_000)   # several chunks: the complete ones remain
-    else:
-        write_log(sim, tmp_path / f"x.{fmt}")
-    data = (tmp_path / f"x.{fmt}").read_bytes()
-    cut = tmp_path / f"cut.{fmt}"
-    cut.write_bytes(data[:cut_point(data, fmt)])
-    assert re.fullmatch(rf"{re.escape(str(cut))}: {TRUNCATED[fmt]}", one_error(fit(runner, cut, tmp_path / "o")))
-    assert not (tmp_path / "o").exists()
-    if fmt != "bag":
-        result = fit(runner, cut, tmp_path / "o", "--allow-truncated")
-        assert result.exit_code == 0, result.stderr
-        assert "truncated" in (tmp_path / "o" / "calibration.json").read_text()
-
-
-def test_truncated_ros2_bag_reads_its_storage_file(runner: CliRunner, tmp_path: Path, sim: Simulation) -> None:
-    """A ROS 2 bag whose MCAP storage lost its end (no summary for rosbags): streamed, and the truncation rule."""
-    write_log(sim, tmp_path / "bag")
-    storage = next((tmp_path / "bag").glob("*.mcap"))
-    data = storage.read_bytes()
-    storage.write_bytes(data[:len(data) - 100])                  # inside the summary: every message is complete
-    assert re.fullmatch(rf"{re.escape(str(storage))}: {TRUNCATED['mcap']}",
-                        one_error(fit(runner, tmp_path / "bag", tmp_path / "o")))
-    result = fit(runner, tmp_path / "bag", tmp_path / "o", "--allow-truncated")
-    assert result.exit_code == 0, result.stderr
-    notes = (tmp_path / "o" / "calibration.json").read_text()
-    assert "rosbags cannot open the bag" in notes and "read its MCAP storage file record by record" in notes
+# cut logs (the end of a file inside a record): tests/test_cut_logs.py
 
 
 def test_corrupt_dataflash_bytes_are_skipped_and_counted(tmp_path: Path, sim: Simulation) -> None:
@@ -219,8 +166,9 @@ def test_corrupt_dataflash_bytes_are_skipped_and_counted(tmp_path: Path, sim: Si
                             r"resynchronised on the next message header", n) for n in rec.notes)
 
 
-def test_mostly_corrupt_dataflash_is_an_error_unless_allowed(tmp_path: Path, sim: Simulation) -> None:
-    """Damaged FMT records make most of a log unreadable: an error naming the damage, not 'record longer'."""
+def test_mostly_corrupt_dataflash_is_an_error_naming_the_damage(tmp_path: Path, sim: Simulation) -> None:
+    """Damaged FMT records make most of a log unreadable: an error naming the damage, not 'record longer' or
+    'MAG never written', whether --strict or not."""
     write_log(sim, tmp_path / "x.bin")
     data = bytearray((tmp_path / "x.bin").read_bytes())
     for name in (b"IMU\0", b"MAG\0", b"ATT\0", b"BAT\0", b"CTUN"):    # FMT: A3 95 80 type length name...
@@ -228,13 +176,13 @@ def test_mostly_corrupt_dataflash_is_an_error_unless_allowed(tmp_path: Path, sim
         assert data[at - 5:at - 2] == b"\xa3\x95\x80"
         data[at - 1] = 200                                             # a wrong record length
     (tmp_path / "bad.bin").write_bytes(bytes(data))
-    with pytest.raises(LogReadError, match=r"bad.bin: \d+ of \d+ bytes are not complete records \(the log is mostly "
-                                           r"corrupt, or its FMT records are damaged\)\. Re-copy the log, or pass "
-                                           r"--allow-truncated to use the \d+ messages that could be read"):
+    damage = (r"bad.bin: \d+ of \d+ bytes are not complete records \(the log is mostly corrupt, or its FMT records "
+              r"are damaged\); \d+ messages could be read\. ")
+    with pytest.raises(LogReadError, match=damage + r"Re-copy the log, or leave out --strict to use them$"):
+        open_recording(tmp_path / "bad.bin", options=ReadOptions(allow_truncated=False))
+    with pytest.raises(LogReadError, match=damage + r"They are not enough to calibrate; re-copy the log from the "
+                                                    r"vehicle$"):
         open_recording(tmp_path / "bad.bin")
-    with pytest.raises(StreamError, match=r"bad.bin: no magnetometer messages \(MAG defined by FMT but never "
-                                          r"written\); nothing to calibrate"):
-        open_recording(tmp_path / "bad.bin", options=ReadOptions(allow_truncated=True))
 
 
 def test_corrupt_ulog_message_is_skipped(tmp_path: Path, sim: Simulation) -> None:
@@ -643,9 +591,10 @@ def test_sigint_mid_run_leaves_no_partial_files(tmp_path: Path) -> None:
     ("robert_lefebvre_octo_PM.log", (), "{path}: no magnetometer messages (MAG defined by FMT but never written); "
                                         "nothing to calibrate. Enable compass logging (LOG_BITMASK) and record the "
                                         "log again"),
-    ("ap462_truncated_80k.bin", (), "{path}: the log is truncated (the file ends inside a record, 2 bytes from its "
-                                    "end). Re-copy the log, or pass --allow-truncated to use the complete messages"),
-    ("ap462_truncated_80k.bin", ("--allow-truncated",),
+    ("ap462_truncated_80k.bin", ("--strict",),
+     "{path}: the log is cut: it ends inside a record at byte 81918 of 81920 (a record header, 2 of its 3 bytes "
+     "present). Re-copy the log, or leave out --strict to calibrate from its complete records"),
+    ("ap462_truncated_80k.bin", (),
      "ap462_truncated_80k.bin: magnetometer MAG[0] has only 4 samples (0.3 s); a calibration needs a recording of at "
      "least a minute with the vehicle turned through many orientations"),
 ])

@@ -13,9 +13,13 @@ from ..streams import Recording
 
 @dataclass(frozen=True)
 class ReadOptions:
-    """What a reader should do beyond the defaults."""
+    """What a reader should do beyond the defaults.
 
-    allow_truncated: bool = False
+    `allow_truncated`: read a cut log up to its last complete record (the default); False is --strict, which
+    refuses it. A log more than half unreadable is refused either way unless this is True and data remain.
+    """
+
+    allow_truncated: bool = True
     receive_time: bool = False
 
 

@@ -6,6 +6,7 @@ an empty cell means "no sample of that sensor in this row". Details: docs/reader
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,9 +18,10 @@ import numpy.typing as npt
 from .. import units
 from ..align import clean_time
 from ..errors import LogReadError, StreamError
-from ..streams import Kind, Recording, Stream
+from ..streams import Cut, Kind, Recording, Stream
 from . import ReadOptions
 from .checks import drop_held, normalised_field, normalised_note, sensor_checks
+from .cut import mark_cut, refuse_if_strict
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -177,7 +179,7 @@ def parse_rows(body: str, first_line: int, width: int) -> tuple[FloatArray, list
     return np.array(rows, dtype=np.float64).reshape(-1, width), bad
 
 
-def read_rows(fh: IO[bytes], first_line: int, where: str, width: int, options: ReadOptions,
+def read_rows(fh: IO[bytes], first_line: int, where: str, width: int, cuts: list[Cut],
               notes: list[str]) -> FloatArray:
     """The table below the header, read in blocks of CSV_BLOCK bytes (memory: one block of text plus the numbers).
 
@@ -199,7 +201,7 @@ def read_rows(fh: IO[bytes], first_line: int, where: str, width: int, options: R
             replaced += text.count("\ufffd")
             first_exc = first_exc or exc
         if not following:
-            text = _cut_last_row(text, width, line + len(chunk) - 1, where, options, notes)
+            text = _cut_last_row(text, width, line + len(chunk) - 1, os.fstat(fh.fileno()).st_size, cuts)
         rows, bad_rows = parse_rows(text, line, width)
         if rows.shape[1] != width:
             msg = (f"{where}: rows have {rows.shape[1]} cells but the header names {width} columns; make the header "
@@ -246,21 +248,17 @@ def _header_line(fh: IO[bytes], where: str) -> tuple[str, int]:
     raise LogReadError(msg)
 
 
-def _cut_last_row(body: str, width: int, last_line: int, where: str, options: ReadOptions, notes: list[str]) -> str:
-    """The body without a last row cut off by the end of the file (no newline, too few cells): an error unless
-    --allow-truncated, as for every format (a cut inside the last number cannot be seen, as in any text log)."""
+def _cut_last_row(body: str, width: int, last_line: int, size: int, cuts: list[Cut]) -> str:
+    """The body without a last row cut off by the end of the file (no newline, too few cells), noted in `cuts`
+    (a cut inside the last number cannot be seen, as in any text log)."""
     if not body or body.endswith("\n"):
         return body
     head, _, last = body.rpartition("\n")
     cells = last.rstrip("\r").count(",") + 1
     if cells >= width or not last.strip():
         return body
-    if not options.allow_truncated:
-        msg = (f"{where}: the file ends inside a row (line {last_line} has {cells} of {width} cells): the log is "
-               "truncated. Re-copy the log, or pass --allow-truncated to use the complete rows")
-        raise LogReadError(msg)
-    notes.append(f"the file ends inside a row (line {last_line} has {cells} of {width} cells): the log is truncated; "
-                 "read the complete rows")
+    lost = len(last.encode("utf-8"))
+    cuts.append(Cut(size - lost, size, f"line {last_line}, {cells} of its {width} cells present"))
     return head + "\n"
 
 
@@ -285,11 +283,14 @@ class CsvReader:
             cols, ignored = parse_header(header, where)
             by = _check_columns(cols, where)
             notes: list[str] = [f"ignored columns: {', '.join(ignored)}"] if ignored else []
-            table = read_rows(fh, line_no + 1, where, header.count(",") + 1, options, notes)
+            cuts: list[Cut] = []
+            table = read_rows(fh, line_no + 1, where, header.count(",") + 1, cuts, notes)
+        cut = cuts[0] if cuts else None
+        refuse_if_strict(path, options, cut)
         if table.shape[0] == 0:
             msg = f"{where}: the CSV file has a header but no rows"
             raise LogReadError(msg)
-        return self._recording(path, table, by, notes)
+        return mark_cut(self._recording(path, table, by, notes), cut)
 
     @staticmethod
     def _recording(path: Path, table: FloatArray, by: dict[str, list[Column]], notes: list[str]) -> Recording:

@@ -15,8 +15,9 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import LogReadError, MagcalError, StreamError, UnsupportedFormatError
-from ..streams import Kind, Recording
+from ..streams import Cut, Kind, Recording
 from . import ReadOptions
+from .cut import mark_cut, refuse_if_strict
 from .dataflash_binary import parse_binary
 from .dataflash_format import FloatArray, MessageFormat, RawLog, Table
 from .dataflash_mag import Correction, ParamHistory, compass_correction, param_suffix, undo_correction
@@ -29,7 +30,7 @@ IMU_NAMES = ("IMU", "IMU2", "IMU3")
 WANTED = frozenset({*MAG_NAMES, *IMU_NAMES, "PARM", "MSG", "VER", "ATT", "AHR2", "BAT", "BAT2", "CURR",
                     "CTUN", "RCOU", "GPS", "GPS2", "TIME", "IMU1", "BATT", "ATTC"})
 MG_TO_T = 1e-7
-#: above this share of unreadable bytes a log is an error for `fit` unless --allow-truncated (issue 6)
+#: above this share of unreadable bytes a log is an error with --strict, or when what is left is unusable
 MOSTLY_CORRUPT = 0.5
 Series = tuple[FloatArray, FloatArray]
 
@@ -77,23 +78,31 @@ class DataflashReader:
     name: ClassVar[str] = "dataflash"
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
-        """Every stream magcal uses; a truncated log is an error unless allowed (then its complete messages)."""
+        """Every stream magcal uses; a cut log up to its last complete message (--strict refuses it)."""
         raw = load(path)
-        if raw.skipped_bytes > MOSTLY_CORRUPT * raw.size and not options.allow_truncated:
-            kept = sum(v for k, v in raw.counts.items() if k != "FMT")
-            msg = (f"{path}: {raw.skipped_bytes} of {raw.size} bytes are not complete records (the log is mostly "
-                   f"corrupt, or its FMT records are damaged). Re-copy the log, or pass --allow-truncated to use "
-                   f"the {kept} messages that could be read")
-            raise LogReadError(msg)
-        if raw.truncated_bytes and not options.allow_truncated:
-            msg = (f"{path}: the log is truncated (the file ends inside a record, {raw.truncated_bytes} bytes "
-                   "from its end). Re-copy the log, or pass --allow-truncated to use the complete messages")
-            raise LogReadError(msg)
-        if is_px4log(raw):
-            from .dataflash_px4log import build_px4log
+        mostly_corrupt = raw.skipped_bytes > MOSTLY_CORRUPT * raw.size
+        if mostly_corrupt and not options.allow_truncated:
+            raise LogReadError(_mostly_corrupt(path, raw, "Re-copy the log, or leave out --strict to use them"))
+        cut = Cut(raw.size - raw.truncated_bytes, raw.size, raw.cut_lost) if raw.truncated_bytes else None
+        refuse_if_strict(path, options, cut)
+        try:
+            if is_px4log(raw):
+                from .dataflash_px4log import build_px4log
 
-            return build_px4log(path, raw)
-        return build_ardupilot(path, raw)
+                return mark_cut(build_px4log(path, raw), cut)
+            return mark_cut(build_ardupilot(path, raw), cut)
+        except StreamError:
+            if mostly_corrupt:          # what is missing was lost to the damage: say that, not "never logged"
+                why = "They are not enough to calibrate; re-copy the log from the vehicle"
+                raise LogReadError(_mostly_corrupt(path, raw, why)) from None
+            raise
+
+
+def _mostly_corrupt(path: Path, raw: RawLog, then: str) -> str:
+    """The message for a log more than half unreadable; `then` ends it."""
+    kept = sum(v for k, v in raw.counts.items() if k != "FMT")
+    return (f"{path}: {raw.skipped_bytes} of {raw.size} bytes are not complete records (the log is mostly "
+            f"corrupt, or its FMT records are damaged); {kept} messages could be read. {then}")
 
 
 def firmware_version(raw: RawLog) -> tuple[int, int] | None:
@@ -188,7 +197,10 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
         if f.has("S", "TimeUS"):          # 4.x: S (uint32 us, wraps) is when the sample was taken
             t = _sample_time(table.num("TimeUS"), table.num("S"))
         keep = table.num("Health") != 0 if f.has("Health") else np.ones(len(table), dtype=bool)
-        if not keep.all():
+        if not keep.any():          # a compass that never worked (e.g. all fields zero): the dead-sensor check
+            notes.append(f"MAG[{inst}]: the firmware marked all {len(keep)} samples unhealthy")   # judges it
+            keep[:] = True
+        elif not keep.all():
             notes.append(f"MAG[{inst}]: dropped {int((~keep).sum())} samples the firmware marked unhealthy")
         table, t = table.where(keep), t[keep]
         k = _mag_factor(table)

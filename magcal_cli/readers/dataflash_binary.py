@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .cut import a_record
 from .dataflash_format import (
     FMT_ID,
     FMT_LENGTH,
@@ -172,6 +173,7 @@ class _ChainParser:
         self.parts: dict[int, list[tuple[IntArray, np.ndarray]]] = {}
         self.used = 0
         self.truncated = 0
+        self.lost = ""
         self.notes: list[str] = []
         self.complete = 0
         self.trusted = False
@@ -222,14 +224,12 @@ class _ChainParser:
             self.truncated = size - int(offs[-1])
             last = int(buf[offs[-1] + 2])
             name = self.known[last][1].name if last in self.known else "FMT"
-            self.notes.append(f"the file ends inside a {name} record ({self.truncated} of {int(lengths[-1])} bytes): "
-                              f"the log is truncated; read the {self.complete + offs.size - 1} complete messages")
+            self.lost = f"{a_record(name)}, {self.truncated} of its {int(lengths[-1])} bytes present"
             return offs[:-1], lengths[:-1]
         tail = buf[int(offs[-1] + lengths[-1]) if offs.size else 0:]
         if 0 < tail.size < 3 and tail[0] == HEAD1 and (tail.size == 1 or tail[1] == HEAD2):
             self.truncated = int(tail.size)
-            self.notes.append(f"the file ends inside a record header ({self.truncated} bytes): the log is "
-                              f"truncated; read the {self.complete + offs.size} complete messages")
+            self.lost = f"a record header, {self.truncated} of its 3 bytes present"
         return offs, lengths
 
     def _take(self, buf: np.ndarray, base: int, offs: IntArray, lengths: IntArray) -> None:
@@ -275,7 +275,7 @@ class _ChainParser:
         if skipped:
             notes.append(f"skipped {skipped} bytes that are not complete records (corrupt data or padding); "
                          "reading resynchronised on the next message header")
-        return RawLog(formats, tables, counts, size, skipped, self.truncated, notes)
+        return RawLog(formats, tables, counts, size, skipped, self.truncated, notes, self.lost)
 
 
 def decode_records(raw: np.ndarray, pos: IntArray, fmt: MessageFormat) -> Table:

@@ -150,6 +150,7 @@ class RawLog:
     skipped_bytes: int = 0
     truncated_bytes: int = 0
     notes: list[str] = field(default_factory=list)
+    cut_lost: str = ""          # what the bytes after the last complete record held (a cut log)
 
     def table(self, name: str) -> Table | None:
         """The decoded messages of `name`, or None when the log has none."""

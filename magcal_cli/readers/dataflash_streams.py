@@ -144,6 +144,9 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
     while pending:
         p = pending.pop()
         where = p.id if len(p.kinds) > 1 else f"{p.id} {p.kinds[0].value}"
+        if not len(p.t):                # every record dropped before (unhealthy, no time): nothing to clean
+            notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
+            continue
         t, values, cleaned = clean_time(p.t - t0, p.values, where)
         if p.kinds == (Kind.MAGNETOMETER,):
             t, values, held = drop_held(t, values, p.id)

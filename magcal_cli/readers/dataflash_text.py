@@ -58,15 +58,13 @@ def parse_text(path: Path, wanted: Collection[str] | None = None, block: int = T
             first += len(lines)
             chunk = following
     tables, counts, notes = acc.tables()
-    if truncated:
-        notes.append(f"the file ends inside a record ({truncated} bytes after the last line break): the log is "
-                     "truncated; read the complete lines")
     try:
         formats = attach_units(dict(acc.formats), tables.get("FMTU"), tables.get("UNIT"), tables.get("MULT"))
     except (ValueError, KeyError, TypeError, IndexError):
         formats = acc.formats
         notes.append("ignored FMTU/UNIT/MULT records that are not in the expected text form")
-    return RawLog(formats, tables, counts, size, 0, truncated, notes)
+    lost = f"a line without its line break and some fields, {truncated} bytes" if truncated else ""
+    return RawLog(formats, tables, counts, size, 0, truncated, notes, lost)
 
 
 class _Blocks:
@@ -140,10 +138,20 @@ def _cut_last_line(data: bytes, lines: list[str], formats: dict[str, MessageForm
         return 0
     name, sep, rest = lines[-1].partition(",")
     fields = rest.count(",") + 1 if sep else 0
-    fmt = formats.get(name.strip())
+    fmt = formats.get(name.strip()) or _defined_in(lines, name.strip())    # a log of one block: its FMTs are here
     if name.strip() != "FMT" and (fmt is None or fields >= len(fmt.format)):
         return 0
     return len(lines.pop().encode("latin-1"))
+
+
+def _defined_in(lines: list[str], name: str) -> MessageFormat | None:
+    """The format of `name` from the FMT lines among `lines`, or None."""
+    for line in lines:
+        if line.startswith("FMT") and f" {name}," in line:
+            f = _format([p.strip() for p in line.split(",")])
+            if f is not None and f.name == name:
+                return f
+    return None
 
 
 def _numbers(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

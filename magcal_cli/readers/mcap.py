@@ -14,8 +14,9 @@ from types import SimpleNamespace
 from typing import Any, ClassVar
 
 from ..errors import LogReadError
-from ..streams import Recording
+from ..streams import Cut, Recording
 from . import ReadOptions
+from .cut import mark_cut, refuse_if_strict
 from .mcap_stream import Damage, iter_messages
 from .rosbag import ignored_note
 from .rosmsg import Collector, normalise_type, wanted
@@ -78,14 +79,16 @@ class McapReader:
     name: ClassVar[str] = "mcap"
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
-        """Decode every channel magcal reads; corrupt chunks are skipped, a truncated file is an error unless allowed."""
+        """Decode every channel magcal reads; corrupt chunks are skipped, a cut file is read to its end."""
         collector, notes = Collector(), list[str]()
-        collect(path, collector, options, notes)
-        return collector.recording(path, "mcap", options, notes)
+        cut = collect(path, collector, options, notes)
+        return mark_cut(collector.recording(path, "mcap", options, notes), cut)
 
 
-def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[str]) -> None:
-    """Add the messages of one MCAP file to `collector` and its remarks to `notes` (also for ROS 2 bags)."""
+def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[str]) -> Cut | None:
+    """Add the messages of one MCAP file to `collector` and its remarks to `notes` (also for ROS 2 bags).
+
+    Returns where the file is cut (None when it is complete); --strict refuses a cut file."""
     decoders: dict[int, Decode | None] = {}
     skipped: list[str] = []
     damage = Damage()
@@ -103,20 +106,18 @@ def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[
     except OSError as exc:
         msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
         raise LogReadError(msg) from None
-    if damage.truncated_at is not None:
-        where = f"after {len(collector)} complete messages"
-        if not options.allow_truncated:
-            msg = (f"{path}: the MCAP file is truncated or corrupt ({damage.why}) {where}. "
-                   "Re-copy the log, or pass --allow-truncated to use the complete part")
-            raise LogReadError(msg)
-        notes.append(f"truncated or corrupt: read {len(collector)} complete messages (the file is damaged from "
-                     f"byte {damage.truncated_at} of {size} on: {damage.why})")
+    cut = None
+    if damage.truncated_at is not None:        # damage that reaches the end of the file is a cut
+        lost = damage.lost if damage.why == "it ends inside a record" else f"{damage.why}; {damage.lost}"
+        cut = Cut(damage.truncated_at, size, lost)
+        refuse_if_strict(path, options, cut)
     if damage.note():
         notes.append(damage.note())
     if bad:
         notes.append(f"skipped {bad} messages that do not decode (corrupt data)")
     if skipped:
         notes.append(ignored_note(sorted(set(skipped))))
+    return cut
 
 
 def _add(path: Path, collector: Collector, msgtype: str, channel: Any, message: Any, decode: Decode) -> bool:

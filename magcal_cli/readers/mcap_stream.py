@@ -8,11 +8,16 @@ DataFlash. Only a file whose damage reaches its end (or that ends inside a recor
 
 from __future__ import annotations
 
+import contextlib
+import io
 import struct
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import IO, Any
+
+from .cut import a_record
+from .partial import MCAP_RECORDS, decompress_prefix
 
 #: MCAP opcodes (spec: Records)
 CHUNK_OPCODE, FOOTER_OPCODE = 0x06, 0x02
@@ -38,6 +43,21 @@ class Damage:
     orphans: int = 0
     truncated_at: int | None = None
     why: str = ""
+    lost: str = ""
+
+    def cut(self, fh: IO[bytes], at: int, size: int, why: str) -> list[Any]:
+        """Note that the file ends inside the record at `at`; the records a cut chunk there still holds."""
+        self.truncated_at, self.why = at, why
+        fh.seek(at)
+        head = fh.read(_CHUNK_HEAD.size)
+        name = MCAP_RECORDS.get(head[0], f"opcode 0x{head[0]:02x}") if head else "record"
+        total = 9 + struct.unpack_from("<Q", head, 1)[0] if len(head) >= 9 else None
+        present = f"{size - at} of its {total} bytes present" if total else f"{size - at} bytes present"
+        self.lost = f"{a_record(name)}, {present}" if head else "it stops between records, before its footer"
+        recs = _chunk_prefix(fh, head, at, size) if name == "chunk" else []
+        n = sum(type(r).__name__ == "Message" for r in recs)
+        self.lost += f"; {n} messages recovered from it" if recs else ""
+        return recs
 
     def note(self) -> str:
         """The reader note for damage in the middle of the file, or "" when there was none."""
@@ -115,7 +135,7 @@ def summary_definitions(fh: IO[bytes], size: int) -> tuple[dict[int, Any], dict[
 def iter_messages(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Any, Any, Any]]:
     """(schema or None, channel, message) of every readable message, in file order; damage is recorded."""
     from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
-    from mcap.records import Channel, Chunk, Footer, Message, Schema
+    from mcap.records import Chunk, Footer
     from mcap.stream_reader import StreamReader, breakup_chunk
 
     schemas, channels = summary_definitions(fh, size)      # so a lost chunk does not orphan later messages
@@ -130,15 +150,16 @@ def iter_messages(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[An
             try:
                 rec = next(records, None)
             except EndOfFile:
-                damage.truncated_at, damage.why = at, "it ends inside a record"
+                yield from _messages(damage.cut(fh, at, size, "it ends inside a record"), schemas, channels, damage)
                 return
             except Exception as exc:  # noqa: BLE001 - any parse failure of the framing: resynchronise
                 nxt = resync(fh, at + 1, size)
                 if nxt is None:
-                    damage.truncated_at = at
                     cut = isinstance(exc, (struct.error, RecordLengthLimitExceeded))   # a length past the end
-                    damage.why = ("it ends inside a record" if cut else
-                                  f"the record framing is broken at byte {at}: {type(exc).__name__}")
+                    why = ("it ends inside a record" if cut else
+                           f"the record framing is broken at byte {at}: {type(exc).__name__}")
+                    recs = damage.cut(fh, at, size, why)
+                    yield from _messages(recs if cut else [], schemas, channels, damage)
                     return
                 damage.bytes_skipped += nxt - at
                 base, skip_magic = nxt, True
@@ -154,14 +175,41 @@ def iter_messages(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[An
                 except Exception:  # noqa: BLE001 - a chunk that fails its CRC or does not decompress: skipped
                     damage.chunks += 1
                     continue
-            for r in inner:
-                if isinstance(r, Schema):
-                    schemas[r.id] = r
-                elif isinstance(r, Channel):
-                    channels[r.id] = r
-                elif isinstance(r, Message):
-                    ch = channels.get(r.channel_id)
-                    if ch is None:
-                        damage.orphans += 1
-                        continue
-                    yield schemas.get(ch.schema_id), ch, r
+            yield from _messages(inner, schemas, channels, damage)
+
+
+def _messages(records: list[Any], schemas: dict[int, Any], channels: dict[int, Any],
+              damage: Damage) -> Iterator[tuple[Any, Any, Any]]:
+    """(schema or None, channel, message) of the messages in `records`, learning the definitions among them."""
+    from mcap.records import Channel, Message, Schema
+
+    for r in records:
+        if isinstance(r, Schema):
+            schemas[r.id] = r
+        elif isinstance(r, Channel):
+            channels[r.id] = r
+        elif isinstance(r, Message):
+            ch = channels.get(r.channel_id)
+            if ch is None:
+                damage.orphans += 1
+                continue
+            yield schemas.get(ch.schema_id), ch, r
+
+
+def _chunk_prefix(fh: IO[bytes], head: bytes, at: int, size: int) -> list[Any]:
+    """The complete records in the present part of a chunk cut by the end of the file (its CRC cannot be checked)."""
+    from mcap.stream_reader import StreamReader
+
+    if len(head) < _CHUNK_HEAD.size:
+        return []
+    name_len = _CHUNK_HEAD.unpack(head)[-1]
+    fh.seek(at + _CHUNK_HEAD.size)
+    name = fh.read(name_len)
+    if name not in COMPRESSIONS:
+        return []
+    fh.seek(at + _CHUNK_HEAD.size + name_len + 8)
+    data = decompress_prefix(fh.read(min(size - fh.tell(), MAX_CHUNK_BYTES)), name.decode())
+    out: list[Any] = []
+    with contextlib.suppress(Exception):    # the record the data stop inside raises: the ones before it count
+        out.extend(StreamReader(io.BytesIO(data), skip_magic=True, record_size_limit=len(data) + 1).records)
+    return out

@@ -8,8 +8,9 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from ..errors import LogReadError
-from ..streams import Recording
+from ..streams import Cut, Recording
 from . import ReadOptions
+from .cut import mark_cut, refuse_if_strict
 from .rosmsg import Collector, wanted
 
 #: how many ignored topics a note names before it says "and N more"
@@ -48,7 +49,7 @@ class RosbagReader:
     name: ClassVar[str] = "rosbag"
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
-        """Decode every message of a type magcal reads; a corrupt bag is an error unless truncation is allowed."""
+        """Decode every message of a type magcal reads; a cut bag up to its last complete message."""
         from rosbags.highlevel import AnyReader, AnyReaderError
         from rosbags.rosbag1 import ReaderError as Reader1Error
         from rosbags.rosbag2 import ReaderError as Reader2Error
@@ -64,39 +65,68 @@ class RosbagReader:
             reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
         except Exception as exc:  # noqa: BLE001 - rosbags also raises AssertionError, MemoryError... on damage
-            storage = sorted(bag.glob("*.mcap")) if bag.is_dir() else []
-            if not storage:
+            rec = _read_unindexed(path, bag, options, _reason(exc))
+            if rec is None:
                 msg = f"{path}: cannot open the {fmt} ({_reason(exc)}). {_advice(exc)}"
                 raise LogReadError(msg) from None
-            return _read_mcap_storage(path, storage, options, _reason(exc))
+            return rec
         try:
             conns = [c for c in reader.connections if wanted(c.topic, c.msgtype)]
             ignored = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections if c not in conns})
             if ignored:
                 notes.append(ignored_note(ignored))
             why = _read_messages(reader, conns, collector, notes) if conns else ""
-            if why and not options.allow_truncated:
-                msg = (f"{path}: the {fmt} is truncated or corrupt to its end ({why}) after {len(collector)} "
-                       "messages. Re-copy the log, or pass --allow-truncated to use the complete part")
-                raise LogReadError(msg)
-            if why:
-                notes.append(f"truncated or corrupt to its end ({why}): read {len(collector)} complete messages")
+            cut = _db3_cut(bag)
+            if why:                 # damage that reaches the end of the bag is a cut (its index was whole)
+                cut = Cut(None, _size(bag), f"the data are unreadable from a chunk on to the end ({why})")
+            refuse_if_strict(path, options, cut)
         finally:
             with contextlib.suppress(*errors):
                 reader.close()
-        return collector.recording(path, fmt, options, notes)
+        return mark_cut(collector.recording(path, fmt, options, notes), cut)
 
 
-def _read_mcap_storage(path: Path, storage: list[Path], options: ReadOptions, why: str) -> Recording:
-    """A ROS 2 bag whose index rosbags cannot open, read from its MCAP storage files by streaming."""
+def _db3_cut(bag: Path) -> Cut | None:
+    """A ROS 2 sqlite3 bag whose database is shorter than its header declares (SQLite still opened it)."""
+    from .rosbag2_sqlite import declared_size
+
+    for db in sorted(bag.glob("*.db3")) if bag.is_dir() else []:
+        declared, size = declared_size(db), db.stat().st_size
+        if declared is not None and declared > size:
+            return Cut(None, size, f"{db.name} has {size} of the {declared} bytes its header declares")
+    return None
+
+
+def _size(bag: Path) -> int:
+    """Bytes in a bag file, or in the storage files of a bag directory."""
+    return bag.stat().st_size if bag.is_file() else sum(f.stat().st_size for f in bag.iterdir() if f.is_file())
+
+
+def _read_unindexed(path: Path, bag: Path, options: ReadOptions, why: str) -> Recording | None:
+    """A bag rosbags cannot open (a cut one has no index) read record by record; None when that is no help."""
     from .mcap import collect
+    from .rosbag1_scan import scan_bag1
+    from .rosbag2_sqlite import read_cut_db3
 
-    collector = Collector()
-    notes = [f"rosbags cannot open the bag ({why}); read its MCAP storage file{'s' * (len(storage) > 1)} "
-             "record by record instead"]
-    for f in storage:
-        collect(f, collector, options, notes)
-    return collector.recording(path, "rosbag2", options, notes)
+    collector, cut, notes = Collector(), None, list[str]()
+    if bag.is_file():
+        cut = scan_bag1(bag, collector, notes)
+        fmt = "rosbag"
+    elif storage := sorted(bag.glob("*.db3")):
+        for f in storage:
+            cut = read_cut_db3(f, collector, notes) or cut
+        fmt = "rosbag2"
+    else:
+        storage = sorted(bag.glob("*.mcap"))
+        notes.append(f"rosbags cannot open the bag ({why}); read its MCAP storage file{'s' * (len(storage) > 1)} "
+                     "record by record instead")
+        for f in storage:
+            cut = collect(f, collector, options, notes) or cut
+        fmt = "rosbag2"
+    if not len(collector):
+        return None
+    refuse_if_strict(path, options, cut)
+    return mark_cut(collector.recording(path, fmt, options, notes), cut)
 
 
 def _read_messages(reader: Any, conns: list[Any], collector: Collector, notes: list[str]) -> str:

@@ -17,9 +17,10 @@ import numpy.typing as npt
 from .. import units
 from ..align import clean_time, onto
 from ..errors import LogReadError, StreamError
-from ..streams import Kind, Recording, Stream
+from ..streams import Cut, Kind, Recording, Stream
 from . import ReadOptions
 from .checks import normalised_field, normalised_note, sensor_checks
+from .cut import mark_cut, refuse_if_strict
 from .ulog_load import Loaded, load_ulog
 
 FloatArray = npt.NDArray[np.float64]
@@ -340,7 +341,7 @@ class UlogReader:
     name: ClassVar[str] = "ulog"
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
-        """Every stream magcal uses; a truncated or corrupt file is an error unless --allow-truncated."""
+        """Every stream magcal uses; a cut file up to its last complete message (--strict refuses it)."""
         loaded = load_ulog(path, TOPICS)
         ulog = loaded.ulog
         tp = _Topics(loaded, path, options)
@@ -370,12 +371,12 @@ class UlogReader:
             times = "once" if len(ulog.dropouts) == 1 else f"{len(ulog.dropouts)} times"
             tp.notes.append(f"the logger dropped data {times} ({lost} ms in total); samples are missing "
                             "there")
-        return Recording(path, "ulog", tuple(streams), t0=t0_us * 1e-6, params=params,
-                         notes=tuple(tp.notes))
+        return mark_cut(Recording(path, "ulog", tuple(streams), t0=t0_us * 1e-6, params=params,
+                                  notes=tuple(tp.notes)), _cut(loaded))
 
     @staticmethod
     def _check_damage(path: Path, loaded: Loaded, options: ReadOptions, notes: list[str]) -> None:
-        """Raise for a file without decodable data, and for a cut-off or corrupt one unless allowed."""
+        """Raise for a file without decodable data, and for a cut one with --strict; note corrupt data."""
         ulog = loaded.ulog
         kept = sum(len(d.data["timestamp"]) for d in ulog.data_list if "timestamp" in d.data)
         if not ulog.data_list and not loaded.topics:
@@ -386,17 +387,18 @@ class UlogReader:
                 msg = (f"{path}: no data messages could be decoded after the ULog header (the file is "
                        "corrupt or not a PX4 log). Re-copy the log from the vehicle")
             raise LogReadError(msg)
-        if loaded.cut_at is not None:
-            cut = f"truncated (the last message is cut off at byte {loaded.cut_at} of {loaded.size})"
-            if not options.allow_truncated:
-                msg = (f"{path}: the ULog is {cut}; {kept} samples of the topics magcal reads are complete. "
-                       "Re-copy the log, or pass --allow-truncated to use them")
-                raise LogReadError(msg)
-            notes.append(f"the ULog is {cut}; read {kept} complete samples")
+        refuse_if_strict(path, options, _cut(loaded))
         if ulog.file_corruption:          # corrupt bytes in the middle: skipped, as pymavlink does (issue 6)
             notes.append(f"corrupt data: pyulog skipped damaged bytes and resynchronised on the next message; "
                          f"read {kept} complete samples")
         notes.extend(f"pyulog: {line}" for line in loaded.printed[:3])
+
+
+def _cut(loaded: Loaded) -> Cut | None:
+    """Where a ULog ends inside a message (pyulog stops at the last complete one), or None."""
+    if loaded.cut_at is None:
+        return None
+    return Cut(loaded.cut_at, loaded.size, f"a message, {loaded.size - loaded.cut_at} bytes present")
 
 
 def _stream(p: Piece, t0_us: int, notes: list[str]) -> Stream | None:

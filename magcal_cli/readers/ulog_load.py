@@ -65,7 +65,7 @@ class GuardFile:
         self._header = (pos, int.from_bytes(data[:2], "little")) if n == HEADER_SIZE else None
         clean_end = not data and n == HEADER_SIZE          # a header would start at the end: the log is whole
         if (payload or n == HEADER_SIZE) and len(data) < n and not clean_end and self.cut_at is None:
-            self.cut_at = pos                              # sync searches read ahead in blocks: not a cut
+            self.cut_at = pos - HEADER_SIZE * payload      # sync searches read ahead in blocks: not a cut
         return data
 
     def _corrupt_header(self, pos: int, header: bytes) -> bool:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from magcal_cli.cli import cli
 from magcal_cli.errors import LogReadError, StreamError, UnsupportedFormatError
 from magcal_cli.logwriters import write_log
 from magcal_cli.logwriters.dataflash import PreviousCalibration, build
@@ -24,6 +27,8 @@ from magcal_cli.readers.dataflash_mag import (
 )
 from magcal_cli.streams import Kind
 from magcal_cli.synth import Simulation, simulate
+
+from ..fuzzing import DeadSensor
 
 
 @pytest.fixture(scope="module")
@@ -182,16 +187,17 @@ def test_corrupt_bytes_are_skipped_and_counted(tmp_path: Path, sim: Simulation) 
 
 
 def test_truncated_mid_record_reads_the_complete_messages(tmp_path: Path, sim: Simulation) -> None:
-    """A log cut inside a record is an error by default (as for every format); allowed, it yields every
-    complete message and a note saying it is truncated."""
+    """A log cut inside a record yields every complete message and a note saying where it was cut (issue 12);
+    --strict refuses it (as for every format)."""
     data = build(sim)
     path = tmp_path / "cut.bin"
     data[: len(data) // 2 + 7].tofile(path)
-    with pytest.raises(LogReadError, match=r"cut.bin: the log is truncated \(the file ends inside a record, "
-                                           r"\d+ bytes from its end\). Re-copy the log, or pass --allow-truncated"):
-        open_recording(path)
-    rec = open_recording(path, options=ReadOptions(allow_truncated=True))
-    assert any("truncated" in n for n in rec.notes)
+    with pytest.raises(LogReadError, match=r"cut.bin: the log is cut: it ends inside a record at byte \d+ of \d+ "
+                                           r"\(an? \w+ record, \d+ of its \d+ bytes present\)\. Re-copy the log, "
+                                           r"or leave out --strict"):
+        open_recording(path, options=ReadOptions(allow_truncated=False))
+    rec = open_recording(path)
+    assert rec.cut is not None and rec.notes[0] == rec.cut.message
     assert 0.4 < rec.select(Kind.ACCELEROMETER).t[-1] / sim.recording.select(Kind.ACCELEROMETER).t[-1] < 0.6
 
 
@@ -348,8 +354,9 @@ def test_log171_reconstruction_fits_as_well_and_reapplies_exactly(realdata: Path
 
 def test_truncated_462_log_reads_its_complete_messages(realdata: Path) -> None:
     """ap462_truncated_80k.bin: instanced MAG/IMU, FMTU units, ends inside a record header."""
-    rec = open_recording(realdata / "ardupilot" / "ap462_truncated_80k.bin", options=ReadOptions(allow_truncated=True))
-    assert any("truncated" in n and "1817 complete messages" in n for n in rec.notes)
+    rec = open_recording(realdata / "ardupilot" / "ap462_truncated_80k.bin")
+    assert rec.cut is not None and rec.cut.lost == "a record header, 2 of its 3 bytes present"
+    assert rec.cut.offset == rec.cut.size - 2
     assert rec.ids(Kind.MAGNETOMETER) == ["MAG[0]", "MAG[1]"]
     assert rec.ids(Kind.ACCELEROMETER) == ["IMU[0]", "IMU[1]"]
     assert [len(s) for s in rec.of_kind(Kind.MAGNETOMETER)] == [4, 4]
@@ -402,3 +409,20 @@ def test_fit_on_real_logs_writes_results_or_one_clean_line(realdata: Path, tmp_p
     else:
         lines = [ln for ln in result.output.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("Error: ") and "Traceback" not in result.output
+
+
+def test_dead_compass_with_all_fields_zero_is_the_dead_sensor_error(tmp_path: Path) -> None:
+    """Issue 12: MAG records whose fields are all zero (Health too) exited 123 with `cannot reshape array of
+    size 0`; the firmware's 'unhealthy' marks no longer empty the stream, so fit names the dead sensor."""
+    path = DeadSensor("magnetometer", "zero").write("bin", tmp_path)
+    rec = open_recording(path)
+    mag = rec.select(Kind.MAGNETOMETER, "MAG[0]")
+    assert len(mag) > 500 and not np.any(mag.values)
+    assert any(re.fullmatch(r"MAG\[0\]: the firmware marked all \d+ samples unhealthy", n) for n in rec.notes)
+    result = CliRunner().invoke(cli, ["fit", str(path), "-o", str(tmp_path / "o"), "--outputs", "json", "-q"])
+    assert result.exit_code == 1, result.stderr
+    assert result.stderr.strip() == (
+        f"Error: {path.name}#MAG[I=0].MagX/MagY/MagZ (raw, reconstructed): the magnetometer MAG[0] reads zero in "
+        f"all {len(mag)} samples; the sensor is stuck, disconnected or not enabled (or the column is a "
+        "placeholder). Check the sensor and its logging, and record again")
+    assert not (tmp_path / "o").exists()

@@ -156,15 +156,16 @@ def test_channels_magcal_cannot_decode_are_listed(tmp_path: Path) -> None:
 
 
 def test_truncated_mcap(tmp_path: Path, sim: Simulation) -> None:
-    """A cut file is an error naming --allow-truncated; with it, the complete messages are read and noted."""
+    """A cut file: the complete messages (and those the cut chunk's bytes still hold) are read and noted;
+    --strict refuses it."""
     write_mcap(sim, tmp_path / "x.mcap", "cdr", "lz4", chunk_size=32_000)
     data = (tmp_path / "x.mcap").read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[: len(data) * 2 // 3])
-    with pytest.raises(LogReadError, match=r"cut.mcap: the MCAP file is truncated or corrupt \(it ends inside a record\) after "
-                                           r"\d+ complete messages\. Re-copy the log, or pass --allow-truncated"):
-        open_recording(tmp_path / "cut.mcap")
-    rec = open_recording(tmp_path / "cut.mcap", options=ReadOptions(allow_truncated=True))
-    assert any(n.startswith("truncated or corrupt: read ") for n in rec.notes)
+    with pytest.raises(LogReadError, match=r"cut.mcap: the log is cut: it ends inside a record at byte \d+ of \d+ "
+                                           r"\(an? [a-z ]+ record, .*\)\. Re-copy the log, or leave out --strict"):
+        open_recording(tmp_path / "cut.mcap", options=ReadOptions(allow_truncated=False))
+    rec = open_recording(tmp_path / "cut.mcap")
+    assert rec.cut is not None and rec.notes[0].startswith("the log is cut: it ends inside a record at byte ")
     assert 0 < len(rec.select(Kind.MAGNETOMETER)) < len(sim.recording.select(Kind.MAGNETOMETER))
 
 

@@ -222,11 +222,20 @@ def test_errors_name_the_problem(tmp_path: Path) -> None:
         open_recording(tmp_path / "bad")
 
 
-def test_truncated_bag_says_to_reindex(tmp_path: Path, sim: Simulation) -> None:
-    """A ROS 1 bag cut short has no index: the error says so and names `rosbag reindex`."""
-    write_bag(sim, tmp_path / "x.bag")
+def test_truncated_bag_is_read_without_its_index(tmp_path: Path, sim: Simulation) -> None:
+    """A ROS 1 bag cut short has no index: its records are read in file order, as `rosbag reindex` would."""
+    write_bag(sim, tmp_path / "x.bag", chunk_size=16_000)
     data = (tmp_path / "x.bag").read_bytes()
     (tmp_path / "cut.bag").write_bytes(data[: len(data) // 2])
+    rec = open_recording(tmp_path / "cut.bag")
+    assert rec.cut is not None and rec.cut.offset is not None
+    assert 0 < len(rec.select(Kind.MAGNETOMETER)) < len(sim.recording.select(Kind.MAGNETOMETER))
+
+
+def test_bag_with_no_readable_message_says_to_reindex(tmp_path: Path, sim: Simulation) -> None:
+    """A ROS 1 bag cut before its first chunk: nothing to read, and the error names `rosbag reindex`."""
+    write_bag(sim, tmp_path / "x.bag")
+    (tmp_path / "cut.bag").write_bytes((tmp_path / "x.bag").read_bytes()[:5000])
     with pytest.raises(LogReadError, match=r"cut.bag: cannot open the rosbag .*The bag is truncated or was not "
                                            r"closed cleanly; run `rosbag reindex`"):
         open_recording(tmp_path / "cut.bag")

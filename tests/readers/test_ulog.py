@@ -288,17 +288,16 @@ def test_nan_samples_and_dropouts_are_reported(tmp_path: Path) -> None:
 # --- errors: one message each ----------------------------------------------------------------------------
 
 
-def test_truncated_is_an_error_unless_allowed(tmp_path: Path, sim: Simulation, sim_bytes: bytes) -> None:
-    """A cut-off file names the byte; --allow-truncated reads the complete part and says so."""
+def test_truncated_is_read_unless_strict(tmp_path: Path, sim: Simulation, sim_bytes: bytes) -> None:
+    """A cut-off file: the complete part is read and the note names the byte; --strict refuses it."""
     cut = len(sim_bytes) // 2 + 5
     path = write(tmp_path, sim_bytes[:cut])
     with pytest.raises(LogReadError, match=(
-            rf"log.ulg: the ULog is truncated \(the last message is cut off at byte \d+ of {cut}\); "
-            r"\d+ samples of the topics magcal reads are complete\. Re-copy the log, or pass "
-            r"--allow-truncated to use them$")):
-        read(path)
-    rec = read(path, allow_truncated=True)
-    assert rec.notes[0].startswith("the ULog is truncated (the last message is cut off at byte")
+            rf"log.ulg: the log is cut: it ends inside a record at byte \d+ of {cut} \(a message, \d+ bytes "
+            r"present\)\. Re-copy the log, or leave out --strict to calibrate from its complete records$")):
+        read(path, allow_truncated=False)
+    rec = read(path)
+    assert rec.notes[0].startswith("the log is cut: it ends inside a record at byte")
     assert 0 < len(rec.select(Kind.MAGNETOMETER)) < len(sim.recording.select(Kind.MAGNETOMETER))
 
 
