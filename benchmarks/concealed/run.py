@@ -20,6 +20,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from cases import CASES, Case, select  # noqa: E402
@@ -43,8 +45,25 @@ def record_path(out: Path, case: Case, seed: int) -> Path:
     return out / "runs" / case.name / f"{seed:03d}.json"
 
 
+def concealment(sim: Any) -> dict[str, dict[str, float]]:
+    """Per injected effect with an additive term: per-sample visibility v = RMS(term) / noise std (per axis), the
+    same after removing the term's mean (which the offset or bias absorbs), and that offset absorption."""
+    out: dict[str, dict[str, float]] = {}
+    for e in sim.effects:
+        term = e.signals.get("term")
+        if term is None:
+            continue
+        noise = sim.truth.noise_std["magnetometer" if e.sensor == "magnetometer" else "accelerometer"]
+        raw = float(np.sqrt(np.mean(term**2)) / noise)
+        centred = float(np.sqrt(np.mean((term - term.mean(axis=0)) ** 2)) / noise)
+        out[e.id] = {"v": round(raw, 4), "v_centred": round(centred, 4),
+                     "offset_absorption": round(1.0 - (centred / raw) ** 2, 4) if raw > 0 else 0.0}
+    return out
+
+
 def generate(case: Case, seed: int, log: Path) -> dict[str, Any]:
-    """Write the case's log for `seed` and return its truth document (the reader's ids and magnetometer unit)."""
+    """Write the case's log for `seed` and return its truth document (the reader's ids and magnetometer unit)
+    with the concealment figures under "concealment"."""
     from magcal_cli import __version__
     from magcal_cli.document import dumps_json
     from magcal_cli.logwriters import write_log
@@ -58,6 +77,7 @@ def generate(case: Case, seed: int, log: Path) -> dict[str, Any]:
     write_log(sim, log)
     doc = dumps_json(truth_calibration(sim, open_recording(log), __version__, "1970-01-01T00:00:00Z"))
     truth: dict[str, Any] = json.loads(doc)
+    truth["concealment"] = concealment(sim)
     return truth
 
 
@@ -80,7 +100,8 @@ def run_one(case: Case, seed: int, out: Path, effects_arg: str, keep_logs: bool 
     if proc.returncode in (0, 3) and cal.exists():
         effects = json.loads(cal.read_text()).get("effects", [])
     rec = {"case": case.name, "tier": case.tier, "seed": seed, "sim_seed": sim_seed(case, seed),
-           "effects_arg": value, "truth": truth.get("effects", []), "effects": effects,
+           "effects_arg": value, "truth": truth.get("effects", []), "concealment": truth["concealment"],
+           "effects": effects,
            "exit_code": proc.returncode, "stderr": proc.stderr[-2000:], "runtime_sim_s": round(t_sim, 3),
            "runtime_fit_s": round(t_fit, 3)}
     path = record_path(out, case, seed)
