@@ -122,12 +122,16 @@ def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | Non
         raise click.BadParameter(str(exc)) from None
 
 
+#: what --effects auto parses to: the diagnosis chooses the effects
+AUTO = ("auto",)
+
+
 def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ...]:
-    """--effects parsed into effect ids ('auto' fits the base model until the diagnosis exists)."""
+    """--effects parsed into effect ids, or AUTO."""
     from .effects import EffectError, parse
 
     if value.strip() == "auto":
-        return ()
+        return AUTO
     try:
         return parse(value)
     except EffectError as exc:
@@ -164,12 +168,13 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
               help="Date for the World Magnetic Model [default: the log's date when known, else today].")
 @click.option("--robust-loss", type=click.Choice(["l2", "huber", "cauchy"]), default="l2", show_default=True,
               help="Joint MAP (--method map): down-weight outlying readings with a Huber or Cauchy loss.")
-@click.option("--effects", "effects", default="none", show_default=True, metavar="auto|none|ID[,ID...]",
+@click.option("--effects", "effects", default="auto", show_default=True, metavar="auto|none|ID[,ID...]",
               callback=_effects,
-              help="Physics beyond the base model to fit (joint MAP): none, or a comma list of effect ids "
-                   "(current_interference, throttle_interference, temperature_drift, time_offset, gyro_scale, "
-                   "accel_scale, lever_arm, nongravity_acceleration); each is reported with its estimate, "
-                   "uncertainty, test and status. auto (the diagnosis) is not built yet and fits the base model.")
+              help="Physics beyond the base model (joint MAP). auto: the mismatch diagnosis tests every effect the "
+                   "log can test and adds what it proves on held-out data; none: the base model only; or a comma "
+                   "list of effect ids to model exactly (current_interference, throttle_interference, "
+                   "temperature_drift, time_offset, gyro_scale, accel_scale, lever_arm, nongravity_acceleration, "
+                   "transient_disturbance), each reported with its estimate, uncertainty, test and status.")
 @click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: _gates(v, "fit"),
               help="Exit 3 when a magnetometer meets a condition, e.g. 'heading_std_deg>1,field_norm_rms_pct>2' "
                    "(METRIC OP NUMBER, comma-separated; see docs/firmware-export.md).")
@@ -190,7 +195,8 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
     check_targets(outdir, names + ([auto] if auto else []), force)
     cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=not strict,
-                 location=location, date=date, robust_loss=robust_loss, effects=effects)
+                 location=location, date=date, robust_loss=robust_loss, effects=() if effects == AUTO else effects,
+                 diagnose=effects == AUTO)
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
         names.append(auto)
@@ -467,6 +473,54 @@ def apply_cmd(ctx: click.Context, calibration: Path, log: Path, out: Path, mags:
         _stderr(ctx, n)
     write_text(out, text)
     click.echo(f"wrote {out}")
+
+
+@cli.command("diagnose", epilog=EXIT_CODES)
+@click.argument("log", type=click.Path(exists=True, path_type=Path))
+@click.option("--calibration", "cal_path", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              default=None, help="A magcal calibration of this vehicle: its magnetometers and IMU are diagnosed "
+                                 "[default: every magnetometer of the log].")
+@click.option("-o", "--outdir", type=click.Path(path_type=Path), default=None,
+              help="Also write diagnosis.json (the diagnosis and every effect's verdict) to this directory.")
+@click.option("--json", "as_json", is_flag=True, help="Print the diagnosis and the effects as one JSON document.")
+@click.option("--force", is_flag=True, help="Overwrite an existing diagnosis.json.")
+@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@verbosity
+@click.pass_context
+@handle_errors
+def diagnose_cmd(ctx: click.Context, log: Path, cal_path: Path | None, outdir: Path | None, as_json: bool,
+                 force: bool, fmt: str | None) -> None:
+    """Find what physics the calibrated model leaves out of LOG, model it, and show the held-out improvement."""
+    import json
+
+    from .atomic import atomic_path
+    from .document import load
+    from .pipeline import calibrate
+
+    target = None if outdir is None else outdir / "diagnosis.json"
+    if target is not None and target.exists() and not force:
+        msg = f"{target} exists; use --force to overwrite it"
+        raise click.UsageError(msg)
+    mag, imu = "all", None
+    if cal_path is not None:
+        cal = load(cal_path)
+        mag, imu = ",".join(m.id for m in cal.magnetometers), cal.imu.id
+    cfg = Config(method="map", mag=mag, imu=imu, diagnose=True)
+    result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
+    doc = {"log": str(log.resolve()), "diagnosis": result.calibration.diagnosis,
+           "effects": list(result.calibration.effects)}
+    text = json.dumps(doc, indent=2, default=float) + "\n"
+    if target is not None:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(target) as tmp:
+            tmp.write_text(text)
+    if as_json:
+        click.echo(text, nl=False)
+        return
+    for block in (result.calibration.diagnosis or {}).get("sensors", []):
+        click.echo(block["summary"])
+    if target is not None:
+        click.echo(f"wrote {target}")
 
 
 @cli.command("check", epilog=EXIT_CODES)

@@ -39,3 +39,4 @@ class Config:
     date: str | None = None          # YYYY-MM-DD for the WMM (default: the log's date when known, else today)
     robust_loss: str = "l2"          # joint MAP: l2, huber or cauchy (outlier-tolerant)
     effects: tuple[str, ...] = ()    # effect plug-ins to model (ids of magcal_cli.effects.EFFECTS); () = base model
+    diagnose: bool = False           # --effects auto: the mismatch diagnosis chooses the effects (diagnose/)

@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -175,7 +176,7 @@ def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = N
     raw = stream.xyz * f
     t, y = stream.t, raw
     if effects and rec is not None:
-        t, y, _ = remove(effects, stream.id, rec, stream.t, raw)
+        t, y, _ = remove(effects, stream.id, rec, stream.t, raw, ("accepted", "ambiguous"))
     m_b = (y - o) @ np.linalg.inv(d).T
     used = np.all(np.isfinite(m_b), axis=1)                # excluded (transient) readings are NaN
     norm_err = np.linalg.norm(m_b[used], axis=1) - 1.0
@@ -258,6 +259,16 @@ def _method_for(problem: Problem, cfg: Config) -> tuple[str, list[Finding]]:
     return (("map" if len(problem.gyr) else "kok2012") if cfg.method == "auto" else cfg.method), []
 
 
+def diagnosis_block(blocks: tuple[dict[str, Any], ...], mags: dict[str, Stream]) -> dict[str, Any]:
+    """The document's `diagnosis`: the magnetometer with the strongest mismatch at the top level (the contract's
+    single block), every magnetometer's block under `sensors`; SI field values in each one's unit."""
+    from .diagnose.document import in_units
+
+    per = [in_units(b, mags[b["sensor"]].native_unit) for b in blocks]
+    top = min(per, key=lambda b: float(b["ppc"]["global_p"]))
+    return {**top, "summary": " ".join(b["summary"] for b in per), "sensors": per}
+
+
 def _effect_entries(result: MethodResult, mags: dict[str, Stream]) -> tuple[dict[str, object], ...]:
     """The document's `effects[]`: magnetometer effects in that magnetometer's unit."""
     from .effects.document import entry
@@ -309,7 +320,7 @@ def _run_method(run: MethodRun, problem: Problem, cfg: Config, method: str) -> t
         tuple(e for p in parts if p.imu is imu for e in p.effects if e.sensor not in mag_ids)
     merged = MethodResult(parts[0].method, tuple(f for p in parts for f in p.mags), imu, noise,
                           tuple(n for p in parts for n in p.notes), tuple(f for p in parts for f in p.findings),
-                          effects)
+                          effects, tuple(d for p in parts for d in p.diagnosis))
     return merged, failed
 
 
@@ -327,6 +338,11 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     problem, dropped = _select(rec, cfg)
     method, chosen = _method_for(problem, cfg)
     cfg = _with_position(rec, cfg)
+    if cfg.diagnose and method != "map":
+        chosen.append(Finding(Severity.INFO, "diagnosis_skipped",
+                              f"the mismatch diagnosis (--effects auto) runs with the joint MAP method only; "
+                              f"the {method} method fitted the base model"))
+        cfg = replace(cfg, diagnose=False)
     if cfg.effects and method != "map":
         msg = (f"{path.name}: --effects {','.join(cfg.effects)} is modelled by the joint MAP method only in magcal "
                f"{__version__} (the {method} method has no effect terms); use --method map, or --effects none")
@@ -364,6 +380,7 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     digest = sha256(path) if path.exists() else ""
     source = Source(str(path), rec.format, digest, float(t_used.min()), float(t_used.max()))
     findings = chosen + dropped + failed + _findings(rec, problem, result, mags) + _dip_check(mags, ref)
+    diagnosis = diagnosis_block(result.diagnosis, streams) if result.diagnosis else None
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
-                      effects=effect_entries, notes=tuple(f.message for f in findings))
+                      effects=effect_entries, diagnosis=diagnosis, notes=tuple(f.message for f in findings))
     return RunResult(doc, rec, problem.still, tuple(findings), series)

@@ -96,6 +96,9 @@ class Effect:
     #: the `inspect` kinds of the log channels it needs (empty: only the IMU and magnetometer)
     channels: ClassVar[tuple[Kind, ...]] = ()
     physics_left_out: ClassVar[str]
+    #: the recording that tells this effect apart from a rival the log could not separate it from
+    separating_experiment: ClassVar[str] = ("a recording in which the two effects' channels change "
+                                            "independently of each other")
     #: firmware parameters that hold it, where a firmware has a knob
     firmware: ClassVar[dict[str, str]] = {}
     #: the signal the firmware's interference compensation multiplies ("current" or "throttle"), if any:

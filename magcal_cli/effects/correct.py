@@ -15,13 +15,16 @@ from .base import Target
 FloatArray = npt.NDArray[np.float64]
 
 
-def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: FloatArray, y: FloatArray
-           ) -> tuple[FloatArray, FloatArray, list[str]]:
-    """Readings and stamps with the accepted magnetometer effects of `mag_id` removed, and what was done."""
+def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: FloatArray, y: FloatArray,
+           statuses: tuple[str, ...] = ("accepted",)) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Readings and stamps with the accepted magnetometer effects of `mag_id` removed, and what was done.
+
+    `statuses`: which entries count; the quality figures also remove an `ambiguous` effect the fit modelled
+    (it carries parameters), `apply` only what was accepted."""
     notes = []
     for e in effects:
         eid = str(e.get("id"))
-        if e.get("sensor") != mag_id or e.get("status") != "accepted" or eid not in EFFECTS:
+        if e.get("sensor") != mag_id or e.get("status") not in statuses or eid not in EFFECTS or not e.get("params"):
             continue
         eff = get(eid)
         if eff.target is not Target.MAG:

@@ -22,6 +22,7 @@ class Current(Effect):
     params = (ParamBlock("c", 3, "field", "current interference", XYZ),)
     units: ClassVar[dict[str, str]] = {"c": "{field}/ampere"}
     channels = (Kind.BATTERY_CURRENT,)
+    separating_experiment = ("hover-descend-hover throttle steps at a steady temperature, so current changes quickly while the temperature does not")
     physics_left_out = ("Current in the power leads adds a field fixed to the vehicle, proportional to the "
                         "current.")
     firmware: ClassVar[dict[str, str]] = {"ardupilot": "COMPASS_MOTCT=2, COMPASS_MOT_X/Y/Z",

@@ -44,10 +44,19 @@ def entry(fit: EffectFit, mag_unit: str | None) -> dict[str, Any]:
         params[k] = v
         if k in eff.units:
             unit_of[k] = eff.units[k].replace("{field}", unit)
+    kind = fit.test_kind if fit.estimate is not None or fit.test_kind != "wald" else "excluded readings"
     out.update({"params": params, "std": std, "ci95": ci, "units": unit_of,
-                "test": {"kind": "wald", "statistic": fit.statistic, "dof": fit.dof, "p_value": fit.p_value}
-                if fit.estimate is not None else {"kind": "excluded readings", "statistic": fit.statistic},
-                "confounded_with": []})
+                "test": {"kind": kind, "statistic": fit.statistic, "dof": fit.dof, "p_value": fit.p_value},
+                "confounded_with": list(fit.confounded_with)})
+    if fit.evidence:
+        out["evidence"] = {(k[:-3] if k.endswith("_si") else k): (v * factor if k.endswith("_si") else v)
+                           for k, v in fit.evidence.items()}
+    if fit.reason:
+        out["reason"] = fit.reason
+    if fit.status == "ambiguous" and fit.confounded_with:
+        rivals = " or ".join(fit.confounded_with)
+        out["physics_left_out"] = (f"{eff.physics_left_out} This log cannot tell it apart from {rivals}; "
+                                   f"to separate them, record {eff.separating_experiment}.")
     if eff.firmware:
         out["firmware"] = dict(eff.firmware)
     return out

@@ -12,6 +12,7 @@ Internally the magnetometer is expressed in units of its ellipsoid-fit scale (D 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -20,6 +21,7 @@ from threadpoolctl import threadpool_limits
 
 from .. import so3, units
 from ..config import Config
+from ..effects.base import Point
 from ..findings import Finding, Severity
 from ..streams import Stream
 from . import map_init
@@ -58,6 +60,29 @@ MIN_STILL_S = 2.0
 #: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
 REPREINTEGRATE_RAD = 0.01
 @dataclass(frozen=True, eq=False)
+class FitContext:
+    """What the solver saw at the optimum, in its internal (scaled) units: the diagnosis re-evaluates, extends
+    and simulates the fit from here (diagnose/)."""
+
+    ep: Epochs
+    pre: Preintegrated
+    noise: Noise
+    layout: Layout
+    bound: tuple[Bound, ...]
+    states: FloatArray
+    theta: FloatArray
+    holdout: FloatArray | None = None
+
+    def linearize(self, layout: Layout | None = None, bound: tuple[Bound, ...] | None = None,
+                  ep: Epochs | None = None, pre: Preintegrated | None = None,
+                  holdout: FloatArray | None = None) -> Linearize:
+        """The fit's cost, optionally with another layout and effects, data or held-out weights."""
+        return make_linearize(self.ep if ep is None else ep, self.pre if pre is None else pre, self.noise,
+                              self.layout if layout is None else layout, self.bound if bound is None else bound,
+                              holdout)
+
+
+@dataclass(frozen=True, eq=False)
 class MapEstimate:
     """One magnetometer's joint MAP result in SI: theta in `layout` (b_a, b_g, D, o, dip and any effect blocks)
     with the *total* gyro bias, its covariance, the noise levels used (SI), the trajectory and the solver's
@@ -79,6 +104,7 @@ class MapEstimate:
     condition: float = float("nan")
     layout: Layout = BASE
     effects: tuple[EffectFit, ...] = ()
+    context: FitContext | None = None
 
     @property
     def std(self) -> FloatArray:
@@ -111,10 +137,20 @@ def mag_layout(layout: Layout) -> MagLayout:
     return MagLayout(layout.slice("D").start, layout.slice("o").start, layout.slice("dip").start)
 
 
+def point_at(states: FloatArray, theta: FloatArray, layout: Layout, pre: Preintegrated) -> Point:
+    """The model at an iterate, as the effect terms see it (effects/base.py `Point`)."""
+    d, _, dip = mag_layout(layout).unpack(theta)
+    return Point(states, np.einsum("mji,j->mi", states, field_nav(dip)),
+                 np.einsum("mji,j->mi", states, np.array([-np.sin(dip), 0.0, np.cos(dip)])),
+                 G * states[:, 2, :], d, pre)
+
+
 def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout = BASE,
-                   bound: tuple[Bound, ...] = ()) -> Linearize:
+                   bound: tuple[Bound, ...] = (), holdout: FloatArray | None = None) -> Linearize:
     """Accelerometer, magnetometer and gyro-preintegration factors of the MAP cost (methods.md section 3), with
-    the terms of the bound effects added to the factors they enter (map_effects.py)."""
+    the terms of the bound effects added to the factors they enter (map_effects.py). `holdout` (K,) weights
+    the accelerometer and magnetometer rows (0: held out for validation; the gyro still carries the
+    trajectory through)."""
     l_acc, l_mag = np.diag(1.0 / noise.acc), np.diag(1.0 / noise.mag)
     idx = np.arange(ep.t.size)
     s_acc = 1.0 / ep.acc_factor
@@ -122,18 +158,19 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
     ml = mag_layout(layout)
     ba, bg = layout.slice("accelerometer_bias").start, layout.slice("gyroscope_bias").start
     w_mag = row_weights(bound)
+    if holdout is not None:
+        w_mag = holdout if w_mag is None else w_mag * holdout
+        s_acc = s_acc * holdout
+        interpolated = True
 
     def linearize(states: FloatArray, theta: FloatArray, jac: bool) -> list[Factor]:
         fa = accel_factor(states, ep.acc, l_acc, theta, ba, idx, jacobians=jac, compact=True)
         fm = mag_factor(states, ep.mag, l_mag, theta, ml, idx, jac, compact=True)
         extra = None
         if bound:
-            from ..effects.base import Point, Target
+            from ..effects.base import Target
 
-            d, _, dip = ml.unpack(theta)
-            at = Point(states, np.einsum("mji,j->mi", states, field_nav(dip)),
-                       np.einsum("mji,j->mi", states, np.array([-np.sin(dip), 0.0, np.cos(dip)])),
-                       G * states[:, 2, :], d, pre)
+            at = point_at(states, theta, layout, pre)
             fa = with_terms(fa, l_acc, terms(bound, layout, theta, at, Target.ACCEL), layout)
             fm = with_terms(fm, l_mag, terms(bound, layout, theta, at, Target.MAG), layout)
             extra = gyro_extra(bound, layout, theta, at)
@@ -258,17 +295,20 @@ def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise
 def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | None = None,
             noise_rounds: int = NOISE_ROUNDS, imu_start: Noise | None = None,
             cache: dict[bytes, Preintegrated] | None = None, effects: tuple[str, ...] = (),
-            declination: float = 0.0) -> MapEstimate:
+            declination: float = 0.0, holdout: tuple[tuple[float, float], ...] = (),
+            warm: FitContext | None = None) -> MapEstimate:
     """The joint MAP calibration of one magnetometer against the problem's IMU.
 
     `imu_start`: accelerometer and gyro noise levels to start from (another magnetometer's fit, same IMU);
     `cache`: preintegrations shared between magnetometers with the same epochs; `effects`: ids of the effect
     plug-ins to model (those the log cannot test come back as not_testable); `declination` (rad): turns the
-    log's true-north vectors into the model's magnetic-north frame.
+    log's true-north vectors into the model's magnetic-north frame; `holdout`: time windows (s) whose
+    accelerometer and magnetometer readings the fit must not see (validation); `warm`: a fit of the same
+    magnetometer to start from (its trajectory, parameters and noise levels).
     """
     with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
         return _fit_map(problem, mag, loss, dip_prior, noise_rounds, imu_start,
-                        {} if cache is None else cache, effects, declination)
+                        {} if cache is None else cache, effects, declination, holdout, warm)
 
 
 def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated, theta: FloatArray,
@@ -290,9 +330,20 @@ def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated,
     return layout, tuple(bound), untestable, full, pre
 
 
+def held_out(t: FloatArray, windows: tuple[tuple[float, float], ...]) -> FloatArray | None:
+    """Row weights at epochs t: 0 inside the held-out windows, 1 elsewhere (None without windows)."""
+    if not windows:
+        return None
+    w = np.ones(t.size)
+    for t0, t1 in windows:
+        w[(t >= t0) & (t < t1)] = 0.0
+    return w
+
+
 def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, noise_rounds: int,
              imu_start: Noise | None, cache: dict[bytes, Preintegrated], effects: tuple[str, ...] = (),
-             declination: float = 0.0) -> MapEstimate:
+             declination: float = 0.0, holdout: tuple[tuple[float, float], ...] = (),
+             warm: FitContext | None = None) -> MapEstimate:
     """`fit_map` without the BLAS thread limit."""
     where = f"{problem.where}: {mag.id}"
     clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
@@ -308,9 +359,20 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         dev = np.linalg.norm(ep.acc, axis=1) - G
         spread = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
         noise = Noise(np.maximum(noise.acc, spread), noise.gyr, noise.mag)
-    clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
-    states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache)
+    if warm is not None:                  # same magnetometer, same epochs: start where that fit ended
+        ep, noise, pre, states = warm.ep, warm.noise, warm.pre, warm.states
+        notes: list[str] = []
+        theta = BASE.zeros()
+        for name in BASE.names:
+            BASE.put(theta, name, warm.layout.get(warm.theta, name))
+    else:
+        clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
+        states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache)
     layout, bound, untestable, theta, pre = _with_effects(problem, mag, ep, pre, theta, effects, declination)
+    if warm is not None:
+        for name in set(layout.names) & set(warm.layout.names):
+            layout.put(theta, name, warm.layout.get(warm.theta, name))
+    hold = held_out(ep.t, holdout)
     scale_jac = pre.d_scale is not None
     bg = layout.slice("gyroscope_bias")
     if floor is not None and any(b.effect.target.value == "mag" and b.effect.params for b in bound):
@@ -335,7 +397,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     last_step = None
     for rnd in range(noise_rounds + 1):
         opts = (start if noise_rounds else first) if rnd == 0 else later
-        sol = solve(make_linearize(ep, pre, noise, layout, bound), states, theta, opts)
+        sol = solve(make_linearize(ep, pre, noise, layout, bound, hold), states, theta, opts)
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = theta[bg]
@@ -363,7 +425,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         applied += float(step[3])
         noise, pre = rescaled(noise, pre, step)
     if sol is not None and not sol.converged:
-        sol = solve(make_linearize(ep, pre, noise, layout, bound), states, theta, first)
+        sol = solve(make_linearize(ep, pre, noise, layout, bound, hold), states, theta, first)
         iters += sol.iterations
         log.extend(f"final: {line}" for line in sol.log)
     assert sol is not None
@@ -372,14 +434,15 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         # the last small change of the levels moves the optimum negligibly but the covariance proportionally:
         # report the covariance with the final levels at the same point (one assembly, no iterations)
         noise, pre = rescaled(noise, pre, last_step)
-        cov = marginal_covariance(make_linearize(ep, pre, noise, layout, bound), sol.states, sol.theta)
+        cov = marginal_covariance(make_linearize(ep, pre, noise, layout, bound, hold), sol.states, sol.theta)
     # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
     # or disturbances) make the information overstate what the data know: widen where the data say so
     ids = time_clusters(ep.t)
     widen = widening(sol, [ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1) for f in sol.factors])
     est = _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen, layout)
     fitted = results(bound, layout, est.theta, est.cov, mag.id, problem.imu_id)
-    return replace(est, effects=tuple(fitted + untestable))
+    ctx = FitContext(ep, pre, noise, layout, bound, sol.states, sol.theta, hold)
+    return replace(est, effects=tuple(fitted + untestable), context=ctx)
 
 
 def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, sol: Solution, iters: int,
@@ -454,10 +517,19 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     loss = getattr(cfg, "robust_loss", "l2")
     ests: list[MapEstimate] = []
     cache: dict[bytes, Preintegrated] = {}
+    declination = 0.0 if ref is None else ref.declination
+    diagnoses: list[dict[str, Any]] = []
     for m in problem.mags:        # later magnetometers start from the IMU noise levels the first one found
         start = ests[0].noise if ests else None
-        ests.append(fit_map(problem, m, loss, dip_prior, imu_start=start, cache=cache, effects=cfg.effects,
-                            declination=0.0 if ref is None else ref.declination))
+        est = fit_map(problem, m, loss, dip_prior, imu_start=start, cache=cache, effects=cfg.effects,
+                      declination=declination)
+        if cfg.diagnose:
+            from ..diagnose.engine import diagnose
+
+            found = diagnose(problem, m, est, declination, loss, dip_prior)
+            est = found.estimate
+            diagnoses.append(found.block)
+        ests.append(est)
 
     def bias_std(e: MapEstimate) -> float:
         return float(np.sum(np.concatenate([e.std_of("accelerometer_bias"), e.std_of("gyroscope_bias")])
@@ -485,4 +557,4 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     # magnetometer effects from each magnetometer's fit; IMU effects from the fit that gave the IMU biases
     effects = tuple(f for e in ests for f in e.effects if f.sensor == e.mag_id) + \
         tuple(f for f in best.effects if f.sensor == problem.imu_id)
-    return MethodResult("map", fits, imu, noise, tuple(notes), tuple(findings), effects)
+    return MethodResult("map", fits, imu, noise, tuple(notes), tuple(findings), effects, tuple(diagnoses))

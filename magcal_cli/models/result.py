@@ -45,6 +45,10 @@ class EffectFit:
     p_value: float = float("nan")
     reason: str = ""
     constants: dict[str, Any] = field(default_factory=dict)
+    #: the diagnosis's evidence (held-out scores, BIC, relevance), the rivals it could not separate, the test
+    evidence: dict[str, Any] = field(default_factory=dict)
+    confounded_with: tuple[str, ...] = ()
+    test_kind: str = "wald"
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,3 +73,5 @@ class MethodResult:
     notes: tuple[str, ...] = ()
     findings: tuple[Finding, ...] = ()
     effects: tuple[EffectFit, ...] = ()
+    #: the mismatch diagnosis per magnetometer (diagnose/engine.py), when it ran
+    diagnosis: tuple[dict[str, Any], ...] = ()

@@ -28,7 +28,13 @@ def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 
     Bartlett weights 1 - l/(lags+1) keep the estimate positive semi-definite (Newey & West 1987).
     """
     s_inv = sol.cov_theta
-    p = s_inv.shape[0]
+    scores = cluster_scores(sol, clusters)
+    return s_inv @ newey_west(scores, lags) @ s_inv
+
+
+def cluster_scores(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
+    """Per-cluster gradient of the cost by theta after eliminating the trajectory, (C, p): E_c above."""
+    p = sol.cov_theta.shape[0]
     n_clusters = int(max(int(c.max()) for c in clusters if c.size) + 1)
     scores = np.zeros((n_clusters, p))
     for f, c in zip(sol.factors, clusters, strict=True):
@@ -41,12 +47,23 @@ def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 
                 e -= np.einsum("mip,mi->mp", sol._w[idx], np.einsum("mki,mk->mi", jx, f.r))
         keep = c >= 0
         np.add.at(scores, c[keep], e[keep])
+    return scores
+
+
+def newey_west(scores: FloatArray, lags: int) -> FloatArray:
+    """Sum of outer products of time-ordered scores (C, p) with Bartlett-weighted neighbours up to `lags`
+    apart, times the small-sample factor C/(C-1)."""
+    n = scores.shape[0]
     meat = scores.T @ scores
-    for lag in range(1, lags + 1):
+    for lag in range(1, min(lags, n - 1) + 1):
         cross = scores[:-lag].T @ scores[lag:]
         meat += (1.0 - lag / (lags + 1.0)) * (cross + cross.T)
-    meat *= n_clusters / max(n_clusters - 1, 1)
-    return s_inv @ meat @ s_inv
+    return np.asarray(meat * (n / max(n - 1, 1)), dtype=np.float64)
+
+
+def bartlett_dof(clusters: int, lags: int) -> float:
+    """Degrees of freedom of a Newey-West variance from `clusters` scores with Bartlett weights."""
+    return clusters / (1.0 + 2.0 * sum((1.0 - k / (lags + 1.0)) ** 2 for k in range(1, lags + 1)))
 
 
 def time_clusters(t: npt.ArrayLike, count: int = 40, min_length_s: float = 5.0) -> IntArray:
@@ -71,7 +88,7 @@ def widening(sol: Solution, clusters: Sequence[IntArray], lags: int = 4,
     sand = cluster_robust_cov(sol, clusters, lags)
     model = np.diag(sol.cov_theta)
     n_clusters = int(max(int(c.max()) for c in clusters if c.size) + 1)
-    nu = n_clusters / (1.0 + 2.0 * sum((1.0 - k / (lags + 1.0)) ** 2 for k in range(1, lags + 1)))
+    nu = bartlett_dof(n_clusters, lags)
     threshold = stats.chi2.ppf(1.0 - false_alarm, nu) / nu
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.where(model > 0, np.diag(sand) / model, 1.0)

@@ -293,7 +293,8 @@ def _step(ne: _Normal, lam: float, u: int, need_w: bool = False
     d = np.einsum("nii->ni", diag)
     floor = 1e-9 * (float(np.mean(d)) if d.size else 1.0)
     d += lam * (d + floor)                                   # Marquardt scaling with a floor
-    htt = ne.htt + lam * np.diag(np.diag(ne.htt) + 1e-9 * max(float(np.mean(np.diag(ne.htt))), 1e-300))
+    scale = float(np.mean(np.diag(ne.htt))) if ne.htt.size else 1.0     # no theta: a trajectory-only problem
+    htt = ne.htt + lam * np.diag(np.diag(ne.htt) + 1e-9 * max(scale, 1e-300))
     cb = linalg.cholesky_banded(_band(diag, ne.off, u), lower=False, check_finite=False)
     rhs = np.concatenate([ne.hxt.reshape(3 * n, p), ne.gx.reshape(3 * n, 1)], axis=1)
     sol, info = lapack.dtbtrs(cb, rhs, uplo="U", trans="T")

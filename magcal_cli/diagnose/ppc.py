@@ -1,0 +1,212 @@
+"""Simulation versus recording: replicates simulated from the fitted model, refitted, and a residual battery.
+
+mismatch.md section 3.4. Each replicate keeps the recording's epochs, its auxiliary channels and the fitted
+trajectory; the readings are the fitted model's predictions plus noise at the fitted levels, and the gyro's
+preintegrated rotations are the fitted relative rotations perturbed by their noise. Refitting the replicate (one
+Gauss-Newton step from the optimum: the problem is nearly linear there) reproduces how the fit absorbs
+structure. Every statistic of the battery is standardised by its spread over the replicates; the largest |z| is
+compared with the replicates' own largest |z| (a max-statistic test, so the many statistics need no further
+correction, and trending channels carry their own null).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from .. import so3
+from ..models.epochs import Epochs
+from ..models.map import FitContext, MapEstimate, point_at
+from ..models.problem import Problem
+from ..models.solve import Factor, Options, solve
+from ..streams import Kind, Stream
+
+FloatArray = npt.NDArray[np.float64]
+
+REPLICATES = 19
+#: windows (s) of the windowed NIS that locates mismatches in time, and the z that flags one
+WINDOW_S = 5.0
+WINDOW_Z = 4.0
+#: moving-average span (s) separating the low band (below ~1/span Hz) from the rest
+LOW_BAND_S = 10.0
+#: |z| above which a statistic counts as located
+LOCATE_Z = 3.0
+AXES = "xyz"
+#: regressors computed from the motion, not logged channels
+DERIVED = ("rotation rate",)
+AUX_KINDS = (Kind.BATTERY_CURRENT, Kind.THROTTLE, Kind.BATTERY_VOLTAGE, Kind.TEMPERATURE)
+
+
+@dataclass(frozen=True, eq=False)
+class Check:
+    """The battery on the recording, standardised by the replicates, the global p-value and flagged windows."""
+
+    names: tuple[str, ...]
+    z: FloatArray
+    global_p: float
+    replicates: int
+    windows: tuple[tuple[float, float], ...]
+    logged: tuple[str, ...] = ()
+
+    def top(self, n: int = 5) -> list[tuple[str, float]]:
+        """The n largest |z| statistics."""
+        order = np.argsort(-np.abs(self.z))[:n]
+        return [(self.names[i], float(self.z[i])) for i in order]
+
+    def document(self) -> dict[str, Any]:
+        """The document's `ppc` block."""
+        return {"replicates": self.replicates, "global_p": self.global_p,
+                "top": [{"statistic": s, "z": round(z, 2)} for s, z in self.top()]}
+
+    def located(self, sensor: str) -> dict[str, Any]:
+        """Where the recording departs from the replicates: axes, time windows, band and channels."""
+        hot = [s for s, z in self.top(len(self.names)) if abs(z) > LOCATE_Z]
+        axes = sorted({s[4] for s in hot if s.startswith("mag_") and s[4] in AXES})
+        channels = sorted({c for s in hot if " ~ " in s and (c := s.split(" ~ ", 1)[1]) in self.logged})
+        band = [0.0, round(1.0 / LOW_BAND_S, 3)] if any("low band" in s for s in hot) else None
+        return {"sensor": sensor, "axes": axes, "time_windows_s": [list(w) for w in self.windows],
+                "band_hz": band, "channels": channels}
+
+
+def regressors(problem: Problem, ctx: FitContext) -> dict[str, FloatArray]:
+    """The logged channels and motion features the residuals are compared with, at the epochs."""
+    t = ctx.ep.t
+    out: dict[str, FloatArray] = {"time": t - t[0]}
+    for s in problem.aux:
+        if s.kind in AUX_KINDS and s.values.shape[1] >= 1 and len(s) >= 2:
+            ok = np.isfinite(s.values[:, 0])
+            if ok.sum() >= 2 and np.ptp(s.values[ok, 0]) > 0:
+                out[s.id] = np.interp(t, s.t[ok], s.values[ok, 0])
+    g = problem.gyr
+    w = np.stack([np.interp(t, g.t, g.xyz[:, i]) for i in range(3)], axis=1) - ctx.pre.bias
+    out["rotation rate"] = np.linalg.norm(w, axis=1)
+    return out
+
+
+def _corr(a: FloatArray, b: FloatArray) -> float:
+    """Pearson correlation (0 for a constant input)."""
+    a, b = a - a.mean(), b - b.mean()
+    den = float(np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    return float(np.sum(a * b) / den) if den > 0 else 0.0
+
+
+def _low(x: FloatArray, n: int) -> float:
+    """Fraction of x's variance below the moving-average band (n samples)."""
+    if x.size <= n or n < 2:
+        return 0.0
+    c = np.cumsum(np.insert(x - x.mean(), 0, 0.0))
+    smooth = (c[n:] - c[:-n]) / n
+    return float(np.var(smooth) / max(np.var(x), 1e-300))
+
+
+def battery(ctx: FitContext, factors: Sequence[Factor], states: FloatArray, theta: FloatArray,
+            reg: dict[str, FloatArray]) -> tuple[tuple[str, ...], FloatArray, FloatArray]:
+    """The statistics (names, values) and the windowed magnetometer NIS (one value per WINDOW_S window)."""
+    fa, fm, fg = factors[0], factors[1], factors[2]
+    at = point_at(states, theta, ctx.layout, ctx.pre)
+    e = fm.r * ctx.noise.mag                                          # unwhitened (scaled units)
+    h = at.m_b + e @ np.linalg.inv(at.D).T
+    rho = np.linalg.norm(h, axis=1) - 1.0
+    rate_x_field = np.cross(reg_omega(ctx, reg), at.m_b) @ at.D.T
+    dt = float(np.median(np.diff(ctx.ep.t)))
+    n_low = max(2, int(round(LOW_BAND_S / dt)))
+    names, vals = [], []
+
+    def add(name: str, v: float) -> None:
+        names.append(name)
+        vals.append(v)
+
+    series = {f"mag_{a}": fm.r[:, i] for i, a in enumerate(AXES)} | {"field_norm": rho}
+    for sname, x in series.items():
+        for cname, c in reg.items():
+            add(f"{sname} ~ {cname}", _corr(x, c))
+        add(f"{sname} lag-1 autocorrelation", _corr(x[:-1], x[1:]))
+        add(f"{sname} low band", _low(x, n_low))
+    for i, a in enumerate(AXES):
+        add(f"mag_{a} ~ rotation x field", _corr(fm.r[:, i], rate_x_field[:, i]))
+        add(f"acc_{a} ~ rotation rate", _corr(fa.r[:, i], reg["rotation rate"] ** 2))
+        add(f"acc_{a} ~ gravity_{a}", _corr(fa.r[:, i], at.g_b[:, i]))
+        add(f"gyro_{a} ~ rotation_{a}", _corr(fg.r[:, i], so3.log_small(ctx.pre.delta)[:, i]))
+        add(f"acc_{a} lag-1 autocorrelation", _corr(fa.r[:-1, i], fa.r[1:, i]))
+    for f in (fa, fm, fg):
+        add(f"{f.name} NIS", float(np.mean(f.r**2)))
+    t = ctx.ep.t
+    idx = np.floor((t - t[0]) / WINDOW_S).astype(np.int64)
+    nis = np.bincount(idx, np.sum(fm.r**2, axis=1)) / np.maximum(np.bincount(idx), 1)
+    return tuple(names), np.array(vals), nis
+
+
+def reg_omega(ctx: FitContext, reg: dict[str, FloatArray]) -> FloatArray:
+    """The body rate at the epochs (rad/s), from the preintegrated rotations (rate times the interval)."""
+    w = so3.log_small(ctx.pre.delta) / np.maximum(ctx.pre.duration, 1e-9)[:, None]
+    return np.concatenate([w, w[-1:]], axis=0)
+
+
+def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generator
+              ) -> tuple[Epochs, Any]:
+    """Data simulated from the fitted model at the fitted trajectory: predictions plus fresh noise."""
+    fa, fm, fg = factors[0], factors[1], factors[2]
+    ep, pre, noise = ctx.ep, ctx.pre, ctx.noise
+    s_acc = 1.0 / ep.acc_factor if np.any(ep.acc_factor < 1.0 - 1e-12) else np.ones(ep.t.size)
+    acc_pred = ep.acc - fa.r / s_acc[:, None] * noise.acc
+    mag_pred = ep.mag - fm.r * noise.mag
+    k = ep.t.size
+    acc = acc_pred + rng.standard_normal((k, 3)) * noise.acc / s_acc[:, None]
+    mag = mag_pred + rng.standard_normal((k, 3)) * noise.mag
+    chol = np.linalg.inv(pre.l_inv)
+    r = (chol @ fg.r[:, :, None])[:, :, 0]
+    xi = (chol @ rng.standard_normal((k - 1, 3, 1)))[:, :, 0]
+    delta = pre.delta @ so3.exp(r - xi)
+    return replace(ep, acc=acc, mag=mag), replace(pre, delta=delta)
+
+
+def check(problem: Problem, mag: Stream, est: MapEstimate, replicates: int = REPLICATES, seed: int = 0) -> Check:
+    """Compare the recording with `replicates` simulations from the fit `est`."""
+    ctx = est.context
+    assert ctx is not None
+    reg = regressors(problem, ctx)
+    factors = ctx.linearize(holdout=None)(ctx.states, ctx.theta, False)
+    names, obs, nis = battery(ctx, factors, ctx.states, ctx.theta, reg)
+    rng = np.random.default_rng(seed)
+    sims, sim_nis = [], []
+    for _ in range(replicates):
+        ep, pre = replicate(ctx, factors, rng)
+        sol = solve(ctx.linearize(ep=ep, pre=pre, holdout=None), ctx.states, ctx.theta, Options(max_iterations=1))
+        sim_ctx = replace(ctx, ep=ep, pre=pre)
+        _, v, w = battery(sim_ctx, sol.factors, sol.states, sol.theta, reg)
+        sims.append(v)
+        sim_nis.append(w)
+    t_sim, w_sim = np.array(sims), np.array(sim_nis)
+    mean, sd = t_sim.mean(axis=0), np.maximum(t_sim.std(axis=0, ddof=1), 1e-12)
+    z = (obs - mean) / sd
+    # each replicate standardised by the others: the null distribution of the largest |z|
+    b = replicates
+    loo_mean = (t_sim.sum(axis=0) - t_sim) / (b - 1)
+    loo_sd = np.sqrt(np.maximum((np.sum(t_sim**2, axis=0) - t_sim**2 - (b - 1) * loo_mean**2) / (b - 2), 1e-24))
+    null_max = np.max(np.abs((t_sim - loo_mean) / loo_sd), axis=1)
+    observed = float(np.max(np.abs(z)))
+    exceed = int(np.sum(null_max >= observed))
+    p = (1 + exceed) / (b + 1)
+    if exceed == 0:                           # beyond every replicate: a Gumbel tail fitted to the null maxima
+        loc, scale = stats.gumbel_r.fit(null_max)
+        p = min(p, float(stats.gumbel_r.sf(observed, loc, scale)))
+    wz = (nis - w_sim.mean(axis=0)) / np.maximum(w_sim.std(axis=0, ddof=1), 1e-12)
+    logged = tuple(k for k in reg if k not in DERIVED)
+    return Check(names, z, float(p), b, _windows(ctx.ep.t, wz), logged)
+
+
+def _windows(t: FloatArray, wz: FloatArray) -> tuple[tuple[float, float], ...]:
+    """Merged windows whose magnetometer NIS stands out from every replicate's."""
+    out: list[list[float]] = []
+    for i in np.flatnonzero(wz > WINDOW_Z):
+        a, b = float(t[0] + i * WINDOW_S), float(min(t[0] + (i + 1) * WINDOW_S, t[-1]))
+        if out and abs(out[-1][1] - a) < 1e-9:
+            out[-1][1] = b
+        else:
+            out.append([a, b])
+    return tuple((round(a, 1), round(b, 1)) for a, b in out)

@@ -1,0 +1,204 @@
+"""Which physics to add: screen, refit, check on held-out data, and name the rivals a log cannot separate.
+
+mismatch.md sections 3.5-3.8. An effect is accepted only when all of these hold:
+1. its robust score test is significant after Holm's correction over the candidates (family alpha 5 %);
+2. refitted, its Wald test (sandwich-widened covariance) gives 2 ln(Bayes factor) ~ W - q ln(n_eff) > BIC_MIN;
+3. the selection procedure, run inside each training fold, improves the held-out readings' likelihood
+   (block-bootstrap 95 % interval above zero) and chose this effect in at least half of the folds;
+4. it matters: it moves the heading by >= RELEVANT_DEG somewhere in the log, or the field by >= 1 %.
+Candidates whose regressors the log cannot separate (canonical correlation > SEPARABLE) are `ambiguous`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from .. import effects as registry
+from ..effects.base import Target
+from ..models.map import MapEstimate, fit_map, point_at
+from ..models.map_effects import Bound
+from ..models.problem import Problem
+from ..models.result import EffectFit
+from ..streams import Stream
+from .score import Screen, screen
+from .validate import Heldout, crossvalidate
+
+FloatArray = npt.NDArray[np.float64]
+
+FAMILY_ALPHA = 0.05
+#: Wald p-value an effect must keep given the others (backward check)
+WALD_ALPHA = 0.01
+#: largest canonical correlation at which two candidates are still told apart
+SEPARABLE = 0.95
+#: 2 ln(Bayes factor) for "strong" evidence (Kass & Raftery 1995)
+BIC_MIN = 6.0
+RELEVANT_DEG = 0.25
+RELEVANT_FIELD = 0.01
+MAX_EFFECTS = 3
+#: a fold "chose" an effect often enough
+MIN_SHARE = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """The final estimate (base plus accepted effects), every candidate's verdict and the held-out record."""
+
+    estimate: MapEstimate
+    verdicts: tuple[EffectFit, ...]
+    heldout: Heldout | None
+    ambiguous: tuple[frozenset[str], ...]
+
+
+def holm(scr: Screen, alpha: float = FAMILY_ALPHA) -> list[str]:
+    """Candidates significant under Holm's step-down correction, strongest first."""
+    ranked = sorted(scr.scores, key=lambda s: s.p_value)
+    out = []
+    for i, s in enumerate(ranked):
+        if not s.p_value <= alpha / (len(ranked) - i):
+            break
+        out.append(s)
+    return [s.id for s in sorted(out, key=lambda s: -s.robust)]
+
+
+def choose(scr: Screen) -> tuple[str, ...]:
+    """The significant candidates, strongest first, skipping any the log cannot tell apart from one chosen."""
+    picked: list[str] = []
+    for eid in holm(scr):
+        if all(scr.correlation.get(frozenset((eid, p)), 0.0) <= SEPARABLE for p in picked):
+            picked.append(eid)
+    return tuple(picked[:MAX_EFFECTS])
+
+
+def n_eff(est: MapEstimate) -> float:
+    """Effective number of magnetometer readings: n / (1 + 2 sum of the residuals' autocorrelation)."""
+    ctx = est.context
+    assert ctx is not None
+    r = ctx.linearize(holdout=None)(ctx.states, ctx.theta, False)[1].r
+    n = r.shape[0]
+    rho_sum = 0.0
+    for lag in range(1, min(200, n // 4)):
+        rho = float(np.mean([np.corrcoef(r[:-lag, i], r[lag:, i])[0, 1] for i in range(3)]))
+        if not rho > 0.05:
+            break
+        rho_sum += rho
+    return float(n / (1.0 + 2.0 * rho_sum))
+
+
+def relevance(est: MapEstimate, eid: str) -> dict[str, float]:
+    """The largest and RMS heading change (deg) an effect's fitted term makes, and its largest field change (%)
+    (magnetometer effects) or tilt change (deg, accelerometer) or 10-s attitude change (deg, gyro)."""
+    ctx = est.context
+    assert ctx is not None
+    b = next(x for x in ctx.bound if x.effect.id == eid)
+    beta = ctx.theta[ctx.layout.cols(*b.names())]
+    if not beta.size:
+        return {}
+    at = point_at(ctx.states, ctx.theta, ctx.layout, ctx.pre)
+    value = b.effect.term(b.inputs, beta, at).value
+    if b.effect.target is Target.MAG:
+        dh = value @ np.linalg.inv(at.D).T                      # fraction of the field, body frame
+        east = np.einsum("kij,kj->ki", ctx.states, dh)[:, 1]
+        dip = float(ctx.layout.get(ctx.theta, "dip")[0])
+        head = np.rad2deg(np.abs(east) / max(abs(np.cos(dip)), 0.05))
+        return {"heading_max_deg": float(head.max()), "heading_rms_deg": float(np.sqrt(np.mean(head**2))),
+                "field_max_pct": float(100.0 * np.linalg.norm(dh, axis=1).max())}
+    if b.effect.target is Target.ACCEL:
+        tilt = np.rad2deg(np.linalg.norm(value, axis=1) / 9.80665)
+        return {"tilt_max_deg": float(tilt.max()), "tilt_rms_deg": float(np.sqrt(np.mean(tilt**2)))}
+    dt = float(np.median(np.diff(ctx.ep.t)))
+    k = max(1, int(round(10.0 / dt)))
+    acc = np.cumsum(value, axis=0)
+    drift = np.linalg.norm(acc[k:] - acc[:-k], axis=1) if acc.shape[0] > k else np.linalg.norm(acc, axis=1)
+    return {"attitude_10s_max_deg": float(np.rad2deg(drift.max()))}
+
+
+def _relevant(rel: dict[str, float]) -> bool:
+    """Does the effect matter in practice?"""
+    return any(v >= RELEVANT_DEG for k, v in rel.items() if k.endswith("max_deg")) or \
+        rel.get("field_max_pct", 0.0) >= 100.0 * RELEVANT_FIELD
+
+
+def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float = 0.0,
+           loss: str = "l2", dip_prior: float | None = None) -> Selection:
+    """Screen the candidates against the base fit, refit the best, validate on held-out data, decide."""
+    def fit(ids: tuple[str, ...], warm: MapEstimate) -> MapEstimate:
+        return fit_map(problem, mag, loss, dip_prior, effects=ids, declination=declination, warm=warm.context)
+
+    scr = screen(problem, mag, base, candidates, declination)
+    picked = list(choose(scr))
+    ambiguous = _ambiguous(scr, picked)
+    est = fit(tuple(picked), base) if picked else base
+    for _ in range(2):                                    # backward: keep what stays significant given the rest
+        weak = [f.id for f in est.effects if f.id in picked and not f.p_value < WALD_ALPHA]
+        if not weak:
+            break
+        picked = [p for p in picked if p not in weak]
+        est = fit(tuple(picked), base) if picked else base
+    held = crossvalidate(problem, mag, base, candidates, choose, declination, loss, dip_prior) if picked else None
+    neff = n_eff(est) if picked else float("nan")
+    verdicts: dict[str, EffectFit] = {}
+    for f in est.effects:
+        if f.id not in picked:
+            continue
+        rel = relevance(est, f.id)
+        bic = f.statistic - f.dof * float(np.log(neff))
+        assert held is not None
+        lo, hi = held.ci95()
+        evidence = {"score_p_value": _p(scr, f.id), "delta_bic": -bic, "n_eff": neff,
+                    "heldout_gain_ci95": [lo, hi], "heldout_rms_before_si": held.rms_before,
+                    "heldout_rms_after_si": held.rms_after, "folds_chose": held.share(f.id),
+                    "heldout_protocol": held.protocol, **rel}
+        why = [w for w, bad in (("the likelihood evidence is weak", not bic > BIC_MIN),
+                                ("it does not improve held-out readings", not lo > 0.0),
+                                ("most training folds did not choose it", held.share(f.id) < MIN_SHARE),
+                                ("its size does not matter in practice", not _relevant(rel))) if bad]
+        verdicts[f.id] = replace(f, status="rejected" if why else "accepted", evidence=evidence,
+                                 reason="; ".join(why))
+    accepted = tuple(e for e, v in verdicts.items() if v.status == "accepted")
+    if set(accepted) != set(picked):
+        est = fit(accepted, base) if accepted else base
+        verdicts.update({f.id: replace(f, evidence=verdicts[f.id].evidence) for f in est.effects if f.id in accepted})
+    for s in scr.scores:
+        if s.id not in verdicts:
+            verdicts[s.id] = EffectFit(s.id, _sensor(s.id, mag, problem), "rejected", None, (), s.robust, s.dof,
+                                       s.p_value, reason="the score test found no sign of it", test_kind="score")
+    # a pair is ambiguous only when its representative earned its place (it stays in the model: either
+    # explains the same readings, so the calibration is right whichever it is)
+    ambiguous = [pair for pair in ambiguous if any(e in accepted for e in pair)]
+    for pair in ambiguous:
+        for eid in pair:
+            rival = tuple(sorted(pair - {eid}))
+            old = verdicts[eid]
+            verdicts[eid] = replace(old, status="ambiguous", confounded_with=rival,
+                                    reason=f"cannot be told apart from {', '.join(rival)} in this log")
+    verdicts.update({u.id: u for u in scr.untestable})
+    return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous))
+
+
+def _ambiguous(scr: Screen, picked: Sequence[str]) -> list[frozenset[str]]:
+    """Significant candidates left out because a picked one explains the same readings."""
+    out: list[frozenset[str]] = []
+    for eid in holm(scr):
+        if eid in picked:
+            continue
+        rivals = [p for p in picked if scr.correlation.get(frozenset((eid, p)), 0.0) > SEPARABLE]
+        out.extend(frozenset((eid, r)) for r in rivals)
+    return out
+
+
+def _p(scr: Screen, eid: str) -> float:
+    """The score test's p-value of `eid`."""
+    s = scr.of(eid)
+    return float("nan") if s is None else s.p_value
+
+
+def _sensor(eid: str, mag: Stream, problem: Problem) -> str:
+    """The sensor an effect belongs to."""
+    return mag.id if registry.get(eid).target is Target.MAG else problem.imu_id
+
+
+__all__ = ["Bound", "Selection", "select"]
