@@ -25,7 +25,7 @@ CLEAR = {
     "temperature_drift": "k_uT_per_degC=0.0011/-0.0008/0.0016",
     "time_offset": "tau_s=0.0007",
     "gyro_scale": "s=0.0010/-0.0008/0.0012",
-    "accel_scale": "s=0.0019/-0.0029/0.0014",
+    "accel_scale": "s=0.0038/-0.0058/0.0028",
     "lever_arm": "r_m=0.010/-0.0065/0.005",
 }
 #: the natural scenario of each effect: continuous rotation (paper) for power and temperature, hand moves else

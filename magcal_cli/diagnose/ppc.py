@@ -25,6 +25,7 @@ from ..models.map import FitContext, MapEstimate, point_at
 from ..models.problem import Problem
 from ..models.solve import Factor, Options, solve
 from ..streams import Kind, Stream
+from .parallel import pmap
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -173,15 +174,16 @@ def check(problem: Problem, mag: Stream, est: MapEstimate, replicates: int = REP
     factors = ctx.linearize(holdout=None)(ctx.states, ctx.theta, False)
     names, obs, nis = battery(ctx, factors, ctx.states, ctx.theta, reg)
     rng = np.random.default_rng(seed)
-    sims, sim_nis = [], []
-    for _ in range(replicates):
-        ep, pre = replicate(ctx, factors, rng)
+    seeds = rng.integers(0, 2**32, replicates)
+
+    def one(s: int) -> tuple[FloatArray, FloatArray]:
+        ep, pre = replicate(ctx, factors, np.random.default_rng(s))
         sol = solve(ctx.linearize(ep=ep, pre=pre, holdout=None), ctx.states, ctx.theta, Options(max_iterations=1))
-        sim_ctx = replace(ctx, ep=ep, pre=pre)
-        _, v, w = battery(sim_ctx, sol.factors, sol.states, sol.theta, reg)
-        sims.append(v)
-        sim_nis.append(w)
-    t_sim, w_sim = np.array(sims), np.array(sim_nis)
+        _, v, w = battery(replace(ctx, ep=ep, pre=pre), sol.factors, sol.states, sol.theta, reg)
+        return v, w
+
+    sims = pmap(one, [int(s) for s in seeds])
+    t_sim, w_sim = np.array([v for v, _ in sims]), np.array([w for _, w in sims])
     mean, sd = t_sim.mean(axis=0), np.maximum(t_sim.std(axis=0, ddof=1), 1e-12)
     z = (obs - mean) / sd
     # each replicate standardised by the others: the null distribution of the largest |z|

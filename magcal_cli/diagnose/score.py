@@ -4,7 +4,8 @@ mismatch.md section 3.5: the score g = K^T eps of an effect's parameters at beta
 information F = K^T P K (P projects out the base unknowns) come from one linearisation of the extended model at
 the base optimum: the trajectory is eliminated by the solver (Schur complement S over theta), the base theta by
 a small dense Schur step. The robust statistic replaces F by a Newey-West variance of the per-second efficient
-scores, so residuals coloured by other unmodelled physics do not inflate the test's size.
+scores (taken after one Gauss-Newton step with the candidates free, so the signal itself is not counted as
+noise), so residuals coloured by other unmodelled physics do not inflate the test's size.
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ class _Extended:
     """The extended model's solution at the base optimum and where each candidate's columns are."""
 
     sol: Solution
+    after: Solution
     layout: Layout
     tested: dict[str, IntArray]
     held: dict[str, IntArray]
@@ -93,10 +95,17 @@ def _extend(problem: Problem, mag: Stream, est: MapEstimate, bound: Sequence[Bou
                            f"{problem.where}: {mag.id}", scale_jacobian=True)
     lin = ctx.linearize(layout, all_bound, pre=pre, holdout=ctx.holdout)
     sol = solve(lin, ctx.states, theta, Options(max_iterations=0))
+    # one Gauss-Newton step with every candidate free: residuals with the candidates' signal removed, for the
+    # robust variance (under the base model the step is ~0 and nothing changes)
+    after = solve(lin, ctx.states, theta, Options(max_iterations=1))
     t = ctx.ep.t
     ids = time_clusters(t, count=max(1, int((t[-1] - t[0]) / CLUSTER_S)), min_length_s=CLUSTER_S)
+    if ctx.holdout is not None:             # held-out seconds carry no readings: not observations of the variance
+        ids = np.where(ctx.holdout > 0, ids, -1)
+        kept = np.unique(ids[ids >= 0])
+        ids = np.where(ids >= 0, np.searchsorted(kept, ids), -1)
     clusters = [ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1, np.int64) for f in sol.factors]
-    return _Extended(sol, layout, tested, held, clusters)
+    return _Extended(sol, after, layout, tested, held, clusters)
 
 
 def _lags(clusters: int) -> int:
@@ -121,6 +130,7 @@ def screen(problem: Problem, mag: Stream, est: MapEstimate, ids: Sequence[str],
         return Screen((), tuple(untestable), {}, unscored)
     info = np.asarray(np.linalg.pinv(s_inv, hermitian=True), dtype=np.float64)
     scores = cluster_scores(ext.sol, ext.clusters)
+    noise_scores = cluster_scores(ext.after, ext.clusters)
     lags = _lags(scores.shape[0])
     nu = bartlett_dof(scores.shape[0], lags)
     cand = set(np.concatenate([*ext.tested.values(), *ext.held.values()]).tolist())
@@ -132,8 +142,10 @@ def screen(problem: Problem, mag: Stream, est: MapEstimate, ids: Sequence[str],
         f_eff, e_eff = _efficient(info, scores, a, rest)
         g = e_eff.sum(axis=0)
         classical = float(g @ np.linalg.lstsq(f_eff, g, rcond=None)[0])
-        # centred: under the alternative the scores' mean is the signal, not noise (keeps the power)
-        meat = newey_west(e_eff - e_eff.mean(axis=0), lags)
+        # the variance from the residuals with the candidates fitted (a robust Wald form): under the alternative
+        # the scores at beta = 0 carry the signal, whose spread would pass for noise and cost the test its power
+        _, e_noise = _efficient(info, noise_scores, a, rest)
+        meat = newey_west(e_noise, lags)
         robust = float(g @ np.linalg.lstsq(meat, g, rcond=None)[0])
         q = a.size
         # Hotelling-type reference: T^2 (nu - q + 1) / (q nu) ~ F(q, nu - q + 1)

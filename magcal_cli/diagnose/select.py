@@ -24,8 +24,8 @@ from ..models.map_effects import Bound
 from ..models.problem import Problem
 from ..models.result import EffectFit
 from ..streams import Stream
-from .score import Screen, screen
-from .validate import Heldout, crossvalidate
+from .score import Score, Screen, screen
+from .validate import FOLD_NOISE_ROUNDS, Heldout, crossvalidate
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -62,15 +62,6 @@ def holm(scr: Screen, alpha: float = FAMILY_ALPHA) -> list[str]:
             break
         out.append(s)
     return [s.id for s in sorted(out, key=lambda s: -s.robust)]
-
-
-def choose(scr: Screen) -> tuple[str, ...]:
-    """The significant candidates, strongest first, skipping any the log cannot tell apart from one chosen."""
-    picked: list[str] = []
-    for eid in holm(scr):
-        if all(scr.correlation.get(frozenset((eid, p)), 0.0) <= SEPARABLE for p in picked):
-            picked.append(eid)
-    return tuple(picked[:MAX_EFFECTS])
 
 
 def n_eff(est: MapEstimate) -> float:
@@ -122,23 +113,72 @@ def _relevant(rel: dict[str, float]) -> bool:
         rel.get("field_max_pct", 0.0) >= 100.0 * RELEVANT_FIELD
 
 
+@dataclass(frozen=True, eq=False)
+class Forward:
+    """Greedy forward selection: the effects added, the fit with them, each candidate's latest score (given what
+    was added before it) and the pairs the log could not tell apart."""
+
+    picked: tuple[str, ...]
+    estimate: MapEstimate
+    scores: dict[str, Score]
+    screens: tuple[Screen, ...]
+    ambiguous: tuple[frozenset[str], ...]
+
+
+def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float,
+            loss: str, dip_prior: float | None, holdout: tuple[tuple[float, float], ...] = ()) -> Forward:
+    """Add the strongest significant candidate, refit, screen the rest given it; at most MAX_EFFECTS rounds.
+
+    Re-screening after each addition matters: an unmodelled strong effect leaks into the score of every other
+    candidate (the IMU scale factors pick up part of a current's signature), so adding all significant ones at
+    once would take passengers. Candidates the log cannot tell apart from the one added are recorded as pairs.
+    """
+    est, picked, pairs, screens = base, [], [], []
+    scores: dict[str, Score] = {}
+    left = list(candidates)
+    for _ in range(MAX_EFFECTS):
+        scr = screen(problem, mag, est, left, declination)
+        screens.append(scr)
+        scores.update({s.id: s for s in scr.scores})
+        sig = holm(scr)
+        if not sig:
+            break
+        best = sig[0]
+        rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE]
+        pairs += [frozenset((best, r)) for r in rivals]
+        picked.append(best)
+        left = [e for e in left if e != best and e not in rivals]
+        est = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=tuple(picked),
+                      declination=declination, holdout=holdout, warm=est.context)
+    return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs))
+
+
 def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float = 0.0,
            loss: str = "l2", dip_prior: float | None = None) -> Selection:
-    """Screen the candidates against the base fit, refit the best, validate on held-out data, decide."""
+    """Select forward against the base fit, check backward, validate on held-out data, decide."""
     def fit(ids: tuple[str, ...], warm: MapEstimate) -> MapEstimate:
         return fit_map(problem, mag, loss, dip_prior, effects=ids, declination=declination, warm=warm.context)
 
-    scr = screen(problem, mag, base, candidates, declination)
-    picked = list(choose(scr))
-    ambiguous = _ambiguous(scr, picked)
-    est = fit(tuple(picked), base) if picked else base
-    for _ in range(2):                                    # backward: keep what stays significant given the rest
-        weak = [f.id for f in est.effects if f.id in picked and not f.p_value < WALD_ALPHA]
+    def procedure(fold_base: MapEstimate, hold: tuple[tuple[float, float], ...]) -> tuple[str, ...]:
+        # what the training data alone finds significant against the base model (the first forward step)
+        return tuple(holm(screen(problem, mag, fold_base, candidates, declination)))
+
+    fw = forward(problem, mag, base, candidates, declination, loss, dip_prior)
+    scr = fw.screens[0]
+    picked = list(fw.picked)
+    first = fw.picked
+    ambiguous = list(fw.ambiguous)
+    est = fit(tuple(picked), fw.estimate) if picked else base
+    for _ in range(2):           # backward: keep what stays significant, with strong evidence, given the rest
+        neff = n_eff(est) if picked else float("nan")
+        weak = [f.id for f in est.effects if f.id in picked and not (
+            f.p_value < WALD_ALPHA and f.statistic - f.dof * float(np.log(neff)) > BIC_MIN)]
         if not weak:
             break
         picked = [p for p in picked if p not in weak]
         est = fit(tuple(picked), base) if picked else base
-    held = crossvalidate(problem, mag, base, candidates, choose, declination, loss, dip_prior) if picked else None
+    held = crossvalidate(problem, mag, base, procedure, tuple(picked), declination, loss, dip_prior) if picked \
+        else None
     neff = n_eff(est) if picked else float("nan")
     verdicts: dict[str, EffectFit] = {}
     for f in est.effects:
@@ -148,7 +188,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         bic = f.statistic - f.dof * float(np.log(neff))
         assert held is not None
         lo, hi = held.ci95()
-        evidence = {"score_p_value": _p(scr, f.id), "delta_bic": -bic, "n_eff": neff,
+        evidence = {"score_p_value": _p(fw.scores, f.id), "delta_bic": -bic, "n_eff": neff,
                     "heldout_gain_ci95": [lo, hi], "heldout_rms_before_si": held.rms_before,
                     "heldout_rms_after_si": held.rms_after, "folds_chose": held.share(f.id),
                     "heldout_protocol": held.protocol, **rel}
@@ -162,37 +202,42 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
     if set(accepted) != set(picked):
         est = fit(accepted, base) if accepted else base
         verdicts.update({f.id: replace(f, evidence=verdicts[f.id].evidence) for f in est.effects if f.id in accepted})
-    for s in scr.scores:
-        if s.id not in verdicts:
-            verdicts[s.id] = EffectFit(s.id, _sensor(s.id, mag, problem), "rejected", None, (), s.robust, s.dof,
-                                       s.p_value, reason="the score test found no sign of it", test_kind="score")
+    significant = {e for sc in fw.screens for e in holm(sc)}
+    for s in fw.scores.values():
+        if s.id in verdicts:
+            continue
+        rivals = [p for pair in fw.ambiguous if s.id in pair for p in pair if p != s.id]
+        if s.id in first:
+            others = [p for p in picked if p != s.id]
+            note = (f"the evidence is weak once {', '.join(others)} is modelled" if others else
+                   "the evidence is weak in the refit") + " (Wald test or BIC)"
+        elif s.id in significant and rivals:
+            note = f"explains the same readings as {rivals[0]} ({verdicts[rivals[0]].reason or 'accepted'})" \
+                if rivals[0] in verdicts else f"explains the same readings as {rivals[0]}"
+        elif s.id in significant:
+            note = "not chosen: the effects added before it explained its signal"
+        else:
+            note = f"the score test found no sign of it (p = {s.p_value:.2g})"
+        verdicts[s.id] = EffectFit(s.id, _sensor(s.id, mag, problem), "rejected", None, (), s.robust, s.dof,
+                                   s.p_value, reason=note, test_kind="score")
     # a pair is ambiguous only when its representative earned its place (it stays in the model: either
     # explains the same readings, so the calibration is right whichever it is)
     ambiguous = [pair for pair in ambiguous if any(e in accepted for e in pair)]
+    rivals_of: dict[str, set[str]] = {}
     for pair in ambiguous:
         for eid in pair:
-            rival = tuple(sorted(pair - {eid}))
-            old = verdicts[eid]
-            verdicts[eid] = replace(old, status="ambiguous", confounded_with=rival,
-                                    reason=f"cannot be told apart from {', '.join(rival)} in this log")
-    verdicts.update({u.id: u for u in scr.untestable})
+            rivals_of.setdefault(eid, set()).update(pair - {eid})
+    for eid, rs in rivals_of.items():
+        rival = tuple(sorted(rs))
+        verdicts[eid] = replace(verdicts[eid], status="ambiguous", confounded_with=rival,
+                                reason=f"cannot be told apart from {' or '.join(rival)} in this log")
+    verdicts.update({u.id: u for u in scr.untestable if u.id not in verdicts})
     return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous))
 
 
-def _ambiguous(scr: Screen, picked: Sequence[str]) -> list[frozenset[str]]:
-    """Significant candidates left out because a picked one explains the same readings."""
-    out: list[frozenset[str]] = []
-    for eid in holm(scr):
-        if eid in picked:
-            continue
-        rivals = [p for p in picked if scr.correlation.get(frozenset((eid, p)), 0.0) > SEPARABLE]
-        out.extend(frozenset((eid, r)) for r in rivals)
-    return out
-
-
-def _p(scr: Screen, eid: str) -> float:
+def _p(scores: dict[str, Score], eid: str) -> float:
     """The score test's p-value of `eid`."""
-    s = scr.of(eid)
+    s = scores.get(eid)
     return float("nan") if s is None else s.p_value
 
 

@@ -21,12 +21,11 @@ from ..models.problem import Problem
 from ..models.solve import Factor, Linearize, Options, solve
 from ..streams import Stream
 from .parallel import pmap
-from .score import Screen, screen
 
 FloatArray = npt.NDArray[np.float64]
 
 #: shortest held-out block (s): long against the residuals' memory, short against gyro drift in the block
-BLOCK_S = 20.0
+BLOCK_S = 10.0
 FOLDS = 5
 #: noise-level rounds of a fold's fit: it starts from the full fit's levels, which barely move
 FOLD_NOISE_ROUNDS = 0
@@ -105,10 +104,15 @@ def scores_in(ctx: FitContext, windows: Sequence[tuple[float, float]], keep: Flo
     return out[0], out[1], out[2]
 
 
-def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, candidates: Sequence[str],
-                  choose: Callable[[Screen], tuple[str, ...]], declination: float = 0.0, loss: str = "l2",
-                  dip_prior: float | None = None) -> Heldout:
-    """Nested blocked cross-validation of the selection procedure `choose` against the base model."""
+#: a selection procedure: (base fit of a training fold, its held-out windows) -> the effects it chooses
+Procedure = Callable[[MapEstimate, tuple[tuple[float, float], ...]], tuple[str, ...]]
+
+
+def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Procedure, model: tuple[str, ...],
+                  declination: float = 0.0, loss: str = "l2", dip_prior: float | None = None) -> Heldout:
+    """Blocked cross-validation of the base model plus the effects `model` against the base model, both fitted
+    on each training fold; inside each fold `procedure` also chooses effects from the training data alone (the
+    fraction of folds choosing an effect is the nested check that the whole log did not choose it by chance)."""
     ctx = est.context
     assert ctx is not None
     windows = blocks(ctx.ep.t)
@@ -116,11 +120,9 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, candidates: S
     def fold(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]]:
         base = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, declination=declination, holdout=hold,
                        warm=ctx)
-        picked = choose(screen(problem, mag, base, candidates, declination))
-        ext = base
-        if picked:
-            ext = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=picked, declination=declination,
-                          holdout=hold, warm=base.context)
+        picked = procedure(base, hold)
+        ext = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=model, declination=declination,
+                      holdout=hold, warm=base.context)
         assert base.context is not None and ext.context is not None
         w = row_weights(ext.context.bound)
         keep = np.ones(ctx.ep.t.size) if w is None else w
@@ -134,6 +136,7 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, candidates: S
     before, after, count = sum(p[1] for p in parts), sum(p[2] for p in parts), sum(p[3] for p in parts)
     chosen = [p[4] for p in parts]
     protocol = (f"interleaved blocked cross-validation: {len(windows)} blocks of {windows[0][1] - windows[0][0]:.0f} s, "
-                f"{min(FOLDS, len(windows))} folds, effects chosen inside each training fold")
+                f"{min(FOLDS, len(windows))} folds; parameters fitted without the held-out block, whose readings are "
+                "scored with the parameters frozen; effects also chosen inside each training fold")
     rms = (np.sqrt(before / max(count, 1.0)), np.sqrt(after / max(count, 1.0)))
     return Heldout(np.array(gains), float(rms[0]), float(rms[1]), tuple(chosen), protocol)

@@ -11,7 +11,7 @@ from ..streams import Kind, Stream
 from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term, pick, resample
 
 #: below this spread (std of u) throttle never changes enough to be told from hard iron
-MIN_SPREAD = 0.05
+MIN_SPREAD = 0.01
 #: the exponent exists only under the alternative: a prior N(1, 1) keeps it determined when c ~ 0
 P_PRIOR = (1.0, 1.0)
 U_FLOOR = 1e-6

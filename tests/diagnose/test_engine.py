@@ -1,0 +1,165 @@
+"""The mismatch diagnosis on logs with known truth: what it finds, what it refuses to claim, and the CLI."""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from magcal_cli import effects as registry
+from magcal_cli.cli import cli
+from magcal_cli.config import Config
+from magcal_cli.diagnose import ppc
+from magcal_cli.diagnose.score import Score, Screen, screen
+from magcal_cli.diagnose.select import Selection, holm, select
+from magcal_cli.diagnose.validate import blocks, folds
+from magcal_cli.models.map import MapEstimate, fit_map
+from magcal_cli.models.problem import Problem
+from magcal_cli.pipeline import _select
+from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth_effects import EffectSpec
+
+ZERO = (0.0, 0.0, 0.0)
+#: channels logged with no effect: current, voltage, throttle (power) and temperature
+DECOYS = (EffectSpec("current_interference", {"c": ZERO}), EffectSpec("temperature_drift", {"k": ZERO}))
+#: a current interference of 0.023 mG/A: mostly absorbed by the offset, a fraction of the noise per sample
+CURRENT = EffectSpec("current_interference", {"c": (1.2e-9, -0.6e-9, 1.8e-9)})
+Z_MAX = 3.5
+
+
+#: the logs of these tests by name: injected effects and power profile
+CASES: dict[str, tuple[tuple[EffectSpec, ...], str]] = {
+    "decoys": (DECOYS, "flight"),
+    "current": ((CURRENT, DECOYS[1]), "flight"),
+    "strong": ((EffectSpec("current_interference"), DECOYS[1]), "flight"),
+    "hover": ((EffectSpec("current_interference"), DECOYS[1]), "hover"),
+}
+
+
+@cache
+def _fit(case: str, seed: int) -> tuple[Simulation, Problem, MapEstimate]:
+    """A 90-s paper-protocol log, its problem and the base fit."""
+    effects, power = CASES[case]
+    sim = simulate("paper", seed, duration=90.0, effects=effects, power_profile=power)
+    problem, _ = _select(sim.recording, Config(method="map"))
+    return sim, problem, fit_map(problem, problem.mags[0])
+
+
+@cache
+def _selected(case: str, seed: int) -> Selection:
+    """The selection on that log over every registered effect."""
+    _, problem, est = _fit(case, seed)
+    return select(problem, problem.mags[0], est, tuple(registry.EFFECTS))
+
+
+def test_holm_keeps_the_significant_strongest_first() -> None:
+    """Holm's step-down: p-values against alpha / (remaining); the survivors ordered by statistic."""
+    scores = (Score("a", 30.0, 30.0, 3, 1e-5), Score("b", 40.0, 40.0, 3, 1e-6), Score("c", 9.0, 9.0, 3, 0.03),
+              Score("d", 3.0, 3.0, 3, 0.3))
+    assert holm(Screen(scores, (), {})) == ["b", "a"]          # c: 0.03 > 0.05 / 2
+    assert holm(Screen(scores[:3], (), {})) == ["b", "a", "c"]
+
+
+def test_folds_interleave_blocks_over_the_whole_log() -> None:
+    """Every block is held out exactly once; each fold spans the log."""
+    w = blocks(np.linspace(0.0, 200.0, 2001))
+    assert len(w) == 20 and w[0][0] == 0.0 and w[-1][1] >= 200.0
+    f = folds(w)
+    assert sorted(b for fold in f for b in fold) == sorted(w)
+    assert all(fold[0][0] < 100.0 < fold[-1][1] for fold in f)
+
+
+def test_score_tests_keep_their_size_on_decoy_channels() -> None:
+    """No effect injected, channels present: no score p-value below 0.001 over 4 logs x 6 candidates."""
+    ps = []
+    for seed in range(4):
+        _, problem, est = _fit("decoys", 20 + seed)
+        scr = screen(problem, problem.mags[0], est, tuple(registry.EFFECTS))
+        ps += [s.p_value for s in scr.scores]
+    assert len(ps) >= 20 and min(ps) > 1e-3, ps
+
+
+def test_score_test_ranks_the_injected_current_first() -> None:
+    """A concealed current interference: the score test finds it and ranks it first."""
+    _, problem, est = _fit("current", 3)
+    scr = screen(problem, problem.mags[0], est, tuple(registry.EFFECTS))
+    best = max(scr.scores, key=lambda s: s.robust)
+    assert best.id == "current_interference" and best.p_value < 1e-4
+
+
+def test_current_is_accepted_within_its_interval_and_improves_held_out_readings() -> None:
+    """Accepted, truth within Z_MAX std, held-out likelihood better, nothing else accepted."""
+    sel = _selected("current", 3)
+    status = {v.id: v.status for v in sel.verdicts}
+    assert status["current_interference"] == "accepted", status
+    assert [k for k, v in status.items() if v == "accepted"] == ["current_interference"]
+    v = next(v for v in sel.verdicts if v.id == "current_interference")
+    assert v.estimate is not None
+    c, s = v.estimate["c"], v.estimate.std("c")
+    assert np.all(np.abs(c - np.array(CURRENT.params["c"])) < Z_MAX * s), (c, s)
+    lo, _ = v.evidence["heldout_gain_ci95"]
+    assert lo > 0.0 and v.evidence["heldout_rms_after_si"] < v.evidence["heldout_rms_before_si"]
+
+
+def test_negative_control_accepts_nothing_and_agrees_with_its_replicates() -> None:
+    """Decoy channels, no effect: no effect accepted and the simulation check finds no mismatch."""
+    sel = _selected("decoys", 7)
+    assert not [v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous")]
+    _, problem, est = _fit("decoys", 7)
+    assert ppc.check(problem, problem.mags[0], est).global_p > 0.01
+
+
+def test_simulation_check_locates_the_current() -> None:
+    """The base fit of a log with current interference departs from its replicates along the current channel."""
+    _, problem, est = _fit("strong", 4)
+    chk = ppc.check(problem, problem.mags[0], est)
+    assert chk.global_p < 0.01
+    assert any("bat" in c.lower() or "current" in c.lower() for c in chk.located("MAG[0]")["channels"]), chk.top()
+
+
+def test_inseparable_pair_is_ambiguous_never_a_confident_pick() -> None:
+    """Hover: current, throttle and temperature move together; the current effect comes out ambiguous."""
+    sel = _selected("hover", 2)
+    status = {v.id: v for v in sel.verdicts}
+    assert status["current_interference"].status == "ambiguous", {k: v.status for k, v in status.items()}
+    assert status["current_interference"].confounded_with
+    assert not [k for k, v in status.items() if v.status == "accepted"]
+
+
+@pytest.fixture(scope="module")
+def current_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A short simulated ArduPilot log with a strong current interference."""
+    out = tmp_path_factory.mktemp("diag") / "cur.bin"
+    res = CliRunner().invoke(cli, ["simulate", str(out), "--duration", "90", "--seed", "4",
+                                   "--effect", "current_interference"])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_fit_runs_the_diagnosis_by_default(current_log: Path, tmp_path: Path) -> None:
+    """Default fit: the document carries the diagnosis and the accepted effect; --effects none carries neither."""
+    res = CliRunner().invoke(cli, ["fit", str(current_log), "-o", str(tmp_path / "a"), "--outputs", "json", "-q"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "a" / "calibration.json").read_text())
+    assert "current" in doc["diagnosis"]["summary"].lower()
+    assert {"ppc", "located", "heldout", "ppc_after", "summary"} <= set(doc["diagnosis"])
+    assert any(e["id"] == "current_interference" and e["status"] == "accepted" for e in doc["effects"])
+    res = CliRunner().invoke(cli, ["fit", str(current_log), "-o", str(tmp_path / "b"), "--outputs", "json", "-q",
+                                   "--effects", "none"])
+    doc = json.loads((tmp_path / "b" / "calibration.json").read_text())
+    assert doc["diagnosis"] is None and doc["effects"] == []
+
+
+def test_diagnose_command(current_log: Path, tmp_path: Path) -> None:
+    """`magcal diagnose` prints the paragraph, writes diagnosis.json atomically, refuses to overwrite it."""
+    res = CliRunner().invoke(cli, ["diagnose", str(current_log), "-o", str(tmp_path), "-q"])
+    assert res.exit_code == 0, res.output
+    assert res.output.startswith("MAG[0]: the recording disagrees") and "current" in res.output
+    doc = json.loads((tmp_path / "diagnosis.json").read_text())
+    assert doc["diagnosis"]["sensors"][0]["sensor"] == "MAG[0]"
+    again = CliRunner().invoke(cli, ["diagnose", str(current_log), "-o", str(tmp_path)])
+    assert again.exit_code == 2 and "--force" in again.output
