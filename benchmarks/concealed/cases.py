@@ -20,11 +20,11 @@ TEMPERATURE_DECOY = "temperature_drift:k_uT_per_degC=0/0/0"
 POSITION_DECOY = "nongravity_acceleration:sigma_a=0"
 #: clear-tier magnitudes (command-line units), calibrated in README.md
 CLEAR = {
-    "current_interference": "c_uT_per_A=0.0008/-0.0004/0.0012",
+    "current_interference": "c_uT_per_A=0.0016/-0.0008/0.0024",
     "throttle_interference": "c_uT=0.075/-0.0375/0.1125",
-    "temperature_drift": "k_uT_per_degC=0.0011/-0.0008/0.0016",
-    "time_offset": "tau_s=0.0007",
-    "gyro_scale": "s=0.0010/-0.0008/0.0012",
+    "temperature_drift": "k_uT_per_degC=0.0022/-0.0016/0.0032",
+    "time_offset": "tau_s=0.002",
+    "gyro_scale": "s=0.0015/-0.0012/0.0018",
     "accel_scale": "s=0.0038/-0.0058/0.0028",
     "lever_arm": "r_m=0.010/-0.0065/0.005",
 }

@@ -38,6 +38,8 @@ SEPARABLE = 0.95
 BIC_MIN = 6.0
 RELEVANT_DEG = 0.25
 RELEVANT_FIELD = 0.01
+#: the quantile over the log that stands for an effect's largest change
+TOP_QUANTILE = 0.99
 MAX_EFFECTS = 3
 #: a fold "chose" an effect often enough
 MIN_SHARE = 0.5
@@ -80,8 +82,9 @@ def n_eff(est: MapEstimate) -> float:
 
 
 def relevance(est: MapEstimate, eid: str) -> dict[str, float]:
-    """The largest and RMS heading change (deg) an effect's fitted term makes, and its largest field change (%)
-    (magnetometer effects) or tilt change (deg, accelerometer) or 10-s attitude change (deg, gyro)."""
+    """The largest (99th percentile) and RMS heading change (deg) an effect's fitted term makes and its largest
+    field change (%) (magnetometer effects), or tilt change (deg, accelerometer), or 10-s attitude change (deg,
+    gyro)."""
     ctx = est.context
     assert ctx is not None
     b = next(x for x in ctx.bound if x.effect.id == eid)
@@ -95,16 +98,21 @@ def relevance(est: MapEstimate, eid: str) -> dict[str, float]:
         east = np.einsum("kij,kj->ki", ctx.states, dh)[:, 1]
         dip = float(ctx.layout.get(ctx.theta, "dip")[0])
         head = np.rad2deg(np.abs(east) / max(abs(np.cos(dip)), 0.05))
-        return {"heading_max_deg": float(head.max()), "heading_rms_deg": float(np.sqrt(np.mean(head**2))),
-                "field_max_pct": float(100.0 * np.linalg.norm(dh, axis=1).max())}
+        return {"heading_max_deg": _top(head), "heading_rms_deg": float(np.sqrt(np.mean(head**2))),
+                "field_max_pct": _top(100.0 * np.linalg.norm(dh, axis=1))}
     if b.effect.target is Target.ACCEL:
         tilt = np.rad2deg(np.linalg.norm(value, axis=1) / 9.80665)
-        return {"tilt_max_deg": float(tilt.max()), "tilt_rms_deg": float(np.sqrt(np.mean(tilt**2)))}
+        return {"tilt_max_deg": _top(tilt), "tilt_rms_deg": float(np.sqrt(np.mean(tilt**2)))}
     dt = float(np.median(np.diff(ctx.ep.t)))
     k = max(1, int(round(10.0 / dt)))
     acc = np.cumsum(value, axis=0)
     drift = np.linalg.norm(acc[k:] - acc[:-k], axis=1) if acc.shape[0] > k else np.linalg.norm(acc, axis=1)
-    return {"attitude_10s_max_deg": float(np.rad2deg(drift.max()))}
+    return {"attitude_10s_max_deg": _top(np.rad2deg(drift))}
+
+
+def _top(x: FloatArray) -> float:
+    """The "largest" change: the TOP_QUANTILE of |x| (a single vibration spike is not the operating envelope)."""
+    return float(np.quantile(np.abs(x), TOP_QUANTILE))
 
 
 def _relevant(rel: dict[str, float]) -> bool:
@@ -123,6 +131,7 @@ class Forward:
     scores: dict[str, Score]
     screens: tuple[Screen, ...]
     ambiguous: tuple[frozenset[str], ...]
+    implausible: dict[str, str]
 
 
 def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float,
@@ -133,10 +142,16 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
     candidate (the IMU scale factors pick up part of a current's signature), so adding all significant ones at
     once would take passengers. Candidates the log cannot tell apart from the one added are recorded as pairs.
     """
-    est, picked, pairs, screens = base, [], [], []
+    est = base
+    picked: list[str] = []
+    pairs: list[frozenset[str]] = []
+    screens: list[Screen] = []
     scores: dict[str, Score] = {}
+    implausible: dict[str, str] = {}
     left = list(candidates)
-    for _ in range(MAX_EFFECTS):
+    for _ in range(MAX_EFFECTS + 2):
+        if len(picked) == MAX_EFFECTS:
+            break
         scr = screen(problem, mag, est, left, declination)
         screens.append(scr)
         scores.update({s.id: s for s in scr.scores})
@@ -146,11 +161,29 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         best = sig[0]
         rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE]
         pairs += [frozenset((best, r)) for r in rivals]
+        trial = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=(*picked, best),
+                        declination=declination, holdout=holdout, warm=est.context)
+        bad = beyond_limits(trial, best)
+        if bad:                   # it stands in for other physics (e.g. an accelerometer scale of -90 % in flight)
+            implausible[best] = bad
+            pairs = [p for p in pairs if best not in p]
+            left = [e for e in left if e != best]
+            continue
         picked.append(best)
         left = [e for e in left if e != best and e not in rivals]
-        est = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=tuple(picked),
-                      declination=declination, holdout=holdout, warm=est.context)
-    return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs))
+        est = trial
+    return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs), implausible)
+
+
+def beyond_limits(est: MapEstimate, eid: str) -> str:
+    """Why the fitted effect is physically implausible ('' when it is not)."""
+    eff = registry.get(eid)
+    for name, limit in eff.limits.items():
+        v = est.value(f"{eid}.{name}")
+        if v.size and float(np.max(np.abs(v))) > limit:
+            return (f"its fitted {name} ({float(np.max(np.abs(v))):.3g} SI) is beyond the plausible {limit:g}: it "
+                    "stands in for other physics")
+    return ""
 
 
 def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float = 0.0,
@@ -177,8 +210,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
             break
         picked = [p for p in picked if p not in weak]
         est = fit(tuple(picked), base) if picked else base
-    held = crossvalidate(problem, mag, base, procedure, tuple(picked), declination, loss, dip_prior) if picked \
-        else None
+    held = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior) if picked else None
     neff = n_eff(est) if picked else float("nan")
     verdicts: dict[str, EffectFit] = {}
     for f in est.effects:
@@ -211,6 +243,8 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
             others = [p for p in picked if p != s.id]
             note = (f"the evidence is weak once {', '.join(others)} is modelled" if others else
                    "the evidence is weak in the refit") + " (Wald test or BIC)"
+        elif s.id in fw.implausible:
+            note = fw.implausible[s.id]
         elif s.id in significant and rivals:
             note = f"explains the same readings as {rivals[0]} ({verdicts[rivals[0]].reason or 'accepted'})" \
                 if rivals[0] in verdicts else f"explains the same readings as {rivals[0]}"

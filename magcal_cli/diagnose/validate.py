@@ -10,7 +10,7 @@ held-out readings are scored by their negative log-likelihood under the frozen p
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -108,21 +108,27 @@ def scores_in(ctx: FitContext, windows: Sequence[tuple[float, float]], keep: Flo
 Procedure = Callable[[MapEstimate, tuple[tuple[float, float], ...]], tuple[str, ...]]
 
 
-def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Procedure, model: tuple[str, ...],
+def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Procedure, model: MapEstimate,
                   declination: float = 0.0, loss: str = "l2", dip_prior: float | None = None) -> Heldout:
     """Blocked cross-validation of the base model plus the effects `model` against the base model, both fitted
-    on each training fold; inside each fold `procedure` also chooses effects from the training data alone (the
+    on each training fold (each fit starts from its whole-log counterpart, `est` or `model`); inside each fold `procedure` also chooses effects from the training data alone (the
     fraction of folds choosing an effect is the nested check that the whole log did not choose it by chance)."""
     ctx = est.context
     assert ctx is not None
     windows = blocks(ctx.ep.t)
+    ids = tuple(f.id for f in model.effects if f.estimate is not None)
 
     def fold(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]]:
         base = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, declination=declination, holdout=hold,
                        warm=ctx)
         picked = procedure(base, hold)
-        ext = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=model, declination=declination,
-                      holdout=hold, warm=base.context)
+        assert base.context is not None and model.context is not None
+        # both models score with the noise levels of the fold's base fit: levels estimated on the whole log
+        # would carry the held-out readings into the comparison
+        ratio = float(base.context.noise.gyr[0] / model.context.noise.gyr[0])
+        start = replace(model.context, noise=base.context.noise, pre=model.context.pre.scaled(ratio**2))
+        ext = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=ids, declination=declination,
+                      holdout=hold, warm=start)
         assert base.context is not None and ext.context is not None
         w = row_weights(ext.context.bound)
         keep = np.ones(ctx.ep.t.size) if w is None else w

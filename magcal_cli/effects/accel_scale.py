@@ -19,6 +19,7 @@ class AccelScale(Effect):
     target = Target.ACCEL
     params = (ParamBlock("s", 3, "none", "accelerometer scale", XYZ),)
     units: ClassVar[dict[str, str]] = {"s": "fraction"}
+    limits: ClassVar[dict[str, float]] = {"s": 0.05}
     separating_experiment = ("a still pose on each of the six faces")
     physics_left_out = "The accelerometer over- or under-reads by a fixed fraction on some axes."
 

@@ -96,6 +96,8 @@ class Effect:
     #: the `inspect` kinds of the log channels it needs (empty: only the IMU and magnetometer)
     channels: ClassVar[tuple[Kind, ...]] = ()
     physics_left_out: ClassVar[str]
+    #: largest physically plausible |entry| of each parameter (SI); a fit beyond it stands in for other physics
+    limits: ClassVar[dict[str, float]] = {}
     #: the recording that tells this effect apart from a rival the log could not separate it from
     separating_experiment: ClassVar[str] = ("a recording in which the two effects' channels change "
                                             "independently of each other")

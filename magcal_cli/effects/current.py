@@ -22,6 +22,7 @@ class Current(Effect):
     params = (ParamBlock("c", 3, "field", "current interference", XYZ),)
     units: ClassVar[dict[str, str]] = {"c": "{field}/ampere"}
     channels = (Kind.BATTERY_CURRENT,)
+    limits: ClassVar[dict[str, float]] = {"c": 2e-6}
     separating_experiment = ("hover-descend-hover throttle steps at a steady temperature, so current changes quickly while the temperature does not")
     physics_left_out = ("Current in the power leads adds a field fixed to the vehicle, proportional to the "
                         "current.")

@@ -26,6 +26,7 @@ class GyroScale(Effect):
     target = Target.GYRO
     params = (ParamBlock("s", 3, "none", "gyro scale", XYZ),)
     units: ClassVar[dict[str, str]] = {"s": "fraction"}
+    limits: ClassVar[dict[str, float]] = {"s": 0.05}
     separating_experiment = ("full turns about each axis in both directions, at different speeds")
     physics_left_out = "The gyro over- or under-reads the rotation rate by a fixed fraction on some axes."
 

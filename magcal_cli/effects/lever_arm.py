@@ -23,6 +23,7 @@ class LeverArm(Effect):
     target = Target.ACCEL
     params = (ParamBlock("r_m", 3, "none", "lever arm", XYZ),)
     units: ClassVar[dict[str, str]] = {"r_m": "m"}
+    limits: ClassVar[dict[str, float]] = {"r_m": 0.5}
     separating_experiment = ("fast spins about each axis with the vehicle held away from its centre")
     physics_left_out = ("The accelerometer is away from the centre of rotation, so turning adds centripetal and "
                         "tangential acceleration to gravity.")

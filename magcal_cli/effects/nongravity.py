@@ -49,6 +49,7 @@ class NonGravity(Effect):
     params = (ParamBlock("kappa", 1, "none", "non-gravity acceleration"),)
     units: ClassVar[dict[str, str]] = {"kappa": "1", "sigma_a": "m/s^2"}
     channels = (Kind.POSITION,)
+    limits: ClassVar[dict[str, float]] = {"kappa": 2.0}
     separating_experiment = ("hand-held rotations with the vehicle kept still in position, or a flight with a logged GPS velocity")
     physics_left_out = ("The vehicle accelerated (manoeuvres, turns), so the accelerometer's vertical was not "
                         "gravity alone.")

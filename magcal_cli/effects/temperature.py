@@ -22,6 +22,7 @@ class Temperature(Effect):
     params = (ParamBlock("k", 3, "field", "temperature drift", XYZ),)
     units: ClassVar[dict[str, str]] = {"k": "{field}/degC", "T0": "degC"}
     channels = (Kind.TEMPERATURE,)
+    limits: ClassVar[dict[str, float]] = {"k": 1e-6}
     separating_experiment = ("a warm-up or cool-down with the motors off, so the temperature changes while the current does not")
     physics_left_out = "The magnetometer's offset drifts with its temperature."
 

@@ -25,6 +25,7 @@ class Throttle(Effect):
     params = (ParamBlock("c", 3, "field", "throttle interference", XYZ), ParamBlock("p", 1, "none"))
     units: ClassVar[dict[str, str]] = {"c": "{field}", "p": "1"}
     channels = (Kind.THROTTLE,)
+    limits: ClassVar[dict[str, float]] = {"c": 1e-4, "p": 5.0}
     separating_experiment = ("throttle steps at several battery charge levels (or a bench run with a payload), so throttle and current are no longer proportional")
     physics_left_out = ("The motors and their currents add a field fixed to the vehicle that grows with "
                         "throttle.")

@@ -38,6 +38,7 @@ class TimeOffset(Effect):
     target = Target.MAG
     params = (ParamBlock("tau_s", 1, "none", "time offset"),)
     units: ClassVar[dict[str, str]] = {"tau_s": "s"}
+    limits: ClassVar[dict[str, float]] = {"tau_s": 0.3}
     separating_experiment = ("fast rotations in both directions about each axis (a few rad/s), then a pause")
     physics_left_out = ("The magnetometer's time stamps lag (or lead) the IMU's, so during rotation it reports "
                         "the field of a slightly earlier orientation.")

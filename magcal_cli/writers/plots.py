@@ -83,7 +83,11 @@ class HtmlReport:
         parts = ["<!doctype html><html><head><meta charset='utf-8'><title>magcal report</title>",
                  "<style>body{font-family:sans-serif;max-width:960px;margin:2em auto}"
                  "pre{background:#f6f6f6;padding:1em;overflow-x:auto}</style></head><body>",
-                 "<h1>magcal calibration report</h1>", f"<pre>{html.escape(render(result))}</pre>"]
+                 "<h1>magcal calibration report</h1>"]
+        diag = result.calibration.diagnosis
+        if diag:                                  # the paragraph a pilot reads first
+            parts += [f"<p>{html.escape(str(b.get('summary', '')))}</p>" for b in diag.get("sensors", [diag])]
+        parts.append(f"<pre style='white-space:pre-wrap'>{html.escape(render(result))}</pre>")
         for mag_id, series in result.series.items():
             for caption, uri in _figures(mag_id, series, still):
                 parts.append(f"<figure><img src='{uri}' alt='{html.escape(caption)}' style='max-width:100%'>"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -62,6 +63,10 @@ def render(result: RunResult) -> str:
     lines = [f"magcal {cal.magcal_version} calibration report ({cal.created_utc})", "",
              f"Log:     {src.path} ({src.format}, {src.end_s - src.start_s:.1f} s used, sha256 {src.sha256[:12]})",
              f"Method:  {METHOD_NAMES.get(cal.method, cal.method)}"]
+    if cal.diagnosis:
+        lines += ["", "What the recording says"]
+        for block in cal.diagnosis.get("sensors", [cal.diagnosis]):
+            lines += textwrap.wrap(str(block.get("summary", "")), 100, initial_indent="  ", subsequent_indent="  ")
     still = result.still
     still_s = sum(s.end - s.start for s in still.segments)
     imu = cal.imu
@@ -148,6 +153,7 @@ def _render_effect(e: dict[str, Any]) -> str:
     parts = [f"{k} = {_fmt_param(v, std.get(k))} {units_of.get(k, '')}".rstrip() for k, v in params.items()]
     test = e.get("test") or {}
     p = test.get("p_value")
-    tail = f"; Wald p = {p:.2g}" if isinstance(p, float) and np.isfinite(p) else ""
+    kind = {"wald": "Wald", "score": "score test"}.get(str(test.get("kind")), str(test.get("kind")))
+    tail = f"; {kind} p = {p:.2g}" if isinstance(p, float) and np.isfinite(p) else ""
     what = "; ".join(parts) if parts else e.get("reason", "")
     return f"  - {e.get('id')} ({e.get('sensor')}): {e.get('status')}{tail}. {what}\n    {e.get('physics_left_out')}"
