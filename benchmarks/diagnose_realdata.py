@@ -75,8 +75,10 @@ def one(rel: str) -> dict[str, Any]:
     for block in diag.get("sensors", []):
         sid = block["sensor"]
         effects = [e for e in auto.calibration.effects if e.get("sensor") in (sid, auto.calibration.imu.id)]
+        dip = {m.id: m.dip_deg for m in auto.calibration.magnetometers}
+        dip0 = {m.id: m.dip_deg for m in base.calibration.magnetometers} if base is not None else {}
         out["sensors"].append({
-            "sensor": sid, "unit": block.get("unit"), "ppc_p": block["ppc"]["global_p"],
+            "sensor": sid, "dip_deg_base": dip0.get(sid), "dip_deg_diagnosed": dip.get(sid), "unit": block.get("unit"), "ppc_p": block["ppc"]["global_p"],
             "ppc_top": block["ppc"]["top"][:3], "ppc_after_p": block["ppc_after"]["global_p"],
             "located": block["located"], "heldout": block.get("heldout"), "summary": block["summary"],
             "effects": {e["id"]: {"status": e["status"], "params": e.get("params"), "ci95": e.get("ci95"),
@@ -94,10 +96,10 @@ def write_md(path: Path, results: list[dict[str, Any]]) -> None:
              "`python benchmarks/diagnose_realdata.py`: `calibrate(path, Config(method='map', diagnose=True))`, "
              "i.e. what `magcal fit LOG` does by default; no effect named. Raw numbers in the JSON next to this file.",
              "", "| log | sensor | simulation check p (before / after) | accepted | ambiguous | held-out residual "
-             "RMS before / after | base / diagnosed s |", "|---|---|---|---|---|---|---|"]
+             "RMS before / after | dip deg base / diagnosed | base / diagnosed s |", "|---|---|---|---|---|---|---|---|"]
     for r in results:
         if "error" in r:
-            lines.append(f"| {r['log']} | - | refused: {r['error'][:160]} | | | | {r['seconds_base']:.1f} / "
+            lines.append(f"| {r['log']} | - | refused: {r['error'][:160]} | | | | | {r['seconds_base']:.1f} / "
                          f"{r['seconds_diagnosed']:.1f} |")
             continue
         for s in r["sensors"]:
@@ -106,7 +108,8 @@ def write_md(path: Path, results: list[dict[str, Any]]) -> None:
             h = s["heldout"]
             held = f"{h['rms_before']:.3g} / {h['rms_after']:.3g} {s['unit']}" if h else "-"
             lines.append(f"| {r['log']} | {s['sensor']} | {s['ppc_p']:.2g} / {s['ppc_after_p']:.2g} | {acc} | "
-                         f"{amb} | {held} | {r['seconds_base']:.1f} / {r['seconds_diagnosed']:.1f} |")
+                         f"{amb} | {held} | {s['dip_deg_base'] or float('nan'):.1f} / {s['dip_deg_diagnosed']:.1f} | "
+                         f"{r['seconds_base']:.1f} / {r['seconds_diagnosed']:.1f} |")
     lines += ["", "## What the diagnosis said", ""]
     for r in results:
         for s in r.get("sensors", []):

@@ -11,13 +11,18 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
+
 from .. import effects as registry
-from ..models.map import MapEstimate
+from ..models.map import MapEstimate, fit_map
 from ..models.problem import Problem
 from ..streams import Stream
 from . import ppc
 from .select import Selection, select
 from .summary import paragraph
+
+#: magnetometer readings beyond which the diagnosis runs on every k-th one
+DIAGNOSIS_EPOCHS = 12_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -31,12 +36,30 @@ class Diagnosis:
 
 def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: float = 0.0, loss: str = "l2",
              dip_prior: float | None = None, replicates: int = ppc.REPLICATES) -> Diagnosis:
-    """Diagnose the base fit `base` of `mag` (which must carry its context) against every registered effect."""
-    before = ppc.check(problem, mag, base, replicates)
-    sel: Selection = select(problem, mag, base, tuple(registry.EFFECTS), declination, loss, dip_prior)
+    """Diagnose the base fit `base` of `mag` (which must carry its context) against every registered effect.
+
+    A log with more than DIAGNOSIS_EPOCHS magnetometer readings is diagnosed on every k-th reading (the tests
+    have power to spare there, and the diagnosis costs some twenty fits); the effects it accepts are then
+    fitted on every reading.
+    """
+    step = int(np.ceil(base.epochs.size / DIAGNOSIS_EPOCHS))
+    thin = mag if step <= 1 else Stream(mag.kind, mag.id, mag.t[::step], mag.values[::step], mag.source,
+                                        mag.native_unit)
+    start = base if step <= 1 else fit_map(problem, thin, loss, dip_prior, declination=declination)
+    before = ppc.check(problem, thin, start, replicates)
+    sel: Selection = select(problem, thin, start, tuple(registry.EFFECTS), declination, loss, dip_prior)
+    modelled = tuple(v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None)
+    after = ppc.check(problem, thin, sel.estimate, replicates) if modelled else before
     est = replace(sel.estimate, effects=sel.verdicts)
-    accepted = [v for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None]
-    after = ppc.check(problem, mag, sel.estimate, replicates) if accepted else before
+    if step > 1:
+        note = f"{mag.id}: diagnosed on every {step}th of {base.epochs.size} readings; effects fitted on all"
+        full = fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
+                       warm=base.context) if modelled else base
+        fitted = {f.id: f for f in full.effects}
+        verdicts = tuple(replace(v, estimate=fitted[v.id].estimate, statistic=fitted[v.id].statistic,
+                                 p_value=fitted[v.id].p_value) if v.id in fitted else v for v in sel.verdicts)
+        est = replace(full, effects=verdicts, notes=(*full.notes, note))
+        sel = replace(sel, verdicts=verdicts)                 # the paragraph quotes the values fitted on all
     block: dict[str, Any] = {"sensor": mag.id, "ppc": before.document(), "located": before.located(mag.id)}
     if sel.heldout is not None:
         lo, hi = sel.heldout.ci95()
