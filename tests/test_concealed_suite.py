@@ -15,8 +15,8 @@ import cases  # noqa: E402
 import run  # noqa: E402
 import score  # noqa: E402
 
-#: what `magcal fit --effects` gets: "explicit" (each case's candidates) until the diagnosis lands, then "auto"
-EFFECTS_ARG = "explicit"
+#: what `magcal fit --effects` gets: the default diagnosis
+EFFECTS_ARG = "auto"
 #: two short cases: a clear concealed current effect and a decoy-rich negative control
 SUBSET = ("clear_current_interference", "neg_decoys_flight")
 

@@ -20,9 +20,9 @@ TEMPERATURE_DECOY = "temperature_drift:k_uT_per_degC=0/0/0"
 POSITION_DECOY = "nongravity_acceleration:sigma_a=0"
 #: clear-tier magnitudes (command-line units), calibrated in README.md
 CLEAR = {
-    "current_interference": "c_uT_per_A=0.0016/-0.0008/0.0024",
-    "throttle_interference": "c_uT=0.075/-0.0375/0.1125",
-    "temperature_drift": "k_uT_per_degC=0.0022/-0.0016/0.0032",
+    "current_interference": "c_uT_per_A=0.0024/-0.0012/0.0036",
+    "throttle_interference": "c_uT=0.11/-0.055/0.165",
+    "temperature_drift": "k_uT_per_degC=0.0044/-0.0032/0.0064",
     "time_offset": "tau_s=0.002",
     "gyro_scale": "s=0.0015/-0.0012/0.0018",
     "accel_scale": "s=0.0038/-0.0058/0.0028",

@@ -256,15 +256,19 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
                                    s.p_value, reason=note, test_kind="score")
     # a pair is ambiguous only when its representative earned its place (it stays in the model: either
     # explains the same readings, so the calibration is right whichever it is)
-    ambiguous = [pair for pair in ambiguous if any(e in accepted for e in pair)]
+    # the score tests found a mismatch that follows rivals this log cannot tell apart: say so, whether or not
+    # the representative then earned its place (if it did not, nothing is modelled)
     rivals_of: dict[str, set[str]] = {}
     for pair in ambiguous:
         for eid in pair:
             rivals_of.setdefault(eid, set()).update(pair - {eid})
     for eid, rs in rivals_of.items():
         rival = tuple(sorted(rs))
-        verdicts[eid] = replace(verdicts[eid], status="ambiguous", confounded_with=rival,
-                                reason=f"cannot be told apart from {' or '.join(rival)} in this log")
+        modelled = any(e in accepted for e in (eid, *rival))
+        said = f"cannot be told apart from {' or '.join(rival)} in this log" + (
+            "" if modelled else "; not modelled: neither was confirmed on its own")
+        verdicts[eid] = replace(verdicts[eid], status="ambiguous", confounded_with=rival, reason=said,
+                                estimate=verdicts[eid].estimate if modelled else None)
     verdicts.update({u.id: u for u in scr.untestable if u.id not in verdicts})
     return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous))
 

@@ -50,7 +50,8 @@ def paragraph(sensor: str, sel: Selection, before: Check, after: Check, unit: st
         eff = registry.get(v.id)
         out.append(f"{eff.physics_left_out} Modelled: {_values(v, unit)}.")
     for v in unclear:
-        out.append(f"{registry.get(v.id).physics_left_out} ({v.reason}; modelled by one of them).")
+        eff = registry.get(v.id)
+        out.append(f"{eff.physics_left_out} ({v.reason}; to separate them, record {eff.separating_experiment}).")
     if sel.heldout is not None and (found or unclear):
         f = units.from_si(unit)
         u = SHORT.get(unit, unit)
