@@ -222,8 +222,8 @@ def _pct(x: float | None) -> str:
 def markdown(summary: dict[str, dict[str, Any]], rows: list[dict[str, Any]], load_note: str) -> str:
     """The report: per-case table, then the criteria."""
     lines = ["# Concealed-effect suite (issue 11)", "", load_note, "",
-             "The `--effects` column is what `magcal fit` was given (each case's explicit candidate list until "
-             "`auto` diagnoses); issue 11 asks for >= 20 runs per case with `auto`. Produced by "
+             "The `--effects` column is what `magcal fit` was given (`auto`: the default diagnosis; `explicit`: "
+             "each case's candidate list); issue 11 asks for >= 20 runs per case with `auto`. Produced by "
              "`benchmarks/concealed/score.py` (cases and calibration: `benchmarks/concealed/README.md`).", "",
              "| case | tier | --effects | runs | failed | accepted (correct) | wrong/extra | CI coverage "
              "| held-out | ambiguous pair | wrong pick | test stat min / median | fit s |", "|" + "---|" * 13]
