@@ -1,12 +1,17 @@
 """Which physics to add: screen, refit, check on held-out data, and name the rivals a log cannot separate.
 
-mismatch.md sections 3.5-3.8. An effect is accepted only when all of these hold:
+mismatch.md sections 3.5-3.8. Candidates are added greedily (the strongest significant one, then the rest
+screened again given it). An effect is accepted only when all of these hold:
 1. its robust score test is significant after Holm's correction over the candidates (family alpha 5 %);
-2. refitted, its Wald test (sandwich-widened covariance) gives 2 ln(Bayes factor) ~ W - q ln(n_eff) > BIC_MIN;
-3. the selection procedure, run inside each training fold, improves the held-out readings' likelihood
-   (block-bootstrap 95 % interval above zero) and chose this effect in at least half of the folds;
-4. it matters: it moves the heading by >= RELEVANT_DEG somewhere in the log, or the field by >= 1 %.
-Candidates whose regressors the log cannot separate (canonical correlation > SEPARABLE) are `ambiguous`.
+2. refitted, its fit is physically plausible (the plug-in's `limits`), its Wald p < WALD_ALPHA and
+   2 ln(Bayes factor) ~ W - q ln(n_eff) > BIC_MIN given the other effects added;
+3. the model with it, fitted on each training fold, predicts the held-out readings better (block-bootstrap 95 %
+   interval of the likelihood gain above zero), and the screening on the training folds alone chose it in at
+   least half of them;
+4. it matters: at the 99th percentile of the log it moves the heading by >= RELEVANT_DEG or the field by >= 1 %
+   (tilt or 10-s attitude for IMU effects).
+Significant candidates whose signatures the log cannot separate (canonical correlation > SEPARABLE) are
+`ambiguous` together.
 """
 
 from __future__ import annotations

@@ -1,10 +1,11 @@
-"""Held-out evidence: interleaved blocked cross-validation with selection nested inside each training fold.
+"""Held-out evidence: interleaved blocked cross-validation, with the screening also run on each training fold.
 
 mismatch.md section 3.9. The log is cut into contiguous blocks; fold f holds out every K-th block. The training
-fit sees no accelerometer or magnetometer reading of the held-out blocks (their gyro still carries the
-trajectory through, so the orientation there is predicted from the neighbouring data, never fitted to the
-readings scored). Inside each fold the effects are chosen from the training data alone, refitted, and the
-held-out readings are scored by their negative log-likelihood under the frozen parameters and noise levels.
+fits see no accelerometer or magnetometer reading of the held-out blocks (their gyro still carries the
+trajectory through). The base model and the model with the chosen effects are fitted on each training fold;
+the held-out readings are scored by their negative log-likelihood with the parameters and noise levels frozen
+and only the trajectory refitted to them. The screening run on each training fold alone says how often the
+training data would have chosen each effect (the nested check).
 """
 
 from __future__ import annotations
