@@ -238,7 +238,8 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
     accepted = tuple(e for e, v in verdicts.items() if v.status == "accepted")
     if set(accepted) != set(picked):
         est = fit(accepted, base) if accepted else base
-        verdicts.update({f.id: replace(f, evidence=verdicts[f.id].evidence) for f in est.effects if f.id in accepted})
+        verdicts.update({f.id: replace(f, status="accepted", evidence=verdicts[f.id].evidence)
+                         for f in est.effects if f.id in accepted})
     significant = {e for sc in fw.screens for e in holm(sc)}
     for s in fw.scores.values():
         if s.id in verdicts:
