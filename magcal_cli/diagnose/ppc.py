@@ -113,7 +113,9 @@ def battery(ctx: FitContext, factors: Sequence[Factor], states: FloatArray, thet
     e = fm.r * ctx.noise.mag                                          # unwhitened (scaled units)
     h = at.m_b + e @ np.linalg.inv(at.D).T
     rho = np.linalg.norm(h, axis=1) - 1.0
-    rate_x_field = np.cross(reg_omega(ctx, reg), at.m_b) @ at.D.T
+    rotated = so3.log_small(ctx.pre.delta)                            # rotation vector of each interval
+    omega = rotated / np.maximum(ctx.pre.duration, 1e-9)[:, None]     # its mean body rate
+    rate_x_field = np.cross(np.concatenate([omega, omega[-1:]]), at.m_b) @ at.D.T
     dt = float(np.median(np.diff(ctx.ep.t)))
     n_low = max(2, int(round(LOW_BAND_S / dt)))
     names, vals = [], []
@@ -132,7 +134,7 @@ def battery(ctx: FitContext, factors: Sequence[Factor], states: FloatArray, thet
         add(f"mag_{a} ~ rotation x field", _corr(fm.r[:, i], rate_x_field[:, i]))
         add(f"acc_{a} ~ rotation rate", _corr(fa.r[:, i], reg["rotation rate"] ** 2))
         add(f"acc_{a} ~ gravity_{a}", _corr(fa.r[:, i], at.g_b[:, i]))
-        add(f"gyro_{a} ~ rotation_{a}", _corr(fg.r[:, i], so3.log_small(ctx.pre.delta)[:, i]))
+        add(f"gyro_{a} ~ rotation_{a}", _corr(fg.r[:, i], rotated[:, i]))
         add(f"acc_{a} lag-1 autocorrelation", _corr(fa.r[:-1, i], fa.r[1:, i]))
     for f in (fa, fm, fg):
         add(f"{f.name} NIS", float(np.mean(f.r**2)))
@@ -140,12 +142,6 @@ def battery(ctx: FitContext, factors: Sequence[Factor], states: FloatArray, thet
     idx = np.floor((t - t[0]) / WINDOW_S).astype(np.int64)
     nis = np.bincount(idx, np.sum(fm.r**2, axis=1)) / np.maximum(np.bincount(idx), 1)
     return tuple(names), np.array(vals), nis
-
-
-def reg_omega(ctx: FitContext, reg: dict[str, FloatArray]) -> FloatArray:
-    """The body rate at the epochs (rad/s), from the preintegrated rotations (rate times the interval)."""
-    w = so3.log_small(ctx.pre.delta) / np.maximum(ctx.pre.duration, 1e-9)[:, None]
-    return np.concatenate([w, w[-1:]], axis=0)
 
 
 def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generator

@@ -24,7 +24,7 @@ from ..models.map_effects import Bound, bind, layout_for
 from ..models.params import Layout
 from ..models.problem import Problem
 from ..models.result import EffectFit
-from ..models.sandwich import bartlett_dof, cluster_scores, newey_west, time_clusters
+from ..models.sandwich import bartlett_dof, cluster_scores, factor_clusters, newey_west, time_clusters
 from ..models.solve import Options, Solution, solve
 from ..streams import Stream
 
@@ -80,8 +80,7 @@ def _extend(problem: Problem, mag: Stream, est: MapEstimate, bound: Sequence[Bou
     all_bound = (*ctx.bound, *bound)
     layout = layout_for(all_bound)
     theta = layout.zeros()
-    for name in ctx.layout.names:
-        layout.put(theta, name, ctx.layout.get(ctx.theta, name))
+    layout.carry(theta, ctx.layout, ctx.theta)
     tested, held = {}, {}
     for b in bound:
         cols = layout.cols(*b.names())
@@ -104,7 +103,7 @@ def _extend(problem: Problem, mag: Stream, est: MapEstimate, bound: Sequence[Bou
         ids = np.where(ctx.holdout > 0, ids, -1)
         kept = np.unique(ids[ids >= 0])
         ids = np.where(ids >= 0, np.searchsorted(kept, ids), -1)
-    clusters = [ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1, np.int64) for f in sol.factors]
+    clusters = factor_clusters(sol.factors, ids)
     return _Extended(sol, after, layout, tested, held, clusters)
 
 

@@ -44,7 +44,7 @@ from .observability import check_observability
 from .params import BASE, MAG, Layout
 from .problem import Problem
 from .result import EffectFit, ImuFit, MagFit, MethodResult
-from .sandwich import time_clusters, widening
+from .sandwich import factor_clusters, time_clusters, widening
 from .solve import Factor, Linearize, Options, Solution, marginal_covariance, solve
 
 FloatArray = npt.NDArray[np.float64]
@@ -320,8 +320,7 @@ def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated,
     bound, untestable = bind(problem, mag, ep.t, bias, effects, declination)
     layout = layout_for(bound)
     full = layout.zeros()
-    for name in BASE.names:
-        layout.put(full, name, BASE.get(theta, name))
+    layout.carry(full, BASE, theta)
     for b in bound:
         full[layout.cols(*b.names())] = b.effect.start()
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
@@ -363,15 +362,13 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         ep, noise, pre, states = warm.ep, warm.noise, warm.pre, warm.states
         notes: list[str] = []
         theta = BASE.zeros()
-        for name in BASE.names:
-            BASE.put(theta, name, warm.layout.get(warm.theta, name))
+        BASE.carry(theta, warm.layout, warm.theta)
     else:
         clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
         states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache)
     layout, bound, untestable, theta, pre = _with_effects(problem, mag, ep, pre, theta, effects, declination)
-    if warm is not None:
-        for name in set(layout.names) & set(warm.layout.names):
-            layout.put(theta, name, warm.layout.get(warm.theta, name))
+    if warm is not None:                  # the effect blocks that fit also had
+        layout.carry(theta, warm.layout, warm.theta)
     hold = held_out(ep.t, holdout)
     scale_jac = pre.d_scale is not None
     bg = layout.slice("gyroscope_bias")
@@ -438,7 +435,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
     # or disturbances) make the information overstate what the data know: widen where the data say so
     ids = time_clusters(ep.t)
-    widen = widening(sol, [ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1) for f in sol.factors])
+    widen = widening(sol, factor_clusters(sol.factors, ids))
     est = _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen, layout)
     fitted = results(bound, layout, est.theta, est.cov, mag.id, problem.imu_id)
     ctx = FitContext(ep, pre, noise, layout, bound, sol.states, sol.theta, hold)

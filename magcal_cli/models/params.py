@@ -145,6 +145,12 @@ class Layout:
         """Write block `name` of theta in place."""
         theta[..., self.slice(name)] = value
 
+    def carry(self, theta: FloatArray, source: Layout, values: FloatArray) -> None:
+        """Write into theta, in place, every block this layout shares with `source` (whose theta is values)."""
+        for name in self.names:
+            if name in source:
+                self.put(theta, name, source.get(values, name))
+
     def zeros(self) -> FloatArray:
         """An all-zero theta (every effect block at its base-model value)."""
         return np.zeros(self.size)

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from .solve import Solution
+from .solve import Factor, Solution
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -64,6 +64,12 @@ def newey_west(scores: FloatArray, lags: int) -> FloatArray:
 def bartlett_dof(clusters: int, lags: int) -> float:
     """Degrees of freedom of a Newey-West variance from `clusters` scores with Bartlett weights."""
     return clusters / (1.0 + 2.0 * sum((1.0 - k / (lags + 1.0)) ** 2 for k in range(1, lags + 1)))
+
+
+def factor_clusters(factors: Sequence[Factor], epoch_ids: IntArray) -> list[IntArray]:
+    """Cluster ids of each factor's row groups from the ids of the epochs they touch (-1: no epoch, e.g. a
+    prior, which is not data)."""
+    return [epoch_ids[f.idx] if f.idx is not None else np.full(f.r.shape[0], -1, np.int64) for f in factors]
 
 
 def time_clusters(t: npt.ArrayLike, count: int = 40, min_length_s: float = 5.0) -> IntArray:
