@@ -188,7 +188,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from .document import dumps_json
     from .pipeline import calibrate
-    from .writers import FIRMWARE_OUTPUTS, check_targets, write_outputs
+    from .writers import FIRMWARE_OUTPUTS, check_targets
 
     names = _parse_outputs(outputs)
     auto = _firmware_output(ctx, log, fmt, names)
@@ -200,7 +200,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
         names.append(auto)
-    written = write_outputs(result, outdir, names)
+    written = _write_fit_outputs(ctx, result, outdir, names, auto)
     if result.recording.cut is not None:
         _stderr(ctx, f"warning: {result.recording.cut.message}")
     if as_json:
@@ -218,6 +218,22 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     for p in written:
         click.echo(f"wrote {p}")
     _fit_gates(result, fail_on)
+
+
+def _write_fit_outputs(ctx: click.Context, result: Any, outdir: Path, names: list[str], auto: str | None
+                       ) -> list[Path]:
+    """write_outputs; the firmware file fit adds on its own is skipped with a warning when the calibration
+    cannot be written as parameters (asked for with --outputs, it stays an error)."""
+    from .firmware import FirmwareError
+    from .writers import write_outputs
+
+    try:
+        return write_outputs(result, outdir, names)
+    except FirmwareError as exc:
+        if auto is None or auto not in names:
+            raise
+        _stderr(ctx, f"warning: no {auto} parameter file written: {exc}")
+        return write_outputs(result, outdir, [n for n in names if n != auto])
 
 
 def _deprecated(ctx: click.Context, value: bool) -> bool:
