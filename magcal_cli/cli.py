@@ -319,8 +319,12 @@ def _effect_help() -> str:
 
 @cli.command(epilog=EXIT_CODES)
 @click.argument("out", type=click.Path(path_type=Path))
-@click.option("--scenario", type=click.Choice(["paper", "handheld"]), default="handheld", show_default=True,
-              help="paper: the Huang et al. 2025 rotation protocol; handheld: still poses between hand rotations.")
+@click.option("--scenario", type=click.Choice(["paper", "handheld", "multirotor", "rover"]), default="handheld",
+              show_default=True,
+              help="paper: the Huang et al. 2025 rotation protocol; handheld: still poses between hand rotations; "
+                   "multirotor: 300 s flight (tilt within about 20 deg, full yaw turns, accelerating, GPS logged; "
+                   "100/50 Hz); rover: 300 s drive (circles, figure-eights, tilt within 5 deg, GPS; 100/50 Hz). "
+                   "See docs/simulate-scenarios.md.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the truth, trajectory and noise.")
 @click.option("--duration", type=float, default=None, help="Length in seconds [default: the scenario's own].")
 @click.option("--rate", type=float, default=None, help="IMU rate in Hz [default: paper 80, handheld 100].")

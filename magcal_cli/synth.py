@@ -1,8 +1,10 @@
-"""Synthetic recordings with known truth: the `paper` (Huang et al. 2025) and `handheld` scenarios.
+"""Synthetic recordings with known truth: the `paper` (Huang et al. 2025), `handheld`, `multirotor`, `rover` scenarios.
 
 Truth and noise are drawn as in methods.md section 5 (the authors' simulate/simulate.m), in NED.
 Gyro samples are exact constant-rate increments, y_g,k = Log(R_k^T R_k+1)/dt + b_g + noise, so they agree
-with preintegration; accelerometers see gravity only (pure rotation): y_a = -R^T g_n + b_a + noise.
+with preintegration; accelerometers see y_a = R^T (a_n - g_n) + b_a + noise, with a_n = 0 (pure rotation) in
+paper and handheld and the vehicle's own translation in multirotor and rover (synth_scenarios.py), which
+then also log their GNSS position and list it as the nongravity_acceleration effect in the truth.
 `effects` adds physics the base model leaves out (synth_effects.py, synth_inject.py); they draw from their
 own generators, so a simulation with effects has the same trajectory and noise as one without.
 """
@@ -23,13 +25,17 @@ from .models.params import BASE, MAG
 from .streams import Kind, Recording, Stream
 from .synth_effects import EffectSpec
 from .synth_inject import Base, InjectedEffect, inject, truth_entry
-from .synth_physics import POWER_PROFILES
+from .synth_physics import POWER_PROFILES, Motion
+from .synth_scenarios import MIN_DURATION, min_jerk, multirotor, rover
 
 FloatArray = npt.NDArray[np.float64]
 
-SCENARIOS = ("paper", "handheld")
-#: default IMU and magnetometer rates (Hz) per scenario
-DEFAULT_RATES = {"paper": (80.0, 80.0), "handheld": (100.0, 50.0)}
+SCENARIOS = ("paper", "handheld", "multirotor", "rover")
+#: default IMU and magnetometer rates (Hz) per scenario; the vehicles log like handheld so 5 minutes stay small
+DEFAULT_RATES = {"paper": (80.0, 80.0), "handheld": (100.0, 50.0), "multirotor": (100.0, 50.0),
+                 "rover": (100.0, 50.0)}
+#: default length (s) of the vehicle scenarios (paper and handheld follow their protocols)
+DEFAULT_DURATION = {"multirotor": 300.0, "rover": 300.0}
 #: noise densities of methods.md section 5: accelerometer m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), field T/sqrt(Hz)
 NOISE_DENSITY = {"accelerometer": 0.02, "gyroscope": 8.7e-4, "magnetometer": 0.003e-6}
 #: ROS time of the first sample, so that simulated logs carry realistic absolute stamps
@@ -136,11 +142,6 @@ def paper_trajectory(rng: np.random.Generator, rate: float, duration: float | No
     return np.concatenate([np.eye(3)[None], so3.cumulative_product(steps)])
 
 
-def _min_jerk(s: FloatArray) -> FloatArray:
-    """Smooth 0 -> 1 profile with zero velocity and acceleration at both ends."""
-    return s**3 * (10.0 - 15.0 * s + 6.0 * s * s)
-
-
 def _pose_with_up(up_body: FloatArray, yaw: float) -> FloatArray:
     """A body->NED rotation that maps the body vector `up_body` to up, then turned by `yaw` about down."""
     up = up_body / np.linalg.norm(up_body)
@@ -178,9 +179,32 @@ def handheld_trajectory(rng: np.random.Generator, rate: float,
             s = (np.arange(1, n_move + 1) / (n_move + 1))[:, None]
             phi = so3.log(pose.T @ poses[k + 1])
             wobble = rng.standard_normal(3) * 0.4
-            pieces.append(pose @ so3.exp(_min_jerk(s) * phi) @ so3.exp(np.sin(np.pi * _min_jerk(s)) * wobble))
+            pieces.append(pose @ so3.exp(min_jerk(s) * phi) @ so3.exp(np.sin(np.pi * min_jerk(s)) * wobble))
             t += n_move / rate
     return np.concatenate(pieces), tuple(still)
+
+
+def _trajectory(scenario: str, rng: np.random.Generator, rate: float, duration: float | None,
+                trajectory: FloatArray | None) -> tuple[FloatArray, Motion | None, tuple[tuple[float, float], ...]]:
+    """Rotations (N+1, 3, 3), translation (None: pure rotation) and still intervals of the scenario or `trajectory`."""
+    if trajectory is not None:
+        rot = np.asarray(trajectory, dtype=np.float64)
+        if rot.ndim != 3 or rot.shape[1:] != (3, 3) or len(rot) < 3:
+            msg = f"simulate: trajectory must be (N+1, 3, 3) rotations with N >= 2, got {rot.shape}"
+            raise MagcalError(msg)
+        return rot, None, ()
+    if scenario == "paper":
+        return paper_trajectory(rng, rate, duration), None, ()
+    if scenario == "handheld":
+        rot, still = handheld_trajectory(rng, rate, duration)
+        return rot, None, still
+    length = DEFAULT_DURATION[scenario] if duration is None else duration
+    if not length >= MIN_DURATION[scenario]:
+        msg = (f"simulate: the {scenario} scenario needs --duration >= {MIN_DURATION[scenario]:g} s "
+               f"(its still, start and stop phases alone take most of that), got {length:g}")
+        raise MagcalError(msg)
+    made = (multirotor if scenario == "multirotor" else rover)(rng, rate, length)
+    return made.rotations, made.motion, made.still
 
 
 def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
@@ -191,7 +215,8 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
 
     `truth` replaces the drawn calibration (its noise_std is still set from the rates). `effects` are injected
     (auxiliary channels join the recording); `noise_scale` multiplies every noise std (0: noise-free);
-    `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate replaces the scenario's. `power_profile`
+    `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate replaces the scenario's rotations and
+    translation (then there is none). `power_profile`
     (synth_physics.POWER_PROFILES) shapes the throttle and current of the power effects (default "flight").
     """
     if scenario not in SCENARIOS:
@@ -214,16 +239,7 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     if noise_scale != 1.0:
         drawn = replace(drawn, noise_std={k: v * noise_scale for k, v in drawn.noise_std.items()})
     truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
-    still: tuple[tuple[float, float], ...] = ()
-    if trajectory is not None:
-        rot = np.asarray(trajectory, dtype=np.float64)
-        if rot.ndim != 3 or rot.shape[1:] != (3, 3) or len(rot) < 3:
-            msg = f"simulate: trajectory must be (N+1, 3, 3) rotations with N >= 2, got {rot.shape}"
-            raise MagcalError(msg)
-    elif scenario == "paper":
-        rot = paper_trajectory(rng, rate, duration)
-    else:
-        rot, still = handheld_trajectory(rng, rate, duration)
+    rot, motion, still = _trajectory(scenario, rng, rate, duration, trajectory)
     n = rot.shape[0] - 1                    # gyro k covers [t_k, t_k+1], so keep N+1 rotations
     t = np.arange(n) / rate
     sd = truth.noise_std
@@ -238,7 +254,7 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     noise_m = sd["magnetometer"] * rng.standard_normal(mb.shape)
     src = f"simulate:{scenario}:seed={seed}"
     done = inject(tuple(effects), Base(knots, rate, step, m_n, truth.field_strength, seed, noise_scale, src,
-                                       power_profile), omega, force)
+                                       power_profile, motion), omega, force)
     gyro = done.omega + truth.gyro_bias
     gyro += noise_g
     acc = done.force + truth.accel_bias

@@ -55,7 +55,8 @@ class InjectedEffect:
 
 @dataclass(frozen=True, eq=False)
 class Base:
-    """What the effects act on: knots (N+1, 3, 3) body->NED at `rate` Hz, one magnetometer sample per `step`."""
+    """What the effects act on: knots (N+1, 3, 3) body->NED at `rate` Hz, one magnetometer sample per `step`,
+    and the scenario's translation if it has one."""
 
     knots: FloatArray
     rate: float
@@ -66,6 +67,7 @@ class Base:
     noise_scale: float
     source: str
     power_profile: str = "flight"
+    motion: phys.Motion | None = None       # the scenario's own translation (multirotor, rover)
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,24 +93,37 @@ def _body(rot: FloatArray, v_n: FloatArray) -> FloatArray:
     return out
 
 
+def _translation(q: dict[str, Any] | None, base: Base, t: FloatArray, force: FloatArray,
+                 streams: list[Stream], effects: list[InjectedEffect]) -> FloatArray:
+    """f += R^T a_n for the scenario's translation plus the effect's sway; the summed path is logged as GNSS
+    positions unless the effect says source "none". Either alone is one nongravity_acceleration effect."""
+    moves: list[phys.Motion | phys.Path] = [] if base.motion is None else [base.motion]
+    if q is not None:
+        moves.append(phys.path(_rng(base.seed, 2), t, q["sigma_a"]))
+    if not moves:
+        return force
+    source = "gps" if q is None else str(q["source"])
+    t_pos = np.arange(0.0, t[-1] + 1e-9, 1.0 / POSITION_RATE_HZ)
+    a_n, p_n, p_pos = np.zeros((len(t), 3)), np.zeros((len(t), 3)), np.zeros((len(t_pos), 3))
+    for move in moves:
+        a_n += move.acceleration(t)
+        p_n += move.position(t)
+        p_pos += move.position(t_pos)
+    channels: tuple[Kind, ...] = ()
+    if source == "gps":
+        lla = phys.geodetic(p_pos)
+        streams.append(Stream(Kind.POSITION, POSITION_ID, t_pos, lla, f"{base.source}#{POSITION_ID}", "deg"))
+        channels = (Kind.POSITION,)
+    effects.append(InjectedEffect("nongravity_acceleration",
+                                  {"sigma_a": float(np.sqrt(np.mean(a_n**2))), "source": source},
+                                  channels, {"a_n": a_n, "p_n": p_n}))
+    return force + _body(base.knots[:-1], a_n)                # f = R^T (a_n - g_n)
+
+
 def _imu(p: dict[str, dict[str, Any]], base: Base, t: FloatArray, omega: FloatArray, force: FloatArray,
          streams: list[Stream], effects: list[InjectedEffect]) -> tuple[FloatArray, FloatArray]:
     """Translation, lever arm, then the scale factors, which act on the whole measured quantity."""
-    rot = base.knots[:-1]
-    if "nongravity_acceleration" in p:
-        q = p["nongravity_acceleration"]
-        path = phys.path(_rng(base.seed, 2), t, q["sigma_a"])
-        a_n = path.acceleration(t)
-        force = force + _body(rot, a_n)                       # f = R^T (a_n - g_n)
-        channels: tuple[Kind, ...] = ()
-        if q["source"] == "gps":
-            t_pos = np.arange(0.0, t[-1] + 1e-9, 1.0 / POSITION_RATE_HZ)
-            lla = phys.geodetic(path.position(t_pos))
-            streams.append(Stream(Kind.POSITION, POSITION_ID, t_pos, lla, f"{base.source}#{POSITION_ID}", "deg"))
-            channels = (Kind.POSITION,)
-        effects.append(InjectedEffect("nongravity_acceleration",
-                                      {"sigma_a": float(np.sqrt(np.mean(a_n**2))), "source": q["source"]},
-                                      channels, {"a_n": a_n, "p_n": path.position(t)}))
+    force = _translation(p.get("nongravity_acceleration"), base, t, force, streams, effects)
     if "lever_arm" in p:
         r = np.array(p["lever_arm"]["r_m"])
         w, w_dot = phys.Trajectory.from_knots(base.knots, 1.0 / base.rate).rate_and_acceleration(t)

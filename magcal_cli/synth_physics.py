@@ -208,6 +208,45 @@ class Path:
         return out
 
 
+@dataclass(frozen=True, eq=False)
+class Motion:
+    """A scenario's translation in NED: acceleration a_k (N, 3) m/s^2 held over [k dt, (k+1) dt) (the interval
+    gyro sample k covers), velocity v (N+1, 3) m/s and position p (N+1, 3) m at the knots, integrated exactly
+    from it; in between the position is the quadratic p_k + v_k s + a_k s^2 / 2."""
+
+    dt: float
+    a: FloatArray
+    v: FloatArray
+    p: FloatArray
+
+    @classmethod
+    def from_acceleration(cls, a: FloatArray, dt: float, v0: npt.ArrayLike = (0.0, 0.0, 0.0)) -> Motion:
+        """Integrate a_k from rest at the origin (or at velocity v0): v_k+1 = v_k + a_k dt,
+        p_k+1 = p_k + v_k dt + a_k dt^2 / 2."""
+        a = np.asarray(a, dtype=np.float64)
+        v = np.concatenate([np.asarray(v0, dtype=np.float64)[None], a * dt]).cumsum(axis=0)
+        p = np.concatenate([np.zeros((1, 3)), v[:-1] * dt + a * (0.5 * dt * dt)]).cumsum(axis=0)
+        return cls(dt, a, v, p)
+
+    def _split(self, t: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], FloatArray]:
+        """Interval index k (clipped to the log) and the time since its start (s), (M, 1)."""
+        t = np.asarray(t, dtype=np.float64)
+        # + 1e-9: an IMU epoch k / rate divided by dt may round to just below k
+        k = np.clip(np.floor(t / self.dt + 1e-9).astype(np.int64), 0, len(self.a) - 1)
+        return k, (t - k * self.dt)[:, None]
+
+    def position(self, t: npt.ArrayLike) -> FloatArray:
+        """(M, 3) NED position (m) at `t` (s): the piecewise quadratic."""
+        k, s = self._split(t)
+        out: FloatArray = self.p[k] + self.v[k] * s + 0.5 * self.a[k] * s * s
+        return out
+
+    def acceleration(self, t: npt.ArrayLike) -> FloatArray:
+        """(M, 3) NED acceleration (m/s^2) at `t` (s): a_k of the interval holding t."""
+        out: FloatArray = self.a[self._split(t)[0]]
+        return out
+
+
 def path(rng: np.random.Generator, t: FloatArray, sigma_a: float) -> Path:
     """Four smooth sway components of 0.08-0.3 Hz (vertical at 40 %), scaled so that the RMS over `t` of each
     NED acceleration component is sigma_a (m/s^2); displacements are then a few metres for sigma_a ~ 1."""
