@@ -66,8 +66,12 @@ class MagCalibration:
     field_strength: float
     field_strength_source: str = "data"
     quality: Quality | None = None
+    #: parameters the log could not determine, held at a prior (partial calibration): document entries
+    #: {"parameter", "held", "prior", "prior_std", "source"} in this magnetometer's unit (dip in degrees)
+    held: tuple[dict[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "held", tuple(self.held))
         object.__setattr__(self, "D", _frozen(self.D, (3, 3)))
         object.__setattr__(self, "o", _frozen(self.o, (3,)))
         object.__setattr__(self, "cov", _frozen(self.cov, (MAG_PARAMS.size, MAG_PARAMS.size)))

@@ -20,6 +20,7 @@ from .detect import StillResult, check_signal, detect_still, pooled_std
 from .errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
 from .findings import Finding, Severity
 from .models.params import MAG
+from .models.partial import MagPrior, flown_prior
 from .models.problem import Problem
 from .models.result import MagFit, MethodResult
 from .readers import ReadOptions, open_recording
@@ -138,7 +139,27 @@ def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
                 for m, exc in dropped]
     aux = tuple(st.between(cfg.start_s, cfg.end_s) for st in rec.streams if st.kind in AUX_KINDS)
     still = detect_still(acc, gyr, cfg.still, tuple(good))
-    return Problem(where, acc.id, acc, gyr, tuple(good), still, tuple(st for st in aux if len(st) >= 2)), findings
+    return Problem(where, acc.id, acc, gyr, tuple(good), still, tuple(st for st in aux if len(st) >= 2),
+                   onboard_priors(rec, good)), findings
+
+
+def onboard_priors(rec: Recording, mags: list[Stream]) -> dict[str, MagPrior]:
+    """The calibration each magnetometer flew with, from the log's own parameters (ArduPilot COMPASS_*, PX4
+    CAL_MAGn_*; a firmware-corrected stream is its own): the prior of a partial calibration. None without
+    parameters."""
+    from .firmware import FirmwareError
+    from .firmware.flown import flown_fields
+
+    try:
+        flown, source = flown_fields(rec, [m.id for m in mags], None, None)
+    except (FirmwareError, MagcalError):
+        return {}
+    out = {}
+    for f, m in zip(flown, mags, strict=True):
+        p = flown_prior(f.raw, f.field, units.to_si(f.unit), f"{f.slot} in {source}")
+        if p is not None:
+            out[m.id] = p
+    return out
 
 
 def coverage_pct(m_b: FloatArray, cells: int = 100) -> float:
@@ -184,8 +205,23 @@ def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = N
                       coverage_pct(m_b[used]), bool(fit.converged), int(fit.iterations))
     strength, source = (float(np.cbrt(np.linalg.det(d))), "data") if ref is None else (ref.intensity * f, "wmm")
     cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
-                         fit.cov * np.outer(scale, scale), strength, source, quality)
+                         fit.cov * np.outer(scale, scale), strength, source, quality, held_document(fit, f))
     return cal, MagSeries(t, raw, m_b)
+
+
+def held_document(fit: MagFit, f: float) -> tuple[dict[str, Any], ...]:
+    """The document's `held` entries of a fit: parameter names as the document writes them (D[i][j], o[i],
+    dip_deg, imu.accelerometer_bias[i], imu.gyroscope_bias[i]), priors in the magnetometer unit (factor f from
+    SI) or degrees, and where the prior came from."""
+    out = []
+    for h in fit.held:
+        block, _, label = h.name.partition(".")
+        axis = "xyz".index(label) if label in ("x", "y", "z") else None
+        name, k = {"D": (f"D[{label[:1]}][{label[1:]}]", f), "o": (f"o[{axis}]", f),
+                   "dip": ("dip_deg", float(np.rad2deg(1.0)))}.get(block, (f"imu.{block}[{axis}]", 1.0))
+        out.append({"parameter": name, "held": True, "prior": h.prior * k, "prior_std": h.prior_std * k,
+                    "source": h.source})
+    return tuple(out)
 
 
 #: a fitted dip further than this from the World Magnetic Model's says the model missed something

@@ -25,8 +25,10 @@ def _calibration(seed: int) -> Calibration:
     rng = np.random.default_rng(seed)
     d = 480.0 * so3.exp(rng.normal(size=3) * 0.1) @ (np.eye(3) + 0.05 * rng.normal(size=(3, 3)))
     a = rng.normal(size=(13, 13))
+    held = ({"parameter": "D[2][2]", "held": True, "prior": float(rng.normal() * 480), "prior_std": 24.0,
+             "source": "the calibration the vehicle flew with"},) if seed % 2 else ()
     mag = MagCalibration("MAG[0]", "milligauss", d, rng.normal(size=3) * 50, 66.2 + rng.normal(),
-                         a @ a.T * 1e-4, 489.0, "wmm", Quality(2384, 4.1, 0.8, 91.0, True, 7))
+                         a @ a.T * 1e-4, 489.0, "wmm", Quality(2384, 4.1, 0.8, 91.0, True, 7), held)
     imu = ImuCalibration("IMU[0]", None, rng.normal(size=3) * 1e-3, None, np.full(3, 1e-5))
     return Calibration(Source("flight.bin", "dataflash", "ab" * 32, 0.0, 243.1), "kok2012", imu, (mag,),
                        "0.1.0", "2026-11-21T10:00:00Z", {"gyroscope_std": [0.01, 0.01, 0.01]},

@@ -27,6 +27,7 @@ from .export import (
     Options,
     check_limits,
     correction,
+    determined,
     select_mags,
     shared_signal,
     soft_range,
@@ -220,7 +221,7 @@ def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Opt
                 raise
             acc.warnings.append(f"{mag.id} not exported: {exc}")
             continue
-        acc.add(exp, integers)
+        acc.add(determined(exp, mag), integers)
         if kind:
             kinds[mag.id] = kind
     acc.require_any()

@@ -8,8 +8,9 @@ says what is lost.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -135,6 +136,35 @@ def export(cal: Calibration, firmware: str, params: Mapping[str, float], options
         return export_px4(cal, params, options, mag_ids)
     msg = f"firmware {firmware!r} is not known; use ardupilot or px4"
     raise FirmwareError(msg)
+
+
+#: parameters that come from D (iron matrix, scale, orientation) and, axis by axis, from o
+_FROM_D = re.compile(r"COMPASS_(DIA|ODI)\d?_[XYZ]|COMPASS_SCALE\d?|COMPASS_ORIENT\d?|CUST_ROT.*"
+                     r"|CAL_MAG\d_([XYZ](SCALE|ODIAG)|ROT|ROLL|PITCH|YAW)")
+_OFFSET = re.compile(r"COMPASS_OFS\d?_([XYZ])|CAL_MAG\d_([XYZ])OFF")
+
+
+def determined(m: MagExport, mag: MagCalibration) -> MagExport:
+    """Only the parameters the log determined: where a partial calibration held D (any entry), the iron
+    matrix, scale and orientation are left as the vehicle has them; where it held an offset, that axis's
+    offset too. Says so in a note."""
+    held = sorted(str(h["parameter"]) for h in mag.held)
+    d_held = any(p.startswith("D[") for p in held)
+    axes = {"XYZ"[int(p[2])] for p in held if p.startswith("o[")}
+
+    def keep(name: str) -> bool:
+        offset = _OFFSET.fullmatch(name)
+        if offset:
+            return (offset.group(1) or offset.group(2)) not in axes
+        return not (d_held and _FROM_D.fullmatch(name))
+
+    params = {k: v for k, v in m.params.items() if keep(k)}
+    dropped = sorted(set(m.params) - set(params))
+    if not dropped:
+        return m
+    note = (f"{m.mag_id}: this log could not determine {', '.join(held)} (held at a prior, see the report), so "
+            f"{', '.join(dropped)} are not written and the vehicle keeps its own values")
+    return replace(m, params=params, notes=(*m.notes, note))
 
 
 @dataclass

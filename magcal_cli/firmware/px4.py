@@ -26,6 +26,7 @@ from .export import (
     Options,
     check_limits,
     correction,
+    determined,
     select_mags,
     shared_signal,
     soft_range,
@@ -183,7 +184,7 @@ def export_px4(cal: Calibration, params: Mapping[str, float], options: Options |
                    "one at a time with --mag and --slot")
             raise FirmwareError(msg)
         slots[mag.id] = n
-        acc.add(exp, integers)
+        acc.add(determined(exp, mag), integers)
         if kind:
             kinds[mag.id] = kind
     acc.require_any()

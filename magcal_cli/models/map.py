@@ -22,9 +22,10 @@ from threadpoolctl import threadpool_limits
 from .. import so3, units
 from ..config import Config
 from ..effects.base import Point
+from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
 from ..streams import Stream
-from . import map_init
+from . import map_init, partial
 from .accel import G, accel_factor
 from .epochs import BIAS_SCALE, Epochs, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, gyro_factor, preintegrate
@@ -40,12 +41,13 @@ from .map_effects import (
     terms,
     with_terms,
 )
-from .observability import check_observability
+from .observability import ROTATE_ADVICE, check_observability, check_useful
 from .params import BASE, MAG, Layout
+from .partial import Held
 from .problem import Problem
-from .result import EffectFit, ImuFit, MagFit, MethodResult
+from .result import EffectFit, HeldEntry, ImuFit, MagFit, MethodResult
 from .sandwich import factor_clusters, time_clusters, widening
-from .solve import Factor, Linearize, Options, Solution, marginal_covariance, solve
+from .solve import Factor, Linearize, Options, Solution, information, marginal_covariance, solve
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -55,6 +57,11 @@ NOISE_ROUNDS = 6
 NOISE_TOL = 0.03
 #: slope of the gyro's variance-factor fixed point (d log factor / d log variance) assumed for the first step
 FIRST_GYRO_SLOPE = -0.7
+#: a partial calibration's covariance damps the trajectory blocks by this trace: a flat log's nearly rigid
+#: trajectory otherwise cancels theta's information in the Schur complement (models/solve.py `information`)
+TRAJECTORY_DAMPING = 1e-9
+#: the gyro variance never drops below this factor (log) of its start value (100x lower std)
+MIN_GYRO_LOG_VARIANCE = float(np.log(1e-4))
 #: with at least this much still data (s) its noise levels are floors and the gyro level is kept
 MIN_STILL_S = 2.0
 #: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
@@ -72,6 +79,7 @@ class FitContext:
     states: FloatArray
     theta: FloatArray
     holdout: FloatArray | None = None
+    held: Held | None = None
 
     def linearize(self, layout: Layout | None = None, bound: tuple[Bound, ...] | None = None,
                   ep: Epochs | None = None, pre: Preintegrated | None = None,
@@ -79,7 +87,7 @@ class FitContext:
         """The fit's cost, optionally with another layout and effects, data or held-out weights."""
         return make_linearize(self.ep if ep is None else ep, self.pre if pre is None else pre, self.noise,
                               self.layout if layout is None else layout, self.bound if bound is None else bound,
-                              holdout)
+                              holdout, self.held)
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +113,8 @@ class MapEstimate:
     layout: Layout = BASE
     effects: tuple[EffectFit, ...] = ()
     context: FitContext | None = None
+    #: entries the log could not determine, held at a prior (partial calibration, models/partial.py)
+    held: Held | None = None
 
     @property
     def std(self) -> FloatArray:
@@ -146,11 +156,12 @@ def point_at(states: FloatArray, theta: FloatArray, layout: Layout, pre: Preinte
 
 
 def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout = BASE,
-                   bound: tuple[Bound, ...] = (), holdout: FloatArray | None = None) -> Linearize:
+                   bound: tuple[Bound, ...] = (), holdout: FloatArray | None = None,
+                   held: Held | None = None) -> Linearize:
     """Accelerometer, magnetometer and gyro-preintegration factors of the MAP cost (methods.md section 3), with
     the terms of the bound effects added to the factors they enter (map_effects.py). `holdout` (K,) weights
     the accelerometer and magnetometer rows (0: held out for validation; the gyro still carries the
-    trajectory through)."""
+    trajectory through). `held`: base entries held at a prior (partial calibration)."""
     l_acc, l_mag = np.diag(1.0 / noise.acc), np.diag(1.0 / noise.mag)
     idx = np.arange(ep.t.size)
     s_acc = 1.0 / ep.acc_factor
@@ -180,7 +191,8 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
             fm = _scaled(fm, w_mag)
         out = [fa, fm, gyro_factor(states, theta, pre, bg, jac, extra)]   # gyro noise is in pre.l_inv
         prior = prior_factor(bound, layout, theta, jac)
-        return out if prior is None else [*out, prior]
+        out = out if prior is None else [*out, prior]
+        return out if held is None else [*out, held.factor(theta, jac)]
 
     return linearize
 
@@ -257,9 +269,10 @@ def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
 
 
 def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise: Noise,
-                   dip_prior: float | None, cache: dict[bytes, Preintegrated]
+                   dip_prior: float | None, cache: dict[bytes, Preintegrated], align: bool = True
                    ) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
-    """Start values (states, theta, preintegration) as in Sec. III-D; the trajectory that fits better wins."""
+    """Start values (states, theta, preintegration) as in Sec. III-D; the trajectory that fits better wins.
+    Without `align` the start D stays in the body frame (a prior calibration: a flat log cannot align)."""
     notes = []
     if problem.still.segments:
         bias = problem.still.gyr_bias
@@ -269,9 +282,9 @@ def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise
     pre = _preintegrated(problem, ep, bias, noise, cache)
     h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
-    r_d, db = map_init.wu_luo(h, so3.log_small(pre.delta), pre.duration, window)
+    r_d, db = map_init.wu_luo(h, so3.log_small(pre.delta), pre.duration, window) if align else (np.eye(3), np.zeros(3))
     db = db if not problem.still.segments else np.zeros(3)
-    if not problem.still.segments:           # the first-order bias correction carries db (no re-integration)
+    if not problem.still.segments and align:           # the first-order bias correction carries db (no re-integration)
         notes.append(f"{ep.mag_id}: no still segment; gyro bias started from the Wu & Luo alignment "
                      f"({np.array2string(bias + db, precision=4)} rad/s)")
     d0 = intr.D0 @ r_d
@@ -306,9 +319,25 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
     accelerometer and magnetometer readings the fit must not see (validation); `warm`: a fit of the same
     magnetometer to start from (its trajectory, parameters and noise levels).
     """
+    args = (problem, mag, loss, dip_prior, noise_rounds, imu_start, {} if cache is None else cache, effects,
+            declination, holdout, warm)
     with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
-        return _fit_map(problem, mag, loss, dip_prior, noise_rounds, imu_start,
-                        {} if cache is None else cache, effects, declination, holdout, warm)
+        try:
+            return _fit_map(*args)
+        except InsufficientDataError as refused:
+            if warm is not None:
+                raise
+            # the motion cannot determine everything: hold what it cannot at a prior (models/partial.py)
+            prior = partial.priors_by_id(problem.priors, mag.id, mag.xyz)
+            try:
+                return _fit_map(*args, prior=prior)
+            except InsufficientDataError as exc:          # not even that: say why the partial fit failed
+                raise exc from refused
+            except np.linalg.LinAlgError:
+                msg = (f"{problem.where}: {mag.id}: the log's motion determines too little for even a partial "
+                       f"calibration (the fit with D held at {prior.source} is numerically singular). To fix: "
+                       f"{ROTATE_ADVICE}")
+                raise InsufficientDataError(msg) from refused
 
 
 def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated, theta: FloatArray,
@@ -342,11 +371,12 @@ def held_out(t: FloatArray, windows: tuple[tuple[float, float], ...]) -> FloatAr
 def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, noise_rounds: int,
              imu_start: Noise | None, cache: dict[bytes, Preintegrated], effects: tuple[str, ...] = (),
              declination: float = 0.0, holdout: tuple[tuple[float, float], ...] = (),
-             warm: FitContext | None = None) -> MapEstimate:
-    """`fit_map` without the BLAS thread limit."""
+             warm: FitContext | None = None, prior: partial.MagPrior | None = None) -> MapEstimate:
+    """`fit_map` without the BLAS thread limit; with a `prior`, a partial calibration starts from it and holds
+    at it what the motion cannot determine."""
     where = f"{problem.where}: {mag.id}"
     clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
-    intr = map_init.intrinsic_fit(clean, where)
+    intr = map_init.intrinsic_fit(clean, where) if prior is None else map_init.from_prior(clean, prior.D, prior.o)
     ep = epochs_for(problem, mag, intr.scale)
     noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
@@ -365,11 +395,16 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         BASE.carry(theta, warm.layout, warm.theta)
     else:
         clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
-        states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache)
+        states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache, prior is None)
     layout, bound, untestable, theta, pre = _with_effects(problem, mag, ep, pre, theta, effects, declination)
     if warm is not None:                  # the effect blocks that fit also had
         layout.carry(theta, warm.layout, warm.theta)
     hold = held_out(ep.t, holdout)
+    held = warm.held if warm is not None else None
+    if prior is not None:
+        held = _rechoose(partial.prior_of(layout, theta, prior, ep.scale, dip_prior),
+                          make_linearize(ep, pre, noise, layout, bound, hold), states, theta, where)
+        theta[held.cols] = held.mean
     scale_jac = pre.d_scale is not None
     bg = layout.slice("gyroscope_bias")
     if floor is not None and any(b.effect.target.value == "mag" and b.effect.params for b in bound):
@@ -394,7 +429,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     last_step = None
     for rnd in range(noise_rounds + 1):
         opts = (start if noise_rounds else first) if rnd == 0 else later
-        sol = solve(make_linearize(ep, pre, noise, layout, bound, hold), states, theta, opts)
+        sol = solve(make_linearize(ep, pre, noise, layout, bound, hold, held), states, theta, opts)
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = theta[bg]
@@ -415,6 +450,9 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         small = float(np.max(np.abs(step))) < 2.0 * NOISE_TOL
         measured = float(step[3])
         step[3] = _secant(history, applied, measured) if floor is None else 0.0
+        # without still data the gyro level is weakly determined: when the other factors misfit (flight, too
+        # little rotation) its fixed point runs away toward zero and the trajectory becomes numerically rigid
+        step[3] = max(step[3], MIN_GYRO_LOG_VARIANCE - applied)
         if small:
             last_step = step
             break
@@ -422,29 +460,93 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         applied += float(step[3])
         noise, pre = rescaled(noise, pre, step)
     if sol is not None and not sol.converged:
-        sol = solve(make_linearize(ep, pre, noise, layout, bound, hold), states, theta, first)
+        sol = solve(make_linearize(ep, pre, noise, layout, bound, hold, held), states, theta, first)
         iters += sol.iterations
         log.extend(f"final: {line}" for line in sol.log)
     assert sol is not None
+    for rnd in range(3 if prior is not None else 0):
+        # the start trajectory is rougher than the fitted one and shows more (or less) than the data hold:
+        # choose again at the optimum (from scratch the first time, then only adding, which must settle: what is
+        # held changes the residuals' correlation and so the widening)
+        assert held is not None
+        widen = widening(sol, factor_clusters(sol.factors, time_clusters(ep.t)))
+        more = _rechoose(held, make_linearize(ep, pre, noise, layout, bound, hold), sol.states, sol.theta, where,
+                         widen, keep=rnd > 0)
+        if np.array_equal(more.cols, held.cols):
+            break
+        held, theta = more, sol.theta.copy()
+        theta[held.cols] = held.mean
+        sol = solve(make_linearize(ep, pre, noise, layout, bound, hold, held), sol.states, theta, first)
+        iters += sol.iterations
+        log.extend(f"held {', '.join(held.names())}: {line}" for line in sol.log)
+    if held is not None and held.cols.size and warm is None:
+        notes.append(f"{mag.id}: the motion cannot determine {', '.join(held.names())}: held at "
+                     f"{'; '.join(sorted(set(held.sources)))}")
     cov = None
     if last_step is not None:
         # the last small change of the levels moves the optimum negligibly but the covariance proportionally:
         # report the covariance with the final levels at the same point (one assembly, no iterations)
         noise, pre = rescaled(noise, pre, last_step)
-        cov = marginal_covariance(make_linearize(ep, pre, noise, layout, bound, hold), sol.states, sol.theta)
+    if last_step is not None or held is not None:
+        # held entries are pinned during the fit; the covariance carries their prior's doubt (a soft prior)
+        cov = marginal_covariance(make_linearize(ep, pre, noise, layout, bound, hold, held and held.soft()),
+                                  sol.states, sol.theta, 0.0 if held is None else TRAJECTORY_DAMPING)
     # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
     # or disturbances) make the information overstate what the data know: widen where the data say so
     ids = time_clusters(ep.t)
     widen = widening(sol, factor_clusters(sol.factors, ids))
-    est = _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen, layout)
+    if held is not None:
+        widen[held.cols] = 1.0                  # a held entry's std is its prior's doubt, not the data's
+        _explains(ep, sol.theta, layout, where)
+    est = _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen, layout,
+                    held)
     fitted = results(bound, layout, est.theta, est.cov, mag.id, problem.imu_id)
-    ctx = FitContext(ep, pre, noise, layout, bound, sol.states, sol.theta, hold)
-    return replace(est, effects=tuple(fitted + untestable), context=ctx)
+    ctx = FitContext(ep, pre, noise, layout, bound, sol.states, sol.theta, hold, held)
+    return replace(est, effects=tuple(fitted + untestable), context=ctx, held=held)
+
+
+#: a partial calibration that leaves the field strength varying more than this (RMS, relative) explains nothing
+PARTIAL_MAX_NORM_RMS = 0.15
+
+
+def _explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str) -> None:
+    """Refuse a partial calibration that does not explain the readings: the calibrated field strength must stay
+    within PARTIAL_MAX_NORM_RMS of constant (a full fit is judged by its quality numbers instead)."""
+    d, o, _ = mag_layout(layout).unpack(theta)
+    spread = float(np.sqrt(np.mean((np.linalg.norm((ep.mag - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
+    if spread > PARTIAL_MAX_NORM_RMS:
+        msg = (f"{where}: even a partial calibration does not explain the readings (the calibrated field strength "
+               f"still varies {100 * spread:.0f} % RMS): the log's motion determines too little, or a disturbance "
+               f"dominates. To fix: {ROTATE_ADVICE}")
+        raise InsufficientDataError(msg)
+
+
+def _rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray, where: str,
+              widen: FloatArray | None = None, keep: bool = False) -> Held:
+    """The base entries the data's information at this point cannot determine better than their priors (the
+    information narrowed by the sandwich's widening factors, when given: residuals correlated in time know less
+    than the white-noise model says), plus the pinned implausible ones; refuses when D and o would be held
+    entirely. With `keep`, what is held stays held."""
+    pinned = np.union1d(held.pinned, partial.implausible(theta, held)).astype(np.int64)
+    try:
+        info = information(data, states, theta)
+        if widen is not None:
+            info = info / np.outer(widen, widen)
+        more = held.holding(partial.choose(info, held.prior_std, np.union1d(pinned, held.cols) if keep else pinned),
+                            pinned)
+    except np.linalg.LinAlgError:
+        more = held.holding(BASE.cols(*BASE.names), pinned)
+    if more.undetermined():
+        msg = (f"{where}: the motion in this log determines no part of the magnetometer calibration, not even the "
+               f"offsets with D held at {held.prior_sources[BASE.slice('D').start]} (the field turned through "
+               f"too few directions). To fix: {ROTATE_ADVICE}")
+        raise InsufficientDataError(msg)
+    return more
 
 
 def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, sol: Solution, iters: int,
               log: tuple[str, ...], notes: tuple[str, ...], cov_theta: FloatArray | None = None,
-              widen: FloatArray | None = None, layout: Layout = BASE) -> MapEstimate:
+              widen: FloatArray | None = None, layout: Layout = BASE, held: Held | None = None) -> MapEstimate:
     """Convert the scaled solution to SI, with the total gyro bias and the observability findings."""
     s = ep.scale
     jac = layout.si_factors(s)
@@ -468,7 +570,8 @@ def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, so
     # observability is a property of the motion: judge it on the model information of the base blocks, then
     # widen for honesty
     base = layout.cols(*BASE.names)
-    condition, findings = check_observability(cov[np.ix_(base, base)], s, ep.acc, where)
+    condition, findings = check_observability(cov[np.ix_(base, base)], s, ep.acc, where,
+                                              None if held is None else held.cols)
     if widen is not None and np.any(widen > 1.0):
         cov = cov * np.outer(widen, widen)
         names = [n for n, c in layout.groups().items() if np.any(widen[c] > 1.0)]
@@ -477,6 +580,8 @@ def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, so
             f"{where}: the residuals are correlated in time beyond the noise model (quantised readings, "
             f"unmodelled motion or a disturbance); the uncertainty of {', '.join(names)} was widened up to "
             f"{float(widen.max()):.1f}x (time-clustered sandwich estimate)", {"max_factor": float(widen.max())}))
+    if held is not None:
+        check_useful(cov[np.ix_(base, base)], s, held.cols, where)
     return MapEstimate(ep.mag_id, theta, cov, noise_si, states, ep.t, sol.cost, iters, sol.converged,
                        float(np.sqrt(np.mean(resid**2))), log, tuple(findings), notes, condition, layout)
 
@@ -501,7 +606,19 @@ def to_fits(est: MapEstimate, stream: Stream) -> MagFit:
     d, o, dip = mag_layout(est.layout).unpack(est.theta)
     c = est.layout.cols(*MAG.names)
     return MagFit(est.mag_id, d, o, dip, est.cov[np.ix_(c, c)], est.residual_rms, int(est.epochs.size),
-                  est.iterations, est.converged, est.log)
+                  est.iterations, est.converged, est.log, held_entries(est))
+
+
+def held_entries(est: MapEstimate) -> tuple[HeldEntry, ...]:
+    """The estimate's held parameters with their priors in SI (the gyro bias as a total, like theta)."""
+    if est.held is None or est.context is None:
+        return ()
+    si = BASE.si_factors(est.context.ep.scale)
+    total = np.zeros(BASE.size)
+    total[BASE.slice("gyroscope_bias")] = est.context.pre.bias
+    names = est.held.names()
+    return tuple(HeldEntry(n, float(est.held.prior_mean[c] * si[c] + total[c]), float(est.held.prior_std[c] * si[c]),
+                           s) for n, c, s in zip(names, est.held.cols, est.held.sources, strict=True))
 
 
 def run(problem: Problem, cfg: Config) -> MethodResult:

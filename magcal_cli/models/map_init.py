@@ -59,6 +59,15 @@ def intrinsic_fit(y: FloatArray, where: str) -> Intrinsic:
     return Intrinsic(ell.D0 / scale, ell.o0 / scale, scale, ell.residual_rms)
 
 
+def from_prior(y: FloatArray, d: FloatArray, o: FloatArray) -> Intrinsic:
+    """Start values from a prior calibration y = D m_b + o (tesla) instead of an ellipsoid fit (partial
+    calibration: the readings may not determine an ellipsoid)."""
+    scale = float(np.cbrt(abs(np.linalg.det(d))))
+    m_b = (y / scale - o / scale) @ np.linalg.inv(d / scale).T
+    rms = float(np.sqrt(np.mean((np.linalg.norm(m_b, axis=1) - 1.0) ** 2)))
+    return Intrinsic(d / scale, o / scale, scale, rms)
+
+
 def wu_luo(h: FloatArray, phi: FloatArray, duration: FloatArray, window: int
            ) -> tuple[FloatArray, FloatArray]:
     """Misalignment R_D (h = R_D m_b, possibly improper) and gyro bias correction from the field kinematics.

@@ -17,6 +17,7 @@ from ..findings import Finding, Severity
 from .params import BASE
 
 FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
 #: names of the entries of theta
 NAMES = BASE.entry_names()
@@ -97,10 +98,35 @@ def _advice(groups: list[Group]) -> str:
     return "; ".join(a for a in order if any(g.advice == a for g in groups)) + "."
 
 
-def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: str
+def conditional(cov: FloatArray, held: IntArray) -> tuple[FloatArray, IntArray]:
+    """The covariance of the free entries given the held ones (cov_FF - cov_FH cov_HH^-1 cov_HF), and the free
+    entries' indices: what the data determine once a partial calibration fixed the rest."""
+    free = np.setdiff1d(np.arange(cov.shape[0]), held).astype(np.int64)
+    if held.size == 0:
+        return cov, free
+    c_fh = cov[np.ix_(free, held)]
+    return cov[np.ix_(free, free)] - c_fh @ np.linalg.solve(cov[np.ix_(held, held)], c_fh.T), free
+
+
+def check_useful(cov: FloatArray, field: float, held: IntArray, where: str) -> None:
+    """Refuse a partial calibration whose estimated D or o entries are known no better than the fatal limit once
+    the prior's doubt and the correlated residuals are counted (the marginal, widened covariance)."""
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) / field
+    worst = [(NAMES[i], std[i]) for g in (GROUP_OF["D"], GROUP_OF["o"])
+             for i in range(g.sl.start, g.sl.stop) if i not in held and std[i] > g.fatal]
+    if worst:
+        name, sd = max(worst, key=lambda w: w[1])
+        msg = (f"{where}: the log's motion determines too little for even a partial calibration ({name} is "
+               f"uncertain to {100 * sd:.0f} % of the field once the held parameters' doubt and the correlated "
+               f"residuals are counted). To fix: {ROTATE_ADVICE}")
+        raise InsufficientDataError(msg)
+
+
+def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: str, held: IntArray | None = None
                         ) -> tuple[float, list[Finding]]:
     """Condition number and findings for a covariance in BASE order (SI); raises when the log cannot determine
-    theta."""
+    theta. Entries `held` at a prior (partial calibration) are not judged; the others are judged given them."""
+    cov, free = conditional(cov, np.zeros(0, np.int64) if held is None else np.asarray(held, np.int64))
     tilt = tilt_spread_deg(acc)
     flat = f" (the measured vertical stayed within {tilt:.0f} deg of its mean direction)" if tilt < 45 else ""
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0.0):
@@ -110,8 +136,10 @@ def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: s
     info = scaled_information(cov)
     eig = np.linalg.eigvalsh(info)
     condition = float(eig[-1] / max(eig[0], 1e-300))
-    vif = np.diag(np.linalg.inv(info)) if np.isfinite(condition) else np.full(len(NAMES), np.inf)
-    std = np.sqrt(np.diag(cov))
+    vif = np.full(len(NAMES), 1.0)
+    vif[free] = np.diag(np.linalg.inv(info)) if np.isfinite(condition) else np.inf
+    std = np.zeros(len(NAMES))
+    std[free] = np.sqrt(np.diag(cov))
     fatal, poor = [], []
     for g in GROUPS:
         rel = std[g.sl] / (field if g.relative else 1.0)
@@ -124,10 +152,10 @@ def check_observability(cov: FloatArray, field: float, acc: FloatArray, where: s
         msg = (f"{where}: the motion in this log cannot determine the {what}{flat}. To fix: "
                f"{_advice(fatal or _ROTATION)}")
         raise InsufficientDataError(msg)
-    worst = int(np.argmax(vif))
+    worst = int(np.argmax(vif))                     # held entries have vif 1: never the worst
     findings = [Finding(
         Severity.INFO, "fisher_condition",
-        f"{where}: the Fisher information of the {len(NAMES)} calibration parameters has condition number "
+        f"{where}: the Fisher information of the {free.size} calibration parameters has condition number "
         f"{condition:.3g} (scaled to unit diagonal); the most confounded parameter is {NAMES[worst]} "
         f"(variance inflation {vif[worst]:.3g}).",
         {"condition_number": condition, "max_variance_inflation": float(vif[worst]),

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 from ..detect import StillResult
 from ..streams import Kind, Stream
+from .partial import MagPrior
 
 
 @dataclass(frozen=True, eq=False)
@@ -13,6 +15,7 @@ class Problem:
     """Streams in SI units on the log's time base, ready for any method; `where` names the log in messages.
 
     `aux` holds the log's other channels (current, throttle, temperature, position, ...) that effect terms use.
+    `priors` holds what a magnetometer's calibration is held at where the log cannot determine it.
     """
 
     where: str
@@ -22,6 +25,8 @@ class Problem:
     mags: tuple[Stream, ...]
     still: StillResult
     aux: tuple[Stream, ...] = ()
+    #: the calibration each magnetometer flew with (by id), the prior of a partial calibration
+    priors: Mapping[str, MagPrior] = field(default_factory=dict)
 
     def channels(self, kind: Kind) -> tuple[Stream, ...]:
         """The auxiliary streams of one kind, in log order."""

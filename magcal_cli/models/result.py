@@ -28,6 +28,19 @@ class MagFit:
     iterations: int
     converged: bool
     log: tuple[str, ...] = ()
+    #: entries the log could not determine, held at a prior (partial calibration): SI values
+    held: tuple[HeldEntry, ...] = ()
+
+
+@dataclass(frozen=True)
+class HeldEntry:
+    """One parameter held at a prior: its entry name in `params.BASE` ('D.02', 'o.z', 'dip',
+    'accelerometer_bias.x'), the prior's value and std in SI (total gyro bias; dip in rad) and source."""
+
+    name: str
+    prior: float
+    prior_std: float
+    source: str
 
 
 @dataclass(frozen=True, eq=False)

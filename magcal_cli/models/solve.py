@@ -280,21 +280,19 @@ def _band(diag: FloatArray, off: FloatArray, u: int) -> FloatArray:
     return ab
 
 
-def _step(ne: _Normal, lam: float, u: int, need_w: bool = False
-          ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
-    """Solve the damped normal equations; returns dx (N,3), dtheta, S^-1, damped Hxx blocks and, if asked,
-    Hxx^-1 Hxt (N,3,p).
-
-    With Hxx = U^T U (banded Cholesky): X = U^-T Hxt and y = U^-T gx (one triangular banded solve with p+1
-    right-hand sides), S = Htt - X^T X, dtheta = S^-1 (X^T y - gt), dx = -U^-1 (y + X dtheta).
-    """
+def _schur(ne: _Normal, lam: float, u: int, lam_theta: float | None = None
+           ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The damped Schur complement S = Htt - X^T X with X = U^-T Hxt, y = U^-T gx (Hxx = U^T U, banded
+    Cholesky): returns S, X, y, the banded factor and the damped Hxx blocks. `lam_theta` damps Htt (default
+    `lam`)."""
     n, p = ne.gx.shape[0], ne.gt.size
     diag = ne.diag.copy()
     d = np.einsum("nii->ni", diag)
     floor = 1e-9 * (float(np.mean(d)) if d.size else 1.0)
     d += lam * (d + floor)                                   # Marquardt scaling with a floor
     scale = float(np.mean(np.diag(ne.htt))) if ne.htt.size else 1.0     # no theta: a trajectory-only problem
-    htt = ne.htt + lam * np.diag(np.diag(ne.htt) + 1e-9 * max(scale, 1e-300))
+    lam_t = lam if lam_theta is None else lam_theta
+    htt = ne.htt + lam_t * np.diag(np.diag(ne.htt) + 1e-9 * max(scale, 1e-300))
     cb = linalg.cholesky_banded(_band(diag, ne.off, u), lower=False, check_finite=False)
     rhs = np.concatenate([ne.hxt.reshape(3 * n, p), ne.gx.reshape(3 * n, 1)], axis=1)
     sol, info = lapack.dtbtrs(cb, rhs, uplo="U", trans="T")
@@ -303,7 +301,16 @@ def _step(ne: _Normal, lam: float, u: int, need_w: bool = False
         raise np.linalg.LinAlgError(msg)
     x, y = sol[:, :p], sol[:, p]
     s = htt - x.T @ x
-    s = 0.5 * (s + s.T)
+    return 0.5 * (s + s.T), x, y, cb, diag
+
+
+def _step(ne: _Normal, lam: float, u: int, need_w: bool = False, lam_theta: float | None = None
+          ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    """Solve the damped normal equations; returns dx (N,3), dtheta, S^-1, damped Hxx blocks and, if asked,
+    Hxx^-1 Hxt (N,3,p): dtheta = S^-1 (X^T y - gt), dx = -U^-1 (y + X dtheta) (see `_schur`).
+    """
+    n, p = ne.gx.shape[0], ne.gt.size
+    s, x, y, cb, diag = _schur(ne, lam, u, lam_theta)
     # Jacobi scaling before the inverse: theta mixes units (tesla, rad, m/s^2) with very different scales
     sd = np.diag(s)
     if np.any(~np.isfinite(sd)) or np.any(sd <= 0.0):
@@ -375,21 +382,58 @@ def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: 
                 break
     ne = _assemble(factors, weights, n, p)
     try:
-        _, _, s_inv, hdiag, w = _step(ne, 0.0, u, need_w=True)
-        assert w is not None
+        _, _, s_inv, hdiag, w = _undamped(ne, u, log)
     except (np.linalg.LinAlgError, linalg.LinAlgError):
         log.append("the information is singular at the optimum: the data do not determine all unknowns")
         s_inv, hdiag, w = np.full((p, p), np.nan), ne.diag, np.full((n, 3, p), np.nan)
+    assert w is not None
     return Solution(states, theta, cost, it, converged, s_inv, tuple(log), tuple(factors), hdiag, w, u,
                     ne.off, tuple(weights))
 
 
-def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatArray) -> FloatArray:
+def _undamped(ne: _Normal, u: int, log: list[str] | None = None
+              ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    """`_step` on the undamped information; when that is numerically singular (a rigid gyro, a flat log), with a
+    trace (1e-9) of damping on the trajectory blocks only, and failing that on theta too, which leaves
+    undetermined directions huge rather than NaN (the observability check then names them)."""
+    for lam_theta in (None, 0.0, 1e-9):
+        try:
+            out = _step(ne, 0.0 if lam_theta is None else 1e-9, u, need_w=True, lam_theta=lam_theta)
+        except (np.linalg.LinAlgError, linalg.LinAlgError):
+            if lam_theta == 1e-9:
+                raise
+            continue
+        if lam_theta is not None and log is not None:
+            log.append(f"the information is nearly singular at the optimum (covariance with 1e-9 damping of the "
+                       f"{'trajectory' if lam_theta == 0.0 else 'trajectory and theta'})")
+        return out
+    raise AssertionError  # pragma: no cover - the loop returns or raises
+
+
+def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatArray,
+                        trajectory_damping: float = 0.0) -> FloatArray:
     """Inverse Schur complement of the Gauss-Newton information at a given point (no iterations), e.g. the
-    Cramer-Rao bound of theta when evaluated at the truth with the true noise levels."""
+    Cramer-Rao bound of theta when evaluated at the truth with the true noise levels. `trajectory_damping` (a
+    trace, e.g. 1e-9) keeps a nearly rigid trajectory from cancelling theta's information in the Schur
+    complement (flat logs); theta stays undamped."""
     factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
     with threadpool_limits(limits=1, user_api="blas"):
         ne = _assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
-        return _step(ne, 0.0, u)[2]
+        if trajectory_damping > 0.0:
+            return _step(ne, trajectory_damping, u, lam_theta=0.0)[2]
+        return _undamped(ne, u)[2]
+
+
+def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> FloatArray:
+    """The Schur complement S of the Gauss-Newton information at a given point: what the data know about theta
+    with the trajectory eliminated (singular where the motion determines nothing; models/partial.py)."""
+    factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
+    n, p = states.shape[0], theta.size
+    u = 5 if any(f.J_next is not None for f in factors) else 2
+    with threadpool_limits(limits=1, user_api="blas"):
+        ne = _assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
+        # its null directions (what the motion cannot determine)
+        return _schur(ne, 1e-9, u, 0.0)[0]

@@ -112,6 +112,8 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
              f"(roll, pitch, yaw {_vec(np.rad2deg(so3.as_rpy(u)), '{:+.2f}')} deg)",
              f"    soft iron P/|F|    {_mat(mag.soft_iron, 23)}",
              f"    A = D^-1 [1/{sym}]".ljust(23) + _mat(mag.A / f, 23, "{:+.6f}")]
+    if mag.held:
+        lines += textwrap.wrap(_held_sentence(mag), 100, initial_indent="    ", subsequent_indent="    ")
     if q is not None:
         lines += ["  How good",
                   f"    field-norm spread  raw |y| {before:.2f} % RMS -> calibrated "
@@ -122,6 +124,15 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
                   f"after {q.iterations} iterations"]
     lines += ["  What to do next"] + [f"    - {a}" for a in _advice(mag, misalign, before)]
     return lines
+
+
+def _held_sentence(mag: MagCalibration) -> str:
+    """One sentence on a partial calibration: what was held, at what, and why."""
+    names = ", ".join(str(h["parameter"]) for h in mag.held)
+    sources = "; ".join(sorted({str(h["source"]) for h in mag.held}))
+    return (f"Partial calibration: this log's motion cannot determine {names}, so they are held at {sources} "
+            "(their std is that prior's doubt) and the rest is estimated from the data; a recording with more "
+            "tilt in every direction would determine them too.")
 
 
 class TextReport:

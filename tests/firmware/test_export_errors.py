@@ -192,3 +192,23 @@ def test_a_field_px4_already_corrected_is_not_exported() -> None:
         export(cal, "px4", {}, Options(), ["sensor_combined"])
     exp = export(cal, "px4", {}, Options(skip_refused=True))
     assert [m.mag_id for m in exp.mags] == ["sensor_mag[1]"]
+
+
+def test_a_partial_calibration_exports_only_what_the_log_determined() -> None:
+    """A held D entry leaves the iron matrix, scale and orientation as the vehicle has them; a held offset leaves
+    that axis's offset; both say so in a note (ArduPilot and PX4)."""
+    from dataclasses import replace
+
+    held = ({"parameter": "D[2][2]", "held": True, "prior": F, "prior_std": 25.0, "source": "the vehicle's"},
+            {"parameter": "o[1]", "held": True, "prior": 0.0, "prior_std": 25.0, "source": "the vehicle's"})
+    for firmware, mag_id, iron, ofs_y, ofs_x in (
+            ("ardupilot", "MAG[0]", "COMPASS_DIA_X", "COMPASS_OFS_Y", "COMPASS_OFS_X"),
+            ("px4", "sensor_mag[0]", "CAL_MAG0_XSCALE", "CAL_MAG0_YOFF", "CAL_MAG0_XOFF")):
+        cal = doc(mag_id, o=(10.0, 20.0, 30.0))
+        full = export(cal, firmware, {})
+        assert {iron, ofs_y, ofs_x} <= set(full.params)
+        cal = replace(cal, magnetometers=(replace(cal.magnetometers[0], held=held),))
+        part = export(cal, firmware, {})
+        assert ofs_x in part.params and iron not in part.params and ofs_y not in part.params
+        assert any("could not determine D[2][2], o[1]" in n and "the vehicle keeps its own values" in n
+                   for n in part.notes)

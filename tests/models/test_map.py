@@ -107,17 +107,19 @@ def test_flat_yaw_mostly_log_reports_what_it_leaves_poorly_determined() -> None:
     assert _nees(est, theta_of(truths[0])) < NEES_BOUND
 
 
-def test_flat_yaw_only_log_is_an_insufficient_data_error() -> None:
-    """Yaw turns within +-3 deg of level cannot determine the calibration: an error that says what to do."""
+def test_nearly_flat_yaw_log_is_calibrated_within_its_uncertainty() -> None:
+    """Yaw turns within +-3 deg of level defeat the ellipsoid start values (magcal used to refuse the log): the
+    partial-calibration path starts from a sphere fit instead, holds what the motion cannot determine (here the
+    tilt suffices for everything) and every entry's error stays within the reported covariance."""
     rate = 100.0
     t = np.arange(int(60 * rate) + 1) / rate
     tilt = np.deg2rad(3.0)
     rot = so3.exp(np.stack([0 * t, 0 * t, 0.6 * t], 1)) @ so3.exp(
         np.stack([tilt * np.sin(0.7 * t), tilt * np.cos(0.43 * t), 0 * t], 1))
-    problem, _, _ = record(rot, rate, 2, mag_step=2)
-    expected = "cannot determine .*rotate the vehicle about all three axes"
-    with pytest.raises(InsufficientDataError, match=expected):
-        mapm.fit_map(problem, problem.mags[0])
+    problem, truths, _ = record(rot, rate, 2, mag_step=2)
+    est = mapm.fit_map(problem, problem.mags[0])
+    assert est.held is not None                                   # the partial path ran
+    assert _nees(est, theta_of(truths[0])) < NEES_BOUND
 
 
 def test_no_rotation_is_an_insufficient_data_error() -> None:

@@ -308,12 +308,13 @@ def test_real_normalised_bags_are_flagged(realdata: Path, name: str, mag_topic: 
 
 def test_real_phidgets_fit_fails_cleanly_on_yaw_only_motion(realdata: Path,
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
-    """The phidgets bag turns mostly about one axis: the fit stops with a one-line reason, not a traceback."""
+    """The phidgets bag turns mostly about one axis and its field varies 23 % around any sphere: even a partial
+    calibration determines too little, and the fit stops with a one-line reason, not a traceback."""
     from magcal_cli.config import Config
     from magcal_cli.pipeline import calibrate
 
     rec = real(realdata / ROS / "phidgets_imu_upside_down.bag")
     monkeypatch.setattr("magcal_cli.pipeline.open_recording", lambda *args, **kwargs: rec)
-    with pytest.raises(InsufficientDataError, match=r"the readings do not lie on an ellipsoid .*rotate the "
-                                                     r"sensor through more orientations"):
+    with pytest.raises(InsufficientDataError, match=r"/imu/mag: .*even a partial calibration .* To fix: rotate the "
+                                                     r"vehicle about all three axes"):
         calibrate(realdata / ROS / "phidgets_imu_upside_down.bag", Config())

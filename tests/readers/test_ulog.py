@@ -455,12 +455,12 @@ def test_real_roboto_battery_and_old_logs_field(realdata: Path) -> None:
 
 
 @pytest.mark.parametrize(("name", "message"), [
-    ("roboto_fmuv5_test.ulg", "sensor_mag[0]: the readings do not lie on an ellipsoid"),
-    ("sample.ulg", "sensor_combined: the readings do not lie on an ellipsoid"),
-    ("sample_appended_multiple.ulg", "sensor_combined: the readings do not lie on an ellipsoid"),
+    ("roboto_fmuv5_test.ulg", "sensor_mag[0] has only 8 readings inside the IMU's time span"),
+    ("sample.ulg", "sensor_combined: the log's motion determines too little for even a partial calibration"),
+    ("sample_appended_multiple.ulg", "sensor_combined: the motion in this log determines no part"),
     ("sample_log_small.ulg", "magnetometer sensor_mag[0] has only 6 samples (5.0 s); a calibration needs a recording"),
-    ("sample_logging_tagged_and_default_params_SITL.ulg", "sensor_mag[0]: the readings do not lie on an "),
-    ("sample_px4_events_SITL.ulg", "sensor_mag[0]: the readings do not lie on an ellipsoid"),
+    ("sample_logging_tagged_and_default_params_SITL.ulg", "sensor_mag[0] has only 11 readings inside the IMU's"),
+    ("sample_px4_events_SITL.ulg", "sensor_mag[0] has only 31 readings inside the IMU's time span"),
 ])
 def test_real_logs_have_too_little_rotation_to_calibrate(realdata: Path, name: str, message: str) -> None:
     """The README's 'little rotation': fit ends in a clean one-line error that says so, not a reader error."""

@@ -1,0 +1,225 @@
+"""Partial calibration: hold at a prior what the log's motion cannot determine, estimate the rest (issue 12).
+
+A level flight turns the field about one body axis only: the column of D along that axis and the offset along
+it act alike (D[:, z] sin(dip) + o), and the dip trades against the horizontal scale of D. Such a log still
+determines the offsets and the horizontal part of D, which is what heading needs. Held entries get a Gaussian
+prior (mean: the prior's value; std: how far the prior may be off), so the reported uncertainty carries the
+prior's doubt into the free entries it is confounded with.
+
+Which entries: the data's own information about theta (Schur complement, trajectory eliminated) decides,
+greedily. The entry the data know least relative to its prior is held, and so on until every free entry is
+known better than its prior would know it. Ties go by preference (dip, D, IMU biases, offsets): a log that
+cannot separate a column of D from the offset along it keeps the offset.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from .params import BASE, Layout
+from .solve import Factor
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+#: how far a prior may be off, relative to the field: the vehicle's own calibration, or a sphere fit
+ONBOARD_REL_STD = 0.05
+SPHERE_REL_STD = 0.10
+#: the dip from the World Magnetic Model (local anomalies, a few tenths of a degree) or from the data alone
+DIP_REF_STD = float(np.deg2rad(1.0))
+DIP_DATA_STD = float(np.deg2rad(10.0))
+#: IMU biases: none beyond the factory calibration (m/s^2) and the still segments' gyro bias (rad/s)
+ACCEL_BIAS_STD = 0.3
+GYRO_BIAS_STD = 0.02
+#: a free IMU bias or dip further than this many prior stds from its prior is not a measurement but the fit
+#: using it to absorb what the log cannot separate (flight acceleration, too little rotation): it is held too
+IMPLAUSIBLE_SIGMAS = 5.0
+#: while fitting, a held entry's std is this fraction of its prior's: the estimate stays at the prior
+PIN = 1e-3
+#: which block gives way first when the data cannot separate two entries
+PREFERENCE = {"dip": 0, "D": 1, "accelerometer_bias": 2, "gyroscope_bias": 3, "o": 4}
+
+
+@dataclass(frozen=True, eq=False)
+class MagPrior:
+    """A magnetometer's prior calibration, y = D m_b + o (tesla), where it came from and how far it may be off."""
+
+    D: FloatArray
+    o: FloatArray
+    source: str
+    rel_std: float
+
+
+@dataclass(frozen=True, eq=False)
+class Held:
+    """Base-theta entries held at a prior: their columns, and every base entry's prior mean and std (internal
+    units) and source (`prior_of`)."""
+
+    cols: IntArray
+    prior_mean: FloatArray
+    prior_std: FloatArray
+    prior_sources: tuple[str, ...]
+    #: entries held because the fit drove them implausibly far (`implausible`): they stay held
+    pinned: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: the held factor's std relative to the prior's: pinned while fitting, the prior's own for the covariance
+    stiffness: float = PIN
+
+    @property
+    def mean(self) -> FloatArray:
+        """The held entries' prior means."""
+        return self.prior_mean[self.cols]
+
+    @property
+    def std(self) -> FloatArray:
+        """The held entries' prior stds."""
+        return self.prior_std[self.cols]
+
+    @property
+    def sources(self) -> tuple[str, ...]:
+        """Where each held entry's prior came from."""
+        return tuple(self.prior_sources[int(c)] for c in self.cols)
+
+    def holding(self, cols: IntArray, pinned: IntArray) -> Held:
+        """The same priors holding these columns (and pinning those)."""
+        return Held(np.asarray(cols, np.int64), self.prior_mean, self.prior_std, self.prior_sources,
+                    np.asarray(pinned, np.int64), self.stiffness)
+
+    def soft(self) -> Held:
+        """The same hold as a prior with the prior's own std: its covariance carries the prior's doubt into the
+        free entries confounded with the held ones."""
+        return replace(self, stiffness=1.0)
+
+    def undetermined(self) -> bool:
+        """True when nothing useful is left to estimate: every entry of D and of o is held."""
+        return bool(np.isin(BASE.cols("D", "o"), self.cols).all())
+
+    def factor(self, theta: FloatArray, jacobians: bool) -> Factor:
+        """(theta_c - mean) / std for the held columns."""
+        sd = self.std * self.stiffness
+        r = ((theta[self.cols] - self.mean) / sd)[:, None]
+        if not jacobians:
+            return Factor("held", r)
+        jt = np.zeros((self.cols.size, 1, self.cols.size))
+        jt[np.arange(self.cols.size), 0, np.arange(self.cols.size)] = 1.0 / sd
+        return Factor("held", r, None, None, None, jt, self.cols)
+
+    def names(self) -> list[str]:
+        """The held entries' names ('D.02', 'o.z', 'dip', ...)."""
+        labels = BASE.entry_names()
+        return [labels[int(c)] for c in self.cols]
+
+
+def sphere_prior(y: FloatArray) -> MagPrior:
+    """D = r I and o = the centre of the least-squares sphere through the readings (N, 3) in tesla; a small ridge
+    keeps the centre finite when the readings lie near a circle (level motion)."""
+    mu = y.mean(axis=0)
+    x = y - mu
+    s = float(np.sqrt(np.mean(np.sum(x * x, axis=1)))) or 1.0
+    x = x / s
+    # |x|^2 = 2 x.c + k, linear in (c, k)
+    a = np.column_stack([2.0 * x, np.ones(len(x))])
+    rhs = np.sum(x * x, axis=1)
+    sol = np.linalg.solve(a.T @ a + 1e-3 * len(x) * np.diag([1.0, 1.0, 1.0, 0.0]), a.T @ rhs)
+    centre = sol[:3]
+    radius = float(np.sqrt(max(sol[3] + centre @ centre, 1e-12)))
+    return MagPrior(np.eye(3) * radius * s, mu + centre * s, "a sphere fit to the readings", SPHERE_REL_STD)
+
+
+def flown_prior(raw: FloatArray, field: FloatArray, to_si: float, slot: str) -> MagPrior | None:
+    """The calibration the vehicle flew with as y = D m_b + o: the affine map raw -> corrected field (N, 3) (least
+    squares; motor compensation averages in) inverted, with |field| as the field strength."""
+    ok = np.all(np.isfinite(raw), axis=1) & np.all(np.isfinite(field), axis=1)
+    if ok.sum() < 12:
+        return None
+    a = np.column_stack([raw[ok], np.ones(int(ok.sum()))])
+    coef, *_ = np.linalg.lstsq(a, field[ok], rcond=None)
+    m, t = coef[:3].T, coef[3]
+    if not np.all(np.isfinite(m)) or abs(float(np.linalg.det(m))) < 1e-9:
+        return None
+    strength = float(np.median(np.linalg.norm(field[ok], axis=1)))
+    m_inv = np.linalg.inv(m)
+    return MagPrior(strength * m_inv * to_si, -m_inv @ t * to_si,
+                    f"the calibration the vehicle flew with ({slot})", ONBOARD_REL_STD)
+
+
+def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, dip_ref: float | None) -> Held:
+    """Prior mean, std and source of every base entry in internal units (D and o divided by `scale`, tesla),
+    holding nothing yet."""
+    mean = BASE.zeros()
+    std = BASE.zeros()
+    src = [""] * BASE.size
+    for name, value, sd, why in (
+            ("accelerometer_bias", np.zeros(3), ACCEL_BIAS_STD, "no bias beyond the factory calibration"),
+            ("gyroscope_bias", np.zeros(3), GYRO_BIAS_STD, "the still segments' gyro bias (zero without any)"),
+            ("D", prior.D.ravel(order="F") / scale, prior.rel_std, prior.source),
+            ("o", prior.o / scale, prior.rel_std, prior.source),
+            ("dip", np.atleast_1d(layout.get(theta, "dip")[0] if dip_ref is None else dip_ref),
+             DIP_DATA_STD if dip_ref is None else DIP_REF_STD,
+             "the data's start value" if dip_ref is None else "the World Magnetic Model")):
+        sl = BASE.slice(name)
+        mean[sl], std[sl] = value, sd
+        src[sl] = [why] * (sl.stop - sl.start)
+    return Held(np.zeros(0, np.int64), mean, std, tuple(src))
+
+
+def implausible(theta: FloatArray, held: Held) -> IntArray:
+    """Free IMU-bias and dip entries more than IMPLAUSIBLE_SIGMAS prior stds from their priors."""
+    cols = BASE.cols("accelerometer_bias", "gyroscope_bias", "dip")
+    far = np.abs(theta[cols] - held.prior_mean[cols]) > IMPLAUSIBLE_SIGMAS * held.prior_std[cols]
+    return np.setdiff1d(cols[far], held.cols).astype(np.int64)
+
+
+def posterior_std(info: FloatArray, prior_std: FloatArray, held: IntArray) -> FloatArray:
+    """Standard deviations of every entry when the `held` ones carry their priors (the data's information plus
+    1/std^2 on the held entries), from an information matrix that may be singular (scaled to unit diagonal,
+    then a tiny ridge: undetermined entries come out huge, not NaN). The held entries' doubt reaches the free
+    entries confounded with them, as in the reported covariance."""
+    full = info.copy()
+    held = np.asarray(held, np.int64)
+    full[held, held] += 1.0 / prior_std[held] ** 2
+    d = np.diag(full).copy()
+    none = d <= 0.0
+    d[none] = 1.0
+    js = 1.0 / np.sqrt(d)
+    scaled = js[:, None] * full * js[None, :]
+    scaled[np.ix_(none, none)] = np.eye(int(none.sum()))
+    var = np.diag(np.linalg.inv(scaled + 1e-12 * np.eye(d.size))) * js**2
+    return np.where(none, np.inf, np.sqrt(np.clip(var, 0.0, None)))
+
+
+def _excess(info: FloatArray, prior_std: FloatArray, held: list[int]) -> tuple[FloatArray, IntArray, float]:
+    """Each free base entry's posterior std / prior std, the free base columns, and the total log excess over 1
+    (effect columns, which have no prior, are never judged)."""
+    free = np.array([c for c in range(prior_std.size) if c not in held], np.int64)
+    sd = posterior_std(info, prior_std, np.array(held, np.int64))
+    ratio = sd[free] / prior_std[free]
+    return ratio, free, float(np.sum(np.log(np.maximum(ratio, 1.0))))
+
+
+def choose(info: FloatArray, prior_std: FloatArray, already: IntArray | None = None) -> IntArray:
+    """The base columns to hold besides `already`, until every free base entry's std (the held entries' doubt
+    included) is below its prior std: holding it then loses nothing the data knew.
+
+    Each step holds the over-threshold entry whose holding leaves the least total excess (sum of log std/prior
+    over the free entries): a rotation of D about the one axis a flat log turns about is fixed by one entry
+    that changes to first order (D.10), not by the diagonal one. PREFERENCE breaks ties (a column of D before
+    the offset it is confounded with). `info` covers the whole theta (base blocks first, then any effect
+    blocks, which stay free)."""
+    rank = np.concatenate([np.full(b.size, PREFERENCE.get(b.name, 9)) for b in BASE.blocks])
+    held = [] if already is None else [int(c) for c in already]
+    while True:
+        ratio, free, _ = _excess(info, prior_std, held)
+        over = free[ratio > 1.0]
+        if over.size == 0:
+            return np.array(sorted(held), np.int64)
+        left = [_excess(info, prior_std, [*held, int(c)])[2] + 1e-3 * rank[c] for c in over]
+        held.append(int(over[int(np.argmin(left))]))
+
+
+def priors_by_id(priors: Mapping[str, MagPrior], mag_id: str, y: FloatArray) -> MagPrior:
+    """The vehicle's own calibration of this magnetometer where the log has it, else a sphere fit."""
+    return priors.get(mag_id) or sphere_prior(y)

@@ -1,0 +1,109 @@
+"""Partial calibration (models/partial.py): which entries a log's information leaves to the prior, the priors
+themselves, and the held factor's Jacobian."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magcal_cli import so3
+from magcal_cli.models import partial
+from magcal_cli.models.params import BASE
+
+
+def _yaw_only_information(tilt_deg: float, dip: float = 1.1, sigma: float = 0.01) -> np.ndarray:
+    """Information of the base theta for y = D m_b + o with m_b known (a known trajectory) turning about the
+    body z axis with +-tilt; IMU biases well known (they do not enter this linear model)."""
+    psi = np.linspace(0.0, 4 * np.pi, 400)
+    tilt = np.deg2rad(tilt_deg) * np.sin(3.1 * psi)
+    rot = so3.exp(np.stack([0 * psi, 0 * psi, psi], 1)) @ so3.exp(np.stack([tilt, 0 * psi, 0 * psi], 1))
+    m_b = np.einsum("nji,j->ni", rot, [np.cos(dip), 0.0, np.sin(dip)])
+    jac = np.zeros((3 * len(psi), BASE.size))
+    for k in range(3):                                     # row k of y depends on D[k, :] and o[k]
+        rows = np.arange(len(psi)) * 3 + k
+        for j in range(3):
+            jac[rows, BASE.slice("D").start + k + 3 * j] = m_b[:, j]
+        jac[rows, BASE.slice("o").start + k] = 1.0
+    info = jac.T @ jac / sigma**2
+    for name in ("accelerometer_bias", "gyroscope_bias", "dip"):
+        sl = BASE.slice(name)
+        info[sl, sl] += np.eye(sl.stop - sl.start) * 1e8
+    return info
+
+
+def _prior_std() -> np.ndarray:
+    return partial.prior_of(BASE, BASE.zeros(), partial.MagPrior(np.eye(3), np.zeros(3), "test", 0.05), 1.0,
+                            None).prior_std
+
+
+def test_level_yaw_holds_the_vertical_column_not_the_offsets() -> None:
+    """Level turns cannot separate D[:, z] sin(dip) from o: the column gives way, the offsets stay free."""
+    held = {BASE.entry_names()[c] for c in partial.choose(_yaw_only_information(0.0), _prior_std())}
+    assert held == {"D.02", "D.12", "D.22"}
+
+
+def test_enough_tilt_holds_nothing() -> None:
+    """+-20 deg of tilt determines D's vertical column: nothing is held."""
+    assert partial.choose(_yaw_only_information(20.0), _prior_std()).size == 0
+
+
+def test_already_held_entries_stay_and_effect_columns_stay_free() -> None:
+    """`already` entries are kept; an appended (effect) column without a prior is never held."""
+    info = _yaw_only_information(0.0)
+    p = info.shape[0]
+    big = np.zeros((p + 1, p + 1))
+    big[:p, :p] = info
+    big[p, p] = 1e-6                                        # an effect the data hardly know: still free
+    dip = BASE.slice("dip").start
+    held = partial.choose(big, _prior_std(), np.array([dip]))
+    assert dip in held and p not in held
+
+
+def test_posterior_std_is_finite_or_infinite_never_nan() -> None:
+    """An entry without information is infinitely uncertain until it is held, then its prior's std bounds it."""
+    info = np.diag([4.0, 0.0, 1.0])
+    info[0, 2] = info[2, 0] = 1.0
+    prior = np.array([1.0, 0.5, 1.0])
+    sd = partial.posterior_std(info, prior, np.zeros(0, np.int64))
+    assert np.isinf(sd[1]) and np.all(np.isfinite(sd[[0, 2]]))
+    assert partial.posterior_std(info, prior, np.array([1]))[1] == pytest.approx(0.5)
+
+
+def test_flown_prior_inverts_the_firmware_correction() -> None:
+    """field = M raw + t  ->  raw = D m_b + o with D = |field| M^-1, o = -M^-1 t."""
+    rng = np.random.default_rng(1)
+    m = np.eye(3) + 0.05 * rng.standard_normal((3, 3))
+    t = rng.normal(size=3) * 30.0
+    field = 450.0 * rng.normal(size=(500, 3))
+    field *= 450.0 / np.linalg.norm(field, axis=1, keepdims=True)
+    raw = (field - t) @ np.linalg.inv(m).T
+    prior = partial.flown_prior(raw, field, 1e-7, "COMPASS_*")
+    assert prior is not None
+    np.testing.assert_allclose(prior.D, 450.0 * np.linalg.inv(m) * 1e-7, rtol=1e-9)
+    np.testing.assert_allclose(prior.o, -np.linalg.inv(m) @ t * 1e-7, rtol=1e-9, atol=1e-15)
+    assert prior.rel_std == partial.ONBOARD_REL_STD
+
+
+def test_sphere_prior_finds_centre_and_radius() -> None:
+    rng = np.random.default_rng(2)
+    u = rng.normal(size=(1000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    centre = np.array([3e-6, -1e-6, 2e-6])
+    prior = partial.sphere_prior(centre + 45e-6 * u)
+    np.testing.assert_allclose(prior.o, centre, atol=1e-7)
+    np.testing.assert_allclose(prior.D, 45e-6 * np.eye(3), atol=1e-7)
+
+
+def test_held_factor_jacobian_against_finite_differences() -> None:
+    held = partial.prior_of(BASE, BASE.zeros(), partial.MagPrior(np.eye(3), np.zeros(3), "t", 0.1), 1.0, None)
+    held = held.holding(BASE.cols("D")[[2, 5, 8]], np.zeros(0, np.int64))
+    theta = np.random.default_rng(3).normal(size=BASE.size)
+    f = held.factor(theta, True)
+    assert f.J_theta is not None
+    eps = 1e-7
+    for i, c in enumerate(held.cols):
+        d = np.zeros(BASE.size)
+        d[c] = eps
+        fd = (held.factor(theta + d, False).r - held.factor(theta - d, False).r) / (2 * eps)
+        np.testing.assert_allclose(fd[:, 0], f.J_theta[:, 0, i], rtol=1e-6)
+    assert np.allclose(held.soft().factor(theta, False).r, f.r * partial.PIN)
