@@ -207,6 +207,17 @@ def _trajectory(scenario: str, rng: np.random.Generator, rate: float, duration: 
     return made.rotations, made.motion, made.still
 
 
+def _wmm_dip() -> float:
+    """The WMM dip (rad) at the simulated vehicles' HOME on the date of T0_ROS."""
+    import datetime as dt
+
+    from .synth_physics import HOME
+    from .wmm import reference_field
+
+    day = dt.datetime.fromtimestamp(T0_ROS, dt.timezone.utc).date()
+    return reference_field(HOME[0], HOME[1], HOME[2], day).dip
+
+
 def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
              duration: float | None = None, truth: Truth | None = None, effects: tuple[EffectSpec, ...] = (),
              noise_scale: float = 1.0, trajectory: FloatArray | None = None,
@@ -238,6 +249,10 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     drawn = draw_truth(rng, rate, mag_rate)
     if noise_scale != 1.0:
         drawn = replace(drawn, noise_std={k: v * noise_scale for k, v in drawn.noise_std.items()})
+    if truth is None and scenario in ("multirotor", "rover"):
+        # these vehicles log GPS: the field must be the one the World Magnetic Model gives at that place and date
+        # (HOME, T0_ROS), or a fit that takes the dip from the WMM (a flat log's partial calibration) disagrees
+        drawn = replace(drawn, dip=_wmm_dip())
     truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
     rot, motion, still = _trajectory(scenario, rng, rate, duration, trajectory)
     n = rot.shape[0] - 1                    # gyro k covers [t_k, t_k+1], so keep N+1 rotations

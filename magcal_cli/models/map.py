@@ -323,7 +323,7 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
             declination, holdout, warm)
     with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
         try:
-            return _fit_map(*args)
+            return _plausible(_fit_map(*args), dip_prior, problem.where)
         except InsufficientDataError as refused:
             if warm is not None:
                 raise
@@ -338,6 +338,24 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
                        f"calibration (the fit with D held at {prior.source} is numerically singular). To fix: "
                        f"{ROTATE_ADVICE}")
                 raise InsufficientDataError(msg) from refused
+
+
+#: a full fit whose dip is further than this from the World Magnetic Model's converged to another basin (a flat
+#: log's mirror solution: the sign of D's vertical column against the dip's, ~2x the dip away) and is redone from
+#: the prior. Not tighter: flight acceleration alone moves a fitted dip 10 deg (log171), and simulated logs whose
+#: drawn dip is not the WMM's at their GPS position must not be pushed off their truth
+DIP_BASIN_DEG = 45.0
+
+
+def _plausible(est: MapEstimate, dip_ref: float | None, where: str) -> MapEstimate:
+    """The estimate, or InsufficientDataError (which starts the partial path from the prior) when its dip is
+    further than DIP_BASIN_DEG from the reference."""
+    dip = float(est.value("dip")[0])
+    if dip_ref is not None and abs(np.degrees(dip - dip_ref)) > DIP_BASIN_DEG:
+        msg = (f"{where}: {est.mag_id}: the fit converged to a dip of {np.degrees(dip):.1f} deg, "
+               f"{abs(np.degrees(dip - dip_ref)):.0f} deg from the World Magnetic Model's")
+        raise InsufficientDataError(msg)
+    return est
 
 
 def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated, theta: FloatArray,
