@@ -23,6 +23,7 @@ import json
 import multiprocessing
 import os
 import re
+import shutil
 import struct
 import subprocess
 import sys
@@ -625,6 +626,7 @@ def main() -> None:
     rows = []
     for spec in specs:
         rows += evaluate(spec, [r for r in runs if r["log"] == spec["log"]])
+    shutil.rmtree(tmp, ignore_errors=True)
     elapsed = time.perf_counter() - start
     import pymavlink
 
