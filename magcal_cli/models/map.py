@@ -394,7 +394,13 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     at it what the motion cannot determine."""
     where = f"{problem.where}: {mag.id}"
     clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
-    intr = map_init.intrinsic_fit(clean, where) if prior is None else map_init.from_prior(clean, prior.D, prior.o)
+    if prior is not None:
+        intr = map_init.from_prior(clean, prior.D, prior.o)
+    elif warm is not None:                # the fit to start from may be a partial one: no ellipsoid needed
+        d, o, _ = mag_layout(warm.layout).unpack(warm.theta)
+        intr = map_init.from_prior(clean, d * warm.ep.scale, o * warm.ep.scale)
+    else:
+        intr = map_init.intrinsic_fit(clean, where)
     ep = epochs_for(problem, mag, intr.scale)
     noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
@@ -658,9 +664,18 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
         if cfg.diagnose:
             from ..diagnose.engine import diagnose
 
-            found = diagnose(problem, m, est, declination, loss, dip_prior)
-            est = found.estimate
-            diagnoses.append(found.block)
+            try:
+                found = diagnose(problem, m, est, declination, loss, dip_prior)
+            except (InsufficientDataError, np.linalg.LinAlgError) as exc:
+                # a refit the diagnosis needs (a fold, an extended model) failed on a weakly determined log: the
+                # calibration itself stands, without the diagnosis
+                est = replace(est, findings=(*est.findings, Finding(
+                    Severity.WARNING, "diagnosis_failed",
+                    f"{problem.where}: {m.id}: the mismatch diagnosis could not run ({exc}); the base calibration "
+                    "is reported without it", {"sensor": m.id})))
+            else:
+                est = found.estimate
+                diagnoses.append(found.block)
         ests.append(est)
 
     def bias_std(e: MapEstimate) -> float:

@@ -163,3 +163,20 @@ def test_diagnose_command(current_log: Path, tmp_path: Path) -> None:
     assert doc["diagnosis"]["sensors"][0]["sensor"] == "MAG[0]"
     again = CliRunner().invoke(cli, ["diagnose", str(current_log), "-o", str(tmp_path)])
     assert again.exit_code == 2 and "--force" in again.output
+
+
+def test_a_failing_diagnosis_keeps_the_calibration(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A refit the diagnosis needs can fail on a weakly determined log: the compass keeps its base calibration
+    and a warning says why, instead of being dropped (the 2015 logs' MAG[1] under the default --effects auto)."""
+    from magcal_cli.config import Config
+    from magcal_cli.errors import InsufficientDataError
+    from magcal_cli.pipeline import calibrate_recording
+    from magcal_cli.synth import simulate
+
+    def fail(*args: object, **kwargs: object) -> None:
+        raise InsufficientDataError("x: the motion in this fold cannot determine D")
+
+    monkeypatch.setattr("magcal_cli.diagnose.engine.diagnose", fail)
+    res = calibrate_recording(simulate("handheld", 3, duration=60.0).recording, Config(diagnose=True))
+    assert len(res.calibration.magnetometers) == 1 and res.calibration.diagnosis is None
+    assert any(f.code == "diagnosis_failed" and "cannot determine D" in f.message for f in res.findings)
