@@ -20,7 +20,7 @@ from ..streams import Stream
 from .params import ACCEL_BIAS, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Estimate, Layout, ParamBlock
 from .problem import Problem
 from .result import EffectFit
-from .solve import Factor
+from .solve import Factor, gaussian_factor
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -164,13 +164,7 @@ def prior_factor(bound: Sequence[Bound], layout: Layout, theta: FloatArray, jaco
         std.append(p[1][keep])
     if not cols:
         return None
-    c, mu, sd = np.concatenate(cols), np.concatenate(mean), np.concatenate(std)
-    r = ((theta[c] - mu) / sd)[:, None]
-    if not jacobians:
-        return Factor("prior", r)
-    jt = np.zeros((c.size, 1, c.size))
-    jt[np.arange(c.size), 0, np.arange(c.size)] = 1.0 / sd
-    return Factor("prior", r, None, None, None, jt, c.astype(np.int64))
+    return gaussian_factor("prior", np.concatenate(cols), np.concatenate(mean), np.concatenate(std), theta, jacobians)
 
 
 def results(bound: Sequence[Bound], layout: Layout, theta_si: FloatArray, cov_si: FloatArray, mag_id: str,

@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .params import BASE, Layout
-from .solve import Factor
+from .solve import Factor, gaussian_factor
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -98,14 +98,8 @@ class Held:
         return bool(np.isin(BASE.cols("D", "o"), self.cols).all())
 
     def factor(self, theta: FloatArray, jacobians: bool) -> Factor:
-        """(theta_c - mean) / std for the held columns."""
-        sd = self.std * self.stiffness
-        r = ((theta[self.cols] - self.mean) / sd)[:, None]
-        if not jacobians:
-            return Factor("held", r)
-        jt = np.zeros((self.cols.size, 1, self.cols.size))
-        jt[np.arange(self.cols.size), 0, np.arange(self.cols.size)] = 1.0 / sd
-        return Factor("held", r, None, None, None, jt, self.cols)
+        """(theta_c - mean) / (std x stiffness) for the held columns."""
+        return gaussian_factor("held", self.cols, self.mean, self.std * self.stiffness, theta, jacobians)
 
     def names(self) -> list[str]:
         """The held entries' names ('D.02', 'o.z', 'dip', ...)."""

@@ -58,6 +58,18 @@ class Factor:
         return out
 
 
+def gaussian_factor(name: str, cols: IntArray, mean: FloatArray, std: FloatArray, theta: FloatArray,
+                    jacobians: bool) -> Factor:
+    """A Gaussian prior on theta entries `cols`: rows (theta_c - mean) / std, one per entry, with their diagonal
+    compact Jacobian."""
+    r = ((theta[cols] - mean) / std)[:, None]
+    if not jacobians:
+        return Factor(name, r)
+    jt = np.zeros((cols.size, 1, cols.size))
+    jt[np.arange(cols.size), 0, np.arange(cols.size)] = 1.0 / std
+    return Factor(name, r, None, None, None, jt, np.asarray(cols, np.int64))
+
+
 #: linearize(states (N,3,3), theta (p,), with_jacobians) -> factors
 Linearize = Callable[[FloatArray, FloatArray, bool], Sequence[Factor]]
 
