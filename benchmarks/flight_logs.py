@@ -55,12 +55,13 @@ def fit(log: Path, package: Path | None, timeout: float = 900.0) -> dict[str, An
 
 def heading_change_deg(doc: dict[str, Any], log: Path) -> dict[str, float | None]:
     """Per magnetometer: the largest heading difference over a level turn between the calibration the vehicle
-    flew with (the log's parameters: the affine map raw -> field the firmware applied) and the fitted one, None
-    when the log has no firmware calibration."""
+    flew with (the log's parameters: the affine map raw -> field the firmware applied, `partial.flown_prior`) and
+    the fitted one, None when the log has no firmware calibration."""
     from magcal_cli import units
     from magcal_cli.document import from_dict
     from magcal_cli.errors import MagcalError
     from magcal_cli.firmware.flown import flown_fields
+    from magcal_cli.models.partial import flown_prior
     from magcal_cli.readers import open_recording
 
     cal = from_dict(doc)
@@ -76,8 +77,10 @@ def heading_change_deg(doc: dict[str, Any], log: Path) -> dict[str, float | None
         dip = np.deg2rad(m.dip_deg)
         m_b = np.stack([np.cos(dip) * np.cos(psi), -np.cos(dip) * np.sin(psi), np.full_like(psi, np.sin(dip))], 1)
         raw = m.distort(m_b) * units.to_si(m.unit) * units.from_si(f.unit)   # what the sensor reads, flown unit
-        coef, *_ = np.linalg.lstsq(np.column_stack([f.raw, np.ones(len(f.raw))]), f.field, rcond=None)
-        field = np.column_stack([raw, np.ones(len(psi))]) @ coef
+        flown = flown_prior(f.raw, f.field, 1.0, f.slot)              # the firmware's map, as y = D m_b + o
+        if flown is None:
+            continue
+        field = (raw - flown.o) @ np.linalg.inv(flown.D).T
         h_flown = np.degrees(np.arctan2(-field[:, 1], field[:, 0]))
         h_fit = np.degrees(psi)
         out[f.id] = float(np.max(np.abs((h_flown - h_fit + 180.0) % 360.0 - 180.0)))
