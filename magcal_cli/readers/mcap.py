@@ -13,13 +13,17 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, ClassVar
 
+import numpy as np
+
 from ..errors import LogReadError
 from ..streams import Cut, Recording
 from . import ReadOptions
 from .cut import mark_cut, refuse_if_strict
-from .mcap_stream import Damage, iter_messages
+from .mcap_chunk import Batch
+from .mcap_stream import Damage, iter_batches
 from .rosbag import ignored_note
 from .rosmsg import Collector, normalise_type, wanted
+from .rosvec import BatchDecoder
 
 Decode = Callable[[bytes], Any]
 _SEP = "=" * 80 + "\n"
@@ -34,8 +38,8 @@ def decode_json(data: bytes) -> Any:
     return json.loads(data, object_hook=_namespace)
 
 
-def ros_decoder(schema: Any, encoding: str) -> Decode:
-    """Deserializer of `schema` (ros2msg/ros2idl with cdr, ros1msg with ros1) from its own definition."""
+def ros_decoder(schema: Any, encoding: str) -> BatchDecoder:
+    """Batch decoder of `schema` (ros2msg/ros2idl with cdr, ros1msg with ros1) from its own definition."""
     from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
     text = schema.data.decode()
@@ -50,11 +54,11 @@ def ros_decoder(schema: Any, encoding: str) -> Decode:
     store = get_typestore(Stores.EMPTY)          # one store per schema: two schemas may define a type differently
     store.register(types)
     if encoding == "ros1":
-        return lambda data: store.deserialize_ros1(data, name)
-    return lambda data: store.deserialize_cdr(data, name)
+        return BatchDecoder(store.fielddefs, name, True, lambda data: store.deserialize_ros1(data, name))
+    return BatchDecoder(store.fielddefs, name, False, lambda data: store.deserialize_cdr(data, name))
 
 
-def decoder(schema: Any, channel: Any) -> tuple[Decode | None, str]:
+def decoder(schema: Any, channel: Any) -> tuple[Decode | BatchDecoder | None, str]:
     """How to decode a channel magcal reads, or None and why it is skipped."""
     if schema is None:
         return None, f"{channel.topic} (no schema)"
@@ -85,24 +89,31 @@ class McapReader:
         return mark_cut(collector.recording(path, "mcap", options, notes), cut)
 
 
-def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[str]) -> Cut | None:
+def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[str],
+            note_ignored: bool = True) -> Cut | None:
     """Add the messages of one MCAP file to `collector` and its remarks to `notes` (also for ROS 2 bags).
 
-    Returns where the file is cut (None when it is complete); --strict refuses a cut file."""
-    decoders: dict[int, Decode | None] = {}
+    Returns where the file is cut (None when it is complete); --strict refuses a cut file. A ROS 2 bag's
+    reader names the ignored topics itself (`note_ignored` False)."""
+    decoders: dict[int, Decode | BatchDecoder | None] = {}
     skipped: list[str] = []
     damage = Damage()
     bad = 0
     try:
         with path.open("rb") as fh:
             size = fh.seek(0, 2)
-            for schema, channel, message in iter_messages(fh, size, damage):
-                if channel.id not in decoders:
-                    decoders[channel.id], why = decoder(schema, channel)
-                    skipped += [why] if why else []
-                decode = decoders[channel.id]
-                if decode is not None and schema is not None:
-                    bad += not _add(path, collector, schema.name, channel, message, decode)
+            for schemas, channels, batch in iter_batches(fh, size, damage):
+                ids = np.unique(batch.channel)
+                for cid in ids.tolist():
+                    channel = channels[cid]
+                    schema = schemas.get(channel.schema_id)
+                    if cid not in decoders:
+                        decoders[cid], why = decoder(schema, channel)
+                        skipped += [why] if why else []
+                    decode = decoders[cid]
+                    if decode is not None and schema is not None:
+                        part = batch if ids.size == 1 else batch.select(batch.channel == cid)
+                        bad += _add(path, collector, schema.name, channel, part, decode)
     except OSError as exc:
         msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
         raise LogReadError(msg) from None
@@ -115,22 +126,31 @@ def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[
         notes.append(damage.note())
     if bad:
         notes.append(f"skipped {bad} messages that do not decode (corrupt data)")
-    if skipped:
+    if skipped and note_ignored:
         notes.append(ignored_note(sorted(set(skipped))))
     return cut
 
 
-def _add(path: Path, collector: Collector, msgtype: str, channel: Any, message: Any, decode: Decode) -> bool:
-    """Decode one message (False when its bytes are corrupt); one without the type's ROS fields is an error."""
-    is_json = channel.message_encoding == "json"
-    try:
-        collector.add(channel.topic, msgtype, message.log_time, decode(message.data))
-    except Exception as exc:  # noqa: BLE001 - rosbags' deserializers raise anything on corrupt bytes
-        if not is_json or not isinstance(exc, (AttributeError, TypeError, ValueError)) or isinstance(
-                exc, json.JSONDecodeError):
-            return False
-        msg = (f"{path}: channel {channel.topic} ({msgtype}, {channel.message_encoding}): the message at log "
-               f"time {message.log_time} ns does not have the ROS fields of {msgtype} "
-               f"({type(exc).__name__}: {exc}). See docs/readers-ros-csv.md for the JSON layout magcal reads")
-        raise LogReadError(msg) from None
-    return True
+def _add(path: Path, collector: Collector, msgtype: str, channel: Any, batch: Batch,
+         decode: Decode | BatchDecoder) -> int:
+    """Decode one channel's messages of a batch; how many are corrupt. A JSON one without the ROS fields is an error."""
+    if isinstance(decode, BatchDecoder):
+        ok, stamps, values = decode(batch.data, batch.start, batch.length)
+        collector.add_batch(channel.topic, msgtype, batch.log_time[ok], stamps[ok], values[ok])
+        return int(ok.size - ok.sum())
+    bad = 0
+    for at, length, log_time in zip(batch.start.tolist(), batch.length.tolist(), batch.log_time.tolist(),
+                                    strict=True):
+        try:
+            collector.add(channel.topic, msgtype, log_time, decode(bytes(batch.data[at:at + length])))
+        except (AttributeError, TypeError, ValueError) as exc:
+            if isinstance(exc, json.JSONDecodeError):
+                bad += 1
+                continue
+            msg = (f"{path}: channel {channel.topic} ({msgtype}, {channel.message_encoding}): the message at log "
+                   f"time {log_time} ns does not have the ROS fields of {msgtype} "
+                   f"({type(exc).__name__}: {exc}). See docs/readers-ros-csv.md for the JSON layout magcal reads")
+            raise LogReadError(msg) from None
+        except Exception:  # noqa: BLE001 - anything else from a corrupt message: skipped, counted
+            bad += 1
+    return bad

@@ -8,15 +8,16 @@ DataFlash. Only a file whose damage reaches its end (or that ends inside a recor
 
 from __future__ import annotations
 
-import contextlib
-import io
 import struct
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import IO, Any
 
+import numpy as np
+
 from .cut import a_record
+from .mcap_chunk import Batch, ChunkError, decompress, from_messages, parse_records
 from .partial import MCAP_RECORDS, decompress_prefix
 
 #: MCAP opcodes (spec: Records)
@@ -32,6 +33,11 @@ COMPRESSIONS = (b"zstd", b"lz4", b"")
 SCAN_BLOCK = 1 << 22
 #: a chunk claiming to decompress to more than this is corrupt (writers use chunks of a few MB)
 MAX_CHUNK_BYTES = 1 << 30
+#: messages outside chunks (an unchunked file) are decoded this many at a time
+LOOSE_BATCH = 4096
+
+Defs = dict[int, Any]
+Parsed = tuple[list[Any], Batch | None]          # a chunk's schema/channel records and its messages
 
 
 @dataclass
@@ -45,7 +51,7 @@ class Damage:
     why: str = ""
     lost: str = ""
 
-    def cut(self, fh: IO[bytes], at: int, size: int, why: str) -> list[Any]:
+    def cut(self, fh: IO[bytes], at: int, size: int, why: str) -> Parsed:
         """Note that the file ends inside the record at `at`; the records a cut chunk there still holds."""
         self.truncated_at, self.why = at, why
         fh.seek(at)
@@ -54,10 +60,9 @@ class Damage:
         total = 9 + struct.unpack_from("<Q", head, 1)[0] if len(head) >= 9 else None
         present = f"{size - at} of its {total} bytes present" if total else f"{size - at} bytes present"
         self.lost = f"{a_record(name)}, {present}" if head else "it stops between records, before its footer"
-        recs = _chunk_prefix(fh, head, at, size) if name == "chunk" else []
-        n = sum(type(r).__name__ == "Message" for r in recs)
-        self.lost += f"; {n} messages recovered from it" if recs else ""
-        return recs
+        defs, batch = _chunk_prefix(fh, head, at, size) if name == "chunk" else ([], None)
+        self.lost += f"; {len(batch)} messages recovered from it" if batch is not None and (defs or len(batch)) else ""
+        return defs, batch
 
     def note(self) -> str:
         """The reader note for damage in the middle of the file, or "" when there was none."""
@@ -132,17 +137,17 @@ def summary_definitions(fh: IO[bytes], size: int) -> tuple[dict[int, Any], dict[
     return schemas, channels
 
 
-def iter_messages(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Any, Any, Any]]:
-    """(schema or None, channel, message) of every readable message, in file order; damage is recorded."""
+def iter_batches(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Defs, Defs, Batch]]:
+    """(schemas, channels, batch of their messages) of every readable chunk, in file order; damage is recorded."""
     from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
-    from mcap.records import Chunk, Footer
-    from mcap.stream_reader import StreamReader, breakup_chunk
+    from mcap.records import Chunk, Footer, Message
 
     schemas, channels = summary_definitions(fh, size)      # so a lost chunk does not orphan later messages
     base, skip_magic = 0, False
+    loose: list[Any] = []                                   # messages outside chunks, batched
     while True:
         fh.seek(base)
-        reader = StreamReader(fh, skip_magic=skip_magic, emit_chunks=True, record_size_limit=size)
+        reader = _reader(fh, skip_magic, size)
         stream = reader._stream                                     # noqa: SLF001 - its byte count locates damage
         records = reader.records
         while True:
@@ -150,66 +155,94 @@ def iter_messages(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[An
             try:
                 rec = next(records, None)
             except EndOfFile:
-                yield from _messages(damage.cut(fh, at, size, "it ends inside a record"), schemas, channels, damage)
+                yield from _flush(loose, schemas, channels, damage)
+                yield from _known(damage.cut(fh, at, size, "it ends inside a record"), schemas, channels, damage)
                 return
             except Exception as exc:  # noqa: BLE001 - any parse failure of the framing: resynchronise
+                yield from _flush(loose, schemas, channels, damage)
                 nxt = resync(fh, at + 1, size)
                 if nxt is None:
                     cut = isinstance(exc, (struct.error, RecordLengthLimitExceeded))   # a length past the end
                     why = ("it ends inside a record" if cut else
                            f"the record framing is broken at byte {at}: {type(exc).__name__}")
-                    recs = damage.cut(fh, at, size, why)
-                    yield from _messages(recs if cut else [], schemas, channels, damage)
+                    tail = damage.cut(fh, at, size, why)
+                    yield from _known(tail if cut else ([], None), schemas, channels, damage)
                     return
                 damage.bytes_skipped += nxt - at
                 base, skip_magic = nxt, True
                 break
             if rec is None or isinstance(rec, Footer):
+                yield from _flush(loose, schemas, channels, damage)
                 return
-            inner: list[Any] = [rec]
+            if isinstance(rec, Message):
+                loose.append(rec)
+                if len(loose) >= LOOSE_BATCH:
+                    yield from _flush(loose, schemas, channels, damage)
+                continue
+            yield from _flush(loose, schemas, channels, damage)
+            parsed: Parsed = ([rec], None)
             if isinstance(rec, Chunk):
                 try:
                     if rec.uncompressed_size > MAX_CHUNK_BYTES:
-                        raise ValueError(rec.uncompressed_size)
-                    inner = breakup_chunk(rec, validate_crc=True)
+                        raise ChunkError(rec.uncompressed_size)
+                    parsed = parse_records(decompress(rec))
                 except Exception:  # noqa: BLE001 - a chunk that fails its CRC or does not decompress: skipped
                     damage.chunks += 1
                     continue
-            yield from _messages(inner, schemas, channels, damage)
+                del rec                                         # the compressed bytes are no longer needed
+            yield from _known(parsed, schemas, channels, damage)
 
 
-def _messages(records: list[Any], schemas: dict[int, Any], channels: dict[int, Any],
-              damage: Damage) -> Iterator[tuple[Any, Any, Any]]:
-    """(schema or None, channel, message) of the messages in `records`, learning the definitions among them."""
-    from mcap.records import Channel, Message, Schema
+def _reader(fh: IO[bytes], skip_magic: bool, size: int) -> Any:
+    """mcap's StreamReader emitting chunks whole and passing over message indexes unparsed.
 
-    for r in records:
+    Parsing the index entries (one per message) cost more than decoding the messages themselves."""
+    from mcap.opcode import Opcode
+    from mcap.stream_reader import StreamReader
+
+    class _Reader(StreamReader):
+        def _read_record(self, opcode: int, length: int) -> Any:
+            if opcode == Opcode.MESSAGE_INDEX:
+                return None                                 # StreamReader reads the unread bytes as padding
+            return super()._read_record(opcode, length)
+
+    return _Reader(fh, skip_magic=skip_magic, emit_chunks=True, record_size_limit=size)
+
+
+def _flush(loose: list[Any], schemas: Defs, channels: Defs, damage: Damage) -> Iterator[tuple[Defs, Defs, Batch]]:
+    """The batch of the messages found outside chunks so far (emptying `loose`)."""
+    if loose:
+        batch = from_messages(loose)
+        loose.clear()
+        yield from _known(([], batch), schemas, channels, damage)
+
+
+def _known(parsed: Parsed, schemas: Defs, channels: Defs, damage: Damage) -> Iterator[tuple[Defs, Defs, Batch]]:
+    """Learn the definitions among `parsed`; its messages of known channels (the others are counted as orphans)."""
+    from mcap.records import Channel, Schema
+
+    defs, batch = parsed
+    for r in defs:
         if isinstance(r, Schema):
             schemas[r.id] = r
         elif isinstance(r, Channel):
             channels[r.id] = r
-        elif isinstance(r, Message):
-            ch = channels.get(r.channel_id)
-            if ch is None:
-                damage.orphans += 1
-                continue
-            yield schemas.get(ch.schema_id), ch, r
+    if batch is None or not len(batch):
+        return
+    known = np.isin(batch.channel, np.fromiter(channels, dtype=np.int64, count=len(channels)))
+    damage.orphans += int((~known).sum())
+    yield schemas, channels, batch if bool(known.all()) else batch.select(known)
 
 
-def _chunk_prefix(fh: IO[bytes], head: bytes, at: int, size: int) -> list[Any]:
+def _chunk_prefix(fh: IO[bytes], head: bytes, at: int, size: int) -> Parsed:
     """The complete records in the present part of a chunk cut by the end of the file (its CRC cannot be checked)."""
-    from mcap.stream_reader import StreamReader
-
     if len(head) < _CHUNK_HEAD.size:
-        return []
+        return [], None
     name_len = _CHUNK_HEAD.unpack(head)[-1]
     fh.seek(at + _CHUNK_HEAD.size)
     name = fh.read(name_len)
     if name not in COMPRESSIONS:
-        return []
+        return [], None
     fh.seek(at + _CHUNK_HEAD.size + name_len + 8)
     data = decompress_prefix(fh.read(min(size - fh.tell(), MAX_CHUNK_BYTES)), name.decode())
-    out: list[Any] = []
-    with contextlib.suppress(Exception):    # the record the data stop inside raises: the ones before it count
-        out.extend(StreamReader(io.BytesIO(data), skip_magic=True, record_size_limit=len(data) + 1).records)
-    return out
+    return parse_records(data, whole=False)

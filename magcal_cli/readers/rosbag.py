@@ -11,6 +11,7 @@ from ..errors import LogReadError
 from ..streams import Cut, Recording
 from . import ReadOptions
 from .cut import mark_cut, refuse_if_strict
+from .rosbag_batch import Batcher, read_ros2_storage
 from .rosmsg import Collector, wanted
 
 #: how many ignored topics a note names before it says "and N more"
@@ -75,8 +76,12 @@ class RosbagReader:
             ignored = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections if c not in conns})
             if ignored:
                 notes.append(ignored_note(ignored))
-            why = _read_messages(reader, conns, collector, notes) if conns else ""
-            cut = _db3_cut(bag)
+            done, cut = read_ros2_storage(bag, reader, conns, fast := Collector(), options, notes) \
+                if conns and bag.is_dir() else (False, None)
+            if done:
+                collector = fast
+            why = _read_messages(reader, conns, collector, notes) if conns and not done else ""
+            cut = _db3_cut(bag) or cut
             if why:                 # damage that reaches the end of the bag is a cut (its index was whole)
                 cut = Cut(None, _size(bag), f"the data are unreadable from a chunk on to the end ({why})")
             refuse_if_strict(path, options, cut)
@@ -137,15 +142,13 @@ def _read_messages(reader: Any, conns: list[Any], collector: Collector, notes: l
     Returns why reading stopped early when nothing after the damage could be read (a truncated bag), else "".
     """
     expected = sum(int(c.msgcount) for c in conns)
-    last, start, regions, bad_msgs, why = int(reader.start_time) - 1, None, 0, 0, ""
+    last, start, regions, why = int(reader.start_time) - 1, None, 0, ""
+    batcher = Batcher(reader, collector)             # decodes with rosvec; corrupt messages are counted
     while True:
         try:
             for conn, recv_ns, raw in reader.messages(connections=conns, start=start):
                 last = max(last, int(recv_ns))
-                try:
-                    collector.add(conn.topic, conn.msgtype, recv_ns, reader.deserialize(raw, conn.msgtype))
-                except Exception:  # noqa: BLE001 - a message that does not decode is corrupt: skipped, counted
-                    bad_msgs += 1
+                batcher.add(conn, recv_ns, raw)
             break
         except Exception as exc:  # noqa: BLE001 - anything rosbags raises while reading a chunk is corrupt data
             start = _resume_after(reader, conns, last)
@@ -153,6 +156,8 @@ def _read_messages(reader: Any, conns: list[Any], collector: Collector, notes: l
                 why = _reason(exc)
                 break
             regions += 1
+    batcher.flush()
+    bad_msgs = batcher.bad
     if regions or bad_msgs:
         notes.append(f"corrupt data: skipped {regions} unreadable chunks and {bad_msgs} messages that did not "
                      f"decode ({expected - len(collector)} of {expected} messages lost); reading resumed after "

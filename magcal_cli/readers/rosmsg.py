@@ -70,9 +70,13 @@ def stamp_ns(msg: Any) -> int:
 
 
 class Collector:
-    """Per (topic, type) header stamps, receive times and values of the messages magcal reads."""
+    """Per (topic, type) header stamps, receive times and values of the messages magcal reads.
+
+    Batches (rosvec) are kept as arrays; single messages are buffered in lists and become a block before the
+    next batch of their topic, so each topic keeps its arrival order."""
 
     def __init__(self) -> None:
+        self.blocks: dict[tuple[str, str], list[tuple[IntArray, IntArray, FloatArray]]] = defaultdict(list)
         self.stamps: dict[tuple[str, str], list[int]] = defaultdict(list)
         self.recv: dict[tuple[str, str], list[int]] = defaultdict(list)
         self.values: dict[tuple[str, str], list[tuple[float, ...]]] = defaultdict(list)
@@ -85,42 +89,71 @@ class Collector:
         self.stamps[key].append(stamp)
         self.recv[key].append(recv_ns)
 
+    def add_batch(self, topic: str, msgtype: str, recv_ns: IntArray, stamps: IntArray, values: FloatArray) -> None:
+        """Keep many messages of one topic: receive and header times (ns) and their ROS_TYPES values."""
+        if not recv_ns.size:
+            return
+        key = (topic, normalise_type(msgtype))
+        self._flush(key)
+        self.blocks[key].append((stamps.astype(np.int64), recv_ns.astype(np.int64), values.astype(np.float64)))
+
+    def _flush(self, key: tuple[str, str]) -> None:
+        """Turn the buffered single messages of `key` into a block."""
+        if self.values.get(key):
+            self.blocks[key].append((np.array(self.stamps.pop(key), dtype=np.int64),
+                                     np.array(self.recv.pop(key), dtype=np.int64),
+                                     np.array(self.values.pop(key), dtype=np.float64)))
+
+    def arrays(self, key: tuple[str, str]) -> tuple[IntArray, IntArray, FloatArray]:
+        """(header stamps, receive times, values) of one topic, in arrival order."""
+        self._flush(key)
+        blocks = self.blocks[key]
+        return (np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]),
+                np.concatenate([b[2].reshape(len(b[0]), -1) for b in blocks]))
+
+    def keys(self) -> list[tuple[str, str]]:
+        """The topics that have messages."""
+        return [k for k in dict.fromkeys([*self.blocks, *self.values]) if self.blocks.get(k) or self.values.get(k)]
+
     def __len__(self) -> int:
-        return sum(len(v) for v in self.values.values())
+        return sum(len(v) for v in self.values.values()) + sum(len(b[0]) for bs in self.blocks.values() for b in bs)
 
     def recording(self, path: Path, fmt: str, options: ReadOptions, notes: list[str]) -> Recording:
         """Streams relative to the earliest sample, cleaned, in SI, with every remark in `notes`."""
-        keys = sorted(self.values, key=lambda k: (ROS_TYPES[k[1]][0] != "imu", k[0]))
-        times = self._time_bases(keys, options, notes)
+        keys = sorted(self.keys(), key=lambda k: (ROS_TYPES[k[1]][0] != "imu", k[0]))
+        arrays = {k: self.arrays(k) for k in keys}
+        times = _time_bases(arrays, options, notes)
         t0 = min((int(ts.min()) for ts in times.values() if ts.size), default=0)
         streams: list[Stream] = []
         for key in keys:
             t = (times[key] - t0).astype(np.float64) * 1e-9
-            values = np.array(self.values[key], dtype=np.float64)
-            streams += _streams(path, key, t, values, notes)
+            streams += _streams(path, key, t, arrays[key][2], notes)
         return Recording(path, fmt, tuple(streams), t0=t0 * 1e-9, notes=tuple(notes))
 
-    def _time_bases(self, keys: list[tuple[str, str]], options: ReadOptions,
-                    notes: list[str]) -> dict[tuple[str, str], IntArray]:
-        """Header stamps, or receive time when asked, when a topic's stamps are zero or on another clock."""
-        recv = {k: np.array(self.recv[k], dtype=np.int64) for k in keys}
-        if options.receive_time:
-            return recv
-        stamps = {k: np.array(self.stamps[k], dtype=np.int64) for k in keys}
-        offsets = {k: float(np.median(stamps[k] - recv[k])) * 1e-9 for k in keys if np.any(stamps[k])}
-        ref = next(iter(offsets), None)
-        out = {}
-        for k in keys:
-            if k not in offsets:
-                notes.append(f"{k[0]}: every header stamp is zero; using the bag's receive time for this topic")
-                out[k] = recv[k]
-            elif ref is not None and abs(offsets[k] - offsets[ref]) > CLOCK_MISMATCH_S:
-                notes.append(f"{k[0]}: header stamps are {offsets[k] - offsets[ref]:+.3f} s off the clock of "
-                             f"{ref[0]}; using receive time shifted onto that clock for this topic")
-                out[k] = recv[k] + int(round(offsets[ref] * 1e9))
-            else:
-                out[k] = stamps[k]
-        return out
+
+
+def _time_bases(arrays: dict[tuple[str, str], tuple[IntArray, IntArray, FloatArray]], options: ReadOptions,
+                notes: list[str]) -> dict[tuple[str, str], IntArray]:
+    """Header stamps, or receive time when asked, when a topic's stamps are zero or on another clock."""
+    keys = list(arrays)
+    recv = {k: arrays[k][1] for k in keys}
+    if options.receive_time:
+        return recv
+    stamps = {k: arrays[k][0] for k in keys}
+    offsets = {k: float(np.median(stamps[k] - recv[k])) * 1e-9 for k in keys if np.any(stamps[k])}
+    ref = next(iter(offsets), None)
+    out = {}
+    for k in keys:
+        if k not in offsets:
+            notes.append(f"{k[0]}: every header stamp is zero; using the bag's receive time for this topic")
+            out[k] = recv[k]
+        elif ref is not None and abs(offsets[k] - offsets[ref]) > CLOCK_MISMATCH_S:
+            notes.append(f"{k[0]}: header stamps are {offsets[k] - offsets[ref]:+.3f} s off the clock of "
+                         f"{ref[0]}; using receive time shifted onto that clock for this topic")
+            out[k] = recv[k] + int(round(offsets[ref] * 1e9))
+        else:
+            out[k] = stamps[k]
+    return out
 
 
 def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray, notes: list[str]) -> list[Stream]:
