@@ -179,7 +179,7 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig, mags: tuple[Stream,
     for m in mags:
         n_m = max(5, int(round(cfg.window_s * m.rate_hz)))
         if len(m) >= 2 * n_m:
-            floor = np.maximum(_resolution_floor(m.xyz), 1e-300)
+            floor = np.maximum(_resolution_floor(m.xyz) if m.resolution is None else m.resolution, 1e-300)
             signals.append(_Signal(m.t, m.xyz, np.maximum(noise_std(m.xyz, n_m, cfg.noise_quantile), floor)))
     parts = [p for i0, i1 in _runs(mask) for p in _steady_parts(signals, acc.t, i0, i1, n, cfg.false_alarm)]
     for i0, i1 in parts:

@@ -63,6 +63,9 @@ class Stream:
     values: FloatArray
     source: str
     native_unit: str
+    #: per-axis quantisation noise std (SI) where the log's integer counts were transformed (so the samples no
+    #: longer lie on a grid the detector could measure); None: judged from the samples
+    resolution: FloatArray | None = None
 
     def __post_init__(self) -> None:
         t = np.array(self.t, dtype=np.float64)
@@ -104,7 +107,8 @@ class Stream:
         """The samples with start <= t <= end (either bound may be None)."""
         lo = 0 if start is None else int(np.searchsorted(self.t, start, side="left"))
         hi = self.t.size if end is None else int(np.searchsorted(self.t, end, side="right"))
-        return Stream(self.kind, self.id, self.t[lo:hi], self.values[lo:hi], self.source, self.native_unit)
+        return Stream(self.kind, self.id, self.t[lo:hi], self.values[lo:hi], self.source, self.native_unit,
+                      self.resolution)
 
 
 class Cut(NamedTuple):

@@ -145,6 +145,16 @@ def _int_factor(table: Table, column: str, integer_default: float) -> float:
     return 1.0
 
 
+def _raw_resolution(corr: Correction, count: float) -> FloatArray | None:
+    """Quantisation std per raw axis (mG): one count's uniform error (count/sqrt 12) through the undone matrix."""
+    if not len(corr.scale):
+        return None
+    i = len(corr.scale) // 2
+    inv = np.linalg.inv(corr.matrix[i]) / corr.scale[i]
+    out: FloatArray = count / np.sqrt(12.0) * np.sqrt(np.sum(inv**2, axis=1))
+    return out
+
+
 def _mag_factor(table: Table) -> float:
     """Logged field to milligauss: FMTU says Gauss times 1e-3; old logs mean mGauss by convention."""
     unit, mult = table.fmt.units.get("MagX", ""), table.fmt.mults.get("MagX")
@@ -178,6 +188,7 @@ class MagReconstruction:
     raw: FloatArray
     correction: Correction
     notes: tuple[str, ...]
+    resolution: FloatArray | None = None      # per-axis quantisation std of `raw` (mG), integer fields only
 
 
 def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
@@ -232,7 +243,8 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
                          "iron matrix")
         src = f"{path.name}#{f.name}{_inst(f, inst)}.MagX/MagY/MagZ (raw, reconstructed)"
         out.append(MagReconstruction(inst, src, t, logged, undo_correction(field, corr), corr,
-                                     tuple(bad_instances * (not out) + notes)))
+                                     tuple(bad_instances * (not out) + notes),
+                                     _raw_resolution(corr, k) if f.char("MagX") in "bBhHiIqQ" else None))
     return out
 
 
@@ -363,6 +375,6 @@ def build_ardupilot(path: Path, raw: RawLog) -> Recording:
     for m in _reconstruct(path, raw, clock, hist, *_motor_signals(throttle, battery)):
         notes += m.notes
         pending.append(Pending((Kind.MAGNETOMETER,), f"MAG[{m.instance}]", m.t, m.raw * MG_TO_T, m.source,
-                               ("milligauss",)))
+                               ("milligauss",), None if m.resolution is None else m.resolution * MG_TO_T))
     pending += _attitude(path, raw, clock) + battery + throttle + _gps(path, raw, clock, notes)
     return finish(path, "dataflash", pending, params, notes)

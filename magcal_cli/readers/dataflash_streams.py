@@ -129,6 +129,7 @@ class Pending:
     values: FloatArray
     source: str
     units: tuple[str, ...]
+    resolution: FloatArray | None = None      # Stream.resolution, for a single-kind stream
 
 
 def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float],
@@ -159,6 +160,6 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
             continue
         col = 0
         for kind, unit in zip(p.kinds, p.units, strict=False):
-            streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit))
+            streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit, p.resolution))
             col += kind.width
     return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes))
