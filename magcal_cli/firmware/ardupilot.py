@@ -136,6 +136,27 @@ def _warnings(mag_id: str, suffix: str, p: dict[str, float]) -> list[str]:
     return [f"{mag_id}: {w}" for w in out]
 
 
+def _rotation_why(external: bool, kind: str, params: Mapping[str, float], options: Options, free: bool,
+                  suffix: str) -> str:
+    """Why a misalignment stays in the residual: the reason ArduPilot cannot take a custom rotation here."""
+    if not external:
+        return ("an internal compass takes the board's AHRS_ORIENTATION, and COMPASS_ORIENT applies to external "
+                "compasses only, so its misalignment to the IMU cannot be exported; mount the board square or use "
+                "an external compass")
+    if kind == "custom":
+        return ""
+    if options.rotation == "enum":
+        return "--rotation enum asked for the nearest COMPASS_ORIENT value"
+    if not params:
+        return "no vehicle parameters, so no custom rotation (pass --params with the vehicle's parameters)"
+    if "CUST_ROT_ENABLE" not in params:
+        return (f"custom rotations need ArduPilot 4.3 or newer (CUST_ROT_ENABLE, then COMPASS_ORIENT{suffix}=101); "
+                "this vehicle's parameters have none, so the nearest orientation enum is written")
+    if not free:
+        return "both custom rotations CUST_ROT1/2 are used by AHRS_ORIENTATION or other compasses"
+    return ""
+
+
 def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Mapping[str, float],
                 options: Options, custom_free: list[int]) -> tuple[MagExport, set[str], str | None]:
     """One compass: its parameters, the integer-valued names and the interference kind it needs."""
@@ -182,7 +203,8 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
             out |= {f"CUST_ROT{n}_{ax}": v for ax, v in zip(("ROLL", "PITCH", "YAW"), rot.rpy_deg or (), strict=True)}
             integers |= {"CUST_ROT_ENABLE"}
             notes.append(f"{mag.id}: the nearest orientation enum misses by {rot.enum_residual_deg:.2f} deg; "
-                         f"custom rotation CUST_ROT{n} used (reboot needed)")
+                         f"custom rotation CUST_ROT{n} used: COMPASS_ORIENT{suffix}={CUSTOM_1 - 1 + n:.0f} selects "
+                         "it and CUST_ROT_ENABLE=1 enables it (reboot needed)")
         else:
             out[f"COMPASS_ORIENT{suffix}"] = float(rot.enum_id)  # type: ignore[arg-type]
         integers.add(f"COMPASS_ORIENT{suffix}")
@@ -196,7 +218,8 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
     offs_max = params.get("COMPASS_OFFS_MAX", OFFS_MAX_DEFAULT)
     check_limits(f"export {mag.id} (ArduPilot)", _limits(mag.id, suffix, out, offs_max))
     exp = MagExport(mag.id, f"COMPASS_*{suffix}", out, sp, mag.dip_deg, external, tuple(notes),
-                    tuple(_warnings(mag.id, suffix, out)))
+                    tuple(_warnings(mag.id, suffix, out)), _rotation_why(external, rot.kind, params, options,
+                                                                         bool(custom_free), suffix))
     return exp, integers, kind
 
 

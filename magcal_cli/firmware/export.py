@@ -46,6 +46,7 @@ class MagExport:
     external: bool
     notes: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
+    rotation_why: str = ""              # why the firmware cannot take the misalignment (said when some is lost)
 
     def lost(self) -> dict[str, float]:
         """Residual misalignment (deg), largest field error (%) and level heading error (deg) the export keeps."""
@@ -60,9 +61,10 @@ class MagExport:
                "fixed": "the board orientation (internal compass)"}[self.split.rotation.kind]
         if lost["max_field_error_pct"] < 0.1:
             return f"{self.mag_id} -> {self.slot}: exported exactly with {how} (field error below 0.1 %)"
+        why = f": {self.rotation_why}" if self.rotation_why and lost["residual_misalignment_deg"] >= 0.5 else ""
         return (f"{self.mag_id} -> {self.slot}: with {how}, {lost['residual_misalignment_deg']:.2f} deg of "
                 f"misalignment is not representable (field error up to {lost['max_field_error_pct']:.2f} %, "
-                f"level heading error up to {lost['heading_error_deg']:.2f} deg)")
+                f"level heading error up to {lost['heading_error_deg']:.2f} deg){why}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -98,6 +98,21 @@ def slot_of(mag_id: str, position: int, params: Mapping[str, float], requested: 
                      "calibration slot); check CAL_MAGn_ID or pass --slot"]
 
 
+def _rotation_why(external: bool, kind: str, params: Mapping[str, float], options: Options, p: str) -> str:
+    """Why a misalignment stays in the residual: the reason PX4 cannot take a custom rotation here."""
+    if not external:
+        return (f"an internal magnetometer ({p}ROT=-1) takes the board's SENS_BOARD_ROT, so its misalignment to the "
+                "IMU cannot be exported; use an external magnetometer or SENS_BOARD_X/Y/Z_OFF for the whole board")
+    if kind == "custom":
+        return ""
+    if options.rotation == "enum":
+        return f"--rotation enum asked for the nearest {p}ROT value"
+    if f"{p}ROLL" not in params:
+        return (f"custom Euler angles need a PX4 version with {p}ROLL/PITCH/YAW (newer PX4 releases); this vehicle's "
+                f"parameters have none, so the nearest {p}ROT enum is written")
+    return ""
+
+
 def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Mapping[str, float],
                 options: Options) -> tuple[MagExport, set[str], str | None]:
     """One magnetometer: its parameters, the integer-valued names and the interference kind it needs."""
@@ -158,7 +173,8 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
     check_limits(f"export {mag.id} (PX4)", errors)
     warnings = [f"{mag.id}: {w}" for i, a in enumerate(AXES)
                 for w in soft_range(f"{p}{a}OFF", o[i], -OFF_WARN, OFF_WARN, "PX4's calibration warns")]
-    exp = MagExport(mag.id, f"CAL_MAG{n}_*", out, sp, mag.dip_deg, external, tuple(notes), tuple(warnings))
+    exp = MagExport(mag.id, f"CAL_MAG{n}_*", out, sp, mag.dip_deg, external, tuple(notes), tuple(warnings),
+                    _rotation_why(external, rot.kind, params, options, p))
     return exp, integers, kind
 
 

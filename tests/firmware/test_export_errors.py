@@ -70,6 +70,30 @@ def test_custom_slots_in_use_elsewhere_are_not_taken() -> None:
     assert exp.params["COMPASS_ORIENT"] == 102 and "CUST_ROT2_YAW" in exp.params
 
 
+def test_a_lost_misalignment_says_why_and_a_custom_one_how_it_is_enabled() -> None:
+    """Issue 12 item 5b: where the firmware cannot hold a rotation the header names the reason; where it can, the
+    custom rotation is written with the parameter that enables it."""
+    from magcal_cli import so3
+
+    D = F * so3.exp(np.deg2rad([3.0, -4.0, 4.0]))       # 6.6 deg, like the external compass of the issue
+    cases = {"ArduPilot before 4.3": ("ardupilot", {"COMPASS_EXTERNAL": 1},
+                                      "custom rotations need ArduPilot 4.3 or newer (CUST_ROT_ENABLE, then "
+                                      "COMPASS_ORIENT=101); this vehicle's parameters have none"),
+             "internal": ("ardupilot", {"COMPASS_EXTERNAL": 0, "CUST_ROT_ENABLE": 0},
+                          "an internal compass takes the board's AHRS_ORIENTATION"),
+             "PX4 without angles": ("px4", {"CAL_MAG0_ROT": 0}, "custom Euler angles need a PX4 version with "
+                                                              "CAL_MAG0_ROLL/PITCH/YAW"),
+             "PX4 internal": ("px4", {"CAL_MAG0_ROT": -1}, "an internal magnetometer (CAL_MAG0_ROT=-1)")}
+    for why, (firmware, params, text) in cases.items():
+        mag = "MAG[0]" if firmware == "ardupilot" else "sensor_mag[0]"
+        line = export(doc(mag, D=D), firmware, params).mags[0].lost_text()
+        assert "deg of misalignment is not representable" in line and text in line, (why, line)
+    exp = export(doc("MAG[0]", D=D), "ardupilot", {"COMPASS_EXTERNAL": 1, "CUST_ROT_ENABLE": 0})
+    assert exp.params["CUST_ROT_ENABLE"] == 1 and exp.params["COMPASS_ORIENT"] == 101
+    assert "exported exactly with a custom orientation" in exp.mags[0].lost_text()
+    assert any("COMPASS_ORIENT=101 selects it and CUST_ROT_ENABLE=1 enables it" in n for n in exp.mags[0].notes)
+
+
 # --- ArduPilot limits --------------------------------------------------------------------------------------
 
 def test_offsets_beyond_offs_max_are_refused() -> None:
