@@ -38,6 +38,11 @@ DEFAULT_RATES = {"paper": (80.0, 80.0), "handheld": (100.0, 50.0), "multirotor":
 DEFAULT_DURATION = {"multirotor": 300.0, "rover": 300.0}
 #: noise densities of methods.md section 5: accelerometer m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), field T/sqrt(Hz)
 NOISE_DENSITY = {"accelerometer": 0.02, "gyroscope": 8.7e-4, "magnetometer": 0.003e-6}
+#: a vehicle compass's noise against the paper's lab magnetometer: 0.1-0.3 uT RMS (1-3 mG, a count or more of
+#: an ArduPilot log) instead of 0.015-0.03 uT, so that a logged count does not turn the noise into a staircase
+COMPASS_NOISE_FACTOR = 7.0
+#: the field strength (T) of methods.md section 5's draw
+PAPER_FIELD = 27e-6
 #: ROS time of the first sample, so that simulated logs carry realistic absolute stamps
 T0_ROS = 1_763_700_000.0
 #: a level ROS (FLU) body in NED: x north, y west, z up
@@ -54,6 +59,14 @@ class Truth:
     accel_bias: FloatArray
     gyro_bias: FloatArray
     noise_std: dict[str, float]
+    #: magnetic declination (rad): the field's east component in the true-north NED frame the trajectory uses
+    declination: float = 0.0
+
+    @property
+    def m_n(self) -> FloatArray:
+        """The unit field direction in the trajectory's (true-north) NED frame."""
+        c = np.cos(self.dip)
+        return np.array([c * np.cos(self.declination), c * np.sin(self.declination), np.sin(self.dip)])
 
     @property
     def theta(self) -> FloatArray:
@@ -121,7 +134,7 @@ def draw_truth(rng: np.random.Generator, rate: float, mag_rate: float) -> Truth:
                      [-np.sin(s2), np.cos(s2) * np.sin(s3), np.cos(s2) * np.cos(s3)]])
     a1, a2, a3 = u(np.deg2rad(5.0))
     rot = so3.exp([a1, 0, 0]) @ so3.exp([0, a2, 0]) @ so3.exp([0, 0, a3])
-    d = 27e-6 * scale @ skew @ rot
+    d = PAPER_FIELD * scale @ skew @ rot
     dip = np.deg2rad(72.0) + float(u(np.deg2rad(5.0), 1)[0])
     gyro_bias = 0.01 + u(np.deg2rad(0.1))
     noise = {"accelerometer": NOISE_DENSITY["accelerometer"] * np.sqrt(rate),
@@ -207,15 +220,18 @@ def _trajectory(scenario: str, rng: np.random.Generator, rate: float, duration: 
     return made.rotations, made.motion, made.still
 
 
-def _wmm_dip() -> float:
-    """The WMM dip (rad) at the simulated vehicles' HOME on the date of T0_ROS."""
+def at_home(drawn: Truth) -> Truth:
+    """`drawn` moved to the place and date the written logs claim (HOME, T0_ROS): the WMM's dip, declination and
+    field strength (D rescaled from the paper's 27 uT), so that a fit comparing with the WMM finds agreement."""
     import datetime as dt
 
     from .synth_physics import HOME
     from .wmm import reference_field
 
-    day = dt.datetime.fromtimestamp(T0_ROS, dt.timezone.utc).date()
-    return reference_field(HOME[0], HOME[1], HOME[2], day).dip
+    ref = reference_field(HOME[0], HOME[1], HOME[2], dt.datetime.fromtimestamp(T0_ROS, dt.timezone.utc).date())
+    noise = drawn.noise_std | {"magnetometer": drawn.noise_std["magnetometer"] * COMPASS_NOISE_FACTOR}
+    return replace(drawn, D=drawn.D * (ref.intensity / PAPER_FIELD), dip=ref.dip, declination=ref.declination,
+                   noise_std=noise)
 
 
 def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
@@ -249,10 +265,11 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     drawn = draw_truth(rng, rate, mag_rate)
     if noise_scale != 1.0:
         drawn = replace(drawn, noise_std={k: v * noise_scale for k, v in drawn.noise_std.items()})
-    if truth is None and scenario in ("multirotor", "rover"):
-        # these vehicles log GPS: the field must be the one the World Magnetic Model gives at that place and date
-        # (HOME, T0_ROS), or a fit that takes the dip from the WMM (a flat log's partial calibration) disagrees
-        drawn = replace(drawn, dip=_wmm_dip())
+    if truth is None and scenario != "paper":
+        # the written logs claim a place and date (GPS at HOME, stamps from T0_ROS): the field must be the one the
+        # World Magnetic Model gives there, or a fit that compares with the WMM (or takes the dip from it) disagrees;
+        # the paper scenario keeps methods.md's draw (27 uT, dip 72 +- 5 deg) for the replication
+        drawn = at_home(drawn)
     truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
     rot, motion, still = _trajectory(scenario, rng, rate, duration, trajectory)
     n = rot.shape[0] - 1                    # gyro k covers [t_k, t_k+1], so keep N+1 rotations
@@ -264,7 +281,7 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     force = -np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, G]))
     noise_a = sd["accelerometer"] * rng.standard_normal((n, 3))
     step = int(round(ratio))
-    m_n = np.array([np.cos(truth.dip), 0.0, np.sin(truth.dip)])
+    m_n = truth.m_n
     mb = np.einsum("nji,j->ni", rot[::step], m_n)
     noise_m = sd["magnetometer"] * rng.standard_normal(mb.shape)
     src = f"simulate:{scenario}:seed={seed}"

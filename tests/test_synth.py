@@ -33,7 +33,7 @@ def test_models_hold_within_noise() -> None:
     acc, mag = rec.select(Kind.ACCELEROMETER), rec.select(Kind.MAGNETOMETER)
     ra = acc.xyz + np.einsum("nji,j->ni", sim.rotations, [0, 0, G]) - tr.accel_bias
     step = len(acc) // len(mag) if len(acc) % len(mag) == 0 else 2
-    m_n = np.array([np.cos(tr.dip), 0, np.sin(tr.dip)])
+    m_n = tr.m_n
     rm = mag.xyz - np.einsum("nji,j->ni", sim.rotations[::step][: len(mag)], m_n) @ tr.D.T - tr.o
     assert np.std(ra) == pytest.approx(tr.noise_std["accelerometer"], rel=0.03)
     assert np.std(rm) == pytest.approx(tr.noise_std["magnetometer"], rel=0.05)
@@ -57,7 +57,7 @@ def test_handheld_protocol_shape() -> None:
 def test_truth_is_drawn_like_the_paper() -> None:
     """Ranges of methods.md section 5 over 50 seeds."""
     for seed in range(50):
-        tr = simulate("handheld", seed, duration=30.0).truth
+        tr = simulate("paper", seed, duration=30.0).truth
         assert np.all(np.abs(tr.accel_bias) <= 0.5) and np.all(np.abs(tr.o) <= 2e-6)
         assert abs(np.rad2deg(tr.dip) - 72.0) <= 5.0
         assert np.all(np.abs(tr.gyro_bias - 0.01) <= np.deg2rad(0.1))
@@ -68,3 +68,26 @@ def test_bad_rates_are_refused() -> None:
     """The IMU rate must be a whole multiple of the magnetometer rate."""
     with pytest.raises(MagcalError, match=r"--rate 100 must be a whole multiple of --mag-rate 30"):
         simulate("handheld", 0, rate=100.0, mag_rate=30.0)
+
+
+@pytest.mark.parametrize("scenario", ["handheld", "multirotor", "rover"])
+def test_logged_scenarios_carry_the_field_of_their_place_and_date(scenario: str) -> None:
+    """The written logs claim HOME and T0_ROS: dip, declination and strength are the WMM's there, and the field
+    points that way in the (true-north) NED frame the trajectory uses."""
+    import datetime as dt
+
+    from magcal_cli.synth import T0_ROS
+    from magcal_cli.synth_physics import HOME
+    from magcal_cli.wmm import reference_field
+
+    sim = simulate(scenario, 3, duration=None if scenario == "handheld" else 100.0)
+    ref = reference_field(*HOME, dt.datetime.fromtimestamp(T0_ROS, dt.timezone.utc).date())
+    tr = sim.truth
+    assert tr.dip == ref.dip and tr.declination == ref.declination != 0.0
+    assert tr.field_strength == pytest.approx(ref.intensity, rel=0.2)
+    assert np.rad2deg(np.arctan2(tr.m_n[1], tr.m_n[0])) == pytest.approx(np.rad2deg(ref.declination))
+    mag = sim.recording.select(Kind.MAGNETOMETER)
+    step = round(sim.recording.select(Kind.GYROSCOPE).rate_hz / mag.rate_hz)
+    body = np.linalg.solve(tr.D, (mag.xyz - tr.o).T).T              # the unit field seen in the body
+    nav = np.einsum("nij,nj->ni", sim.rotations[::step][: len(mag)], body)
+    assert np.abs(nav.mean(axis=0) - tr.m_n).max() < 0.02

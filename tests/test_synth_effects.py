@@ -46,7 +46,7 @@ def effect(sim: Simulation, eid: str) -> InjectedEffect:
 
 
 def m_n(sim: Simulation) -> np.ndarray:
-    return np.array([np.cos(sim.truth.dip), 0.0, np.sin(sim.truth.dip)])
+    return sim.truth.m_n
 
 
 @pytest.fixture(scope="module")

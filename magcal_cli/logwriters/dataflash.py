@@ -155,8 +155,12 @@ def compass_params(prev: PreviousCalibration, ofs: FloatArray) -> dict[str, floa
     p |= {f"COMPASS_ODI_{a}": v for a, v in zip("XYZ", prev.odi, strict=True)}
     p |= {f"COMPASS_MOT_{a}": v for a, v in zip("XYZ", prev.mot, strict=True)}
     p |= {"COMPASS_SCALE": prev.scale, "COMPASS_MOTCT": float(prev.motct), "COMPASS_ORIENT": 0.0,
-          "COMPASS_EXTERNAL": 0.0, "COMPASS_USE": 1.0, "COMPASS_DEV_ID": 97539.0, "COMPASS_PRIO1_ID": 97539.0,
+          "COMPASS_EXTERNAL": 1.0, "COMPASS_USE": 1.0, "COMPASS_DEV_ID": 97539.0, "COMPASS_PRIO1_ID": 97539.0,
           "COMPASS_LEARN": 0.0, "COMPASS_AUTODEC": 1.0, "AHRS_ORIENTATION": 0.0, "INS_GYRO_RATE": 0.0}
+    # what a 4.6 vehicle with a GPS/compass module logs besides: custom rotations (4.3+), the EKF in use and
+    # the level trim the attitude estimate includes
+    p |= {"CUST_ROT_ENABLE": 0.0, "AHRS_EKF_TYPE": 3.0} | {f"AHRS_TRIM_{a}": 0.0 for a in "XYZ"}
+    p |= {f"CUST_ROT{n}_{ax}": 0.0 for n in (1, 2) for ax in ("ROLL", "PITCH", "YAW")}
     return p | prev.extra_params
 
 

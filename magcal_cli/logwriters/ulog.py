@@ -202,6 +202,7 @@ def sim_content(sim: Simulation) -> UlogContent:
     params: dict[str, int | float] = {"CAL_MAG0_ID": SIM_MAG_DEVICE_ID, "CAL_MAG0_PRIO": 50,
                                       "CAL_MAG0_ROT": 0, "CAL_MAG_COMP_TYP": 0, "SENS_BOARD_ROT": 0,
                                       "SDLOG_PROFILE": 1 | 64}
+    params |= {f"CAL_MAG0_{ax}": 0.0 for ax in ("ROLL", "PITCH", "YAW")}   # a release with custom Euler angles
     for axis in "XYZ":
         params |= {f"CAL_MAG0_{axis}OFF": 0.0, f"CAL_MAG0_{axis}SCALE": 1.0, f"CAL_MAG0_{axis}ODIAG": 0.0,
                    f"CAL_MAG0_{axis}COMP": 0.0, f"SENS_BOARD_{axis}_OFF": 0.0}
