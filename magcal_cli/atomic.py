@@ -1,22 +1,58 @@
-"""Atomic outputs: write to a temporary name in the target's directory, rename on success."""
+"""Atomic outputs: write to a temporary name in the target's directory, rename on success.
+
+`check_writable` probes an output location before the work starts, so a read-only, full or missing folder is
+one error line, not a lost fit.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+
+from .errors import OutputError
+
+
+def _cannot_write(target: Path, exc: OSError, hint: str) -> OutputError:
+    """The one-line error for an output that the file system refuses (read-only, full, permissions)."""
+    return OutputError(f"{target}: cannot write here ({exc.strerror or exc}). {hint}")
+
+
+def check_writable(folder: Path, create: bool = False, hint: str = "Choose another output location") -> None:
+    """Refuse (OutputError) when files cannot be written in `folder`; with `create`, the folder may be missing
+    as long as its nearest existing ancestor is a writable directory."""
+    probe = Path(folder)
+    while not probe.exists():
+        if not create:
+            msg = f"{folder}: no such folder. Create it, or {hint[:1].lower()}{hint[1:]}"
+            raise OutputError(msg)
+        probe = probe.parent
+    if not probe.is_dir():
+        msg = f"{probe}: is a file, not a folder, so nothing can be written in {folder}. {hint}"
+        raise OutputError(msg)
+    try:
+        fd, name = tempfile.mkstemp(prefix=".magcal-probe-", dir=probe)
+        os.close(fd)
+        Path(name).unlink()
+    except OSError as exc:
+        raise _cannot_write(folder, exc, hint) from None
 
 
 @contextlib.contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
     """Yield a temporary path next to `target`; rename it to `target` if the block succeeds, else delete it.
 
-    A KeyboardInterrupt or any error leaves `target` as it was (absent or the old content).
+    A KeyboardInterrupt or any error leaves `target` as it was (absent or the old content). The file system
+    refusing the write (read-only, full, permissions) is an OutputError naming `target`.
     """
     target = Path(target)
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent or Path())
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent or Path())
+    except OSError as exc:
+        raise _cannot_write(target, exc, "Choose another output location") from None
     os.close(fd)
     tmp = Path(name)
     umask = os.umask(0)
@@ -25,9 +61,11 @@ def atomic_path(target: Path) -> Iterator[Path]:
     try:
         yield tmp
         tmp.replace(target)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(exc, OSError) and exc.errno != errno.EPIPE:
+            raise _cannot_write(target, exc, "Free some space or choose another output location") from None
         raise
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import sys
 import traceback
@@ -12,15 +13,19 @@ from typing import Any, TypeVar
 
 import click
 
-from . import __version__
+from . import __version__, options
 from .config import Config
 from .errors import MagcalError
 
 F = TypeVar("F", bound=Callable[..., Any])
+MAG_HELP = ("Magnetometer stream id(s) to {what}; repeatable and comma-separated (e.g. --mag 'MAG[0],MAG[1]'), "
+            "or 'all' [default: all].")
+FORMAT_HELP = "Force the log format instead of sniffing it (e.g. mcap)."
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
 EXIT_CODES = ("Exit codes: 0 success; 1 the input could not be used (unreadable, truncated or unsupported log, "
               "missing stream, too little motion, no convergence); 2 usage error; 3 a quality gate failed; "
-              "123 internal error (a bug).")
+              "123 internal error (a bug); 130 interrupted (Ctrl-C), nothing half-written left. A closed pipe "
+              "(e.g. | head) ends the command quietly with 1.")
 METHOD_CHOICES = ("auto", "kok2012", "map", "ekf-ml", "ekf-aug")
 
 
@@ -50,17 +55,28 @@ def handle_errors(func: F) -> F:
         except KeyboardInterrupt:
             click.echo("Error: interrupted; outputs not yet renamed into place were discarded.", err=True)
             ctx.exit(130)
-        except (click.ClickException, click.exceptions.Exit):
-            raise
+        except (click.ClickException, click.exceptions.Exit, BrokenPipeError):
+            raise                       # click's main: a closed stdout (| head) exits 1 quietly
+        except OSError as exc:
+            if exc.errno not in USER_ERRNOS:
+                _internal_error(ctx, exc)
+            where = exc.filename or "magcal"
+            msg = f"{where}: {exc.strerror or exc}. Check the path, its permissions and free space"
+            raise click.ClickException(msg) from None
         except Exception as exc:  # noqa: BLE001 - the last line of defence: a bug must not print a traceback
-            if ctx.obj.get("verbose"):
-                traceback.print_exc(file=sys.stderr)
-            click.echo(f"Error: internal error ({type(exc).__name__}: {exc}). This is a bug in magcal; please "
-                       "report it with the command and log" + ("" if ctx.obj.get("verbose") else
-                                                                 "; run with -v for the traceback") + ".", err=True)
-            ctx.exit(123)
+            _internal_error(ctx, exc)
 
     return wrapper  # type: ignore[return-value]
+
+
+def _internal_error(ctx: click.Context, exc: BaseException) -> None:
+    """A bug: one line (the traceback with -v), exit 123."""
+    if ctx.obj.get("verbose"):
+        traceback.print_exception(exc, file=sys.stderr)
+    click.echo(f"Error: internal error ({type(exc).__name__}: {exc}). This is a bug in magcal; please "
+               "report it with the command and log" + ("" if ctx.obj.get("verbose") else
+                                                         "; run with -v for the traceback") + ".", err=True)
+    ctx.exit(123)
 
 
 def verbosity(func: F) -> F:
@@ -100,17 +116,6 @@ def _parse_outputs(value: str) -> list[str]:
     return names
 
 
-def _location(_: click.Context, __: click.Parameter, value: str | None) -> tuple[float, float, float] | None:
-    """--location LAT,LON[,ALT] parsed, or a usage error."""
-    from .errors import MagcalError
-    from .wmm import parse_location
-
-    try:
-        return None if value is None else parse_location(value)
-    except MagcalError as exc:
-        raise click.BadParameter(str(exc)) from None
-
-
 def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | None:
     """--date YYYY-MM-DD checked, or a usage error."""
     from .errors import MagcalError
@@ -121,6 +126,10 @@ def _date(_: click.Context, __: click.Parameter, value: str | None) -> str | Non
     except MagcalError as exc:
         raise click.BadParameter(str(exc)) from None
 
+
+#: the file system refusing a read or write: the user's environment, not a bug (exit 1, not 123)
+USER_ERRNOS = frozenset({errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.ENOTDIR,
+                         errno.EISDIR, errno.ENAMETOOLONG, errno.ENOENT})
 
 #: what --effects auto parses to: the diagnosis chooses the effects
 AUTO = ("auto",)
@@ -142,8 +151,8 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
 @click.option("-o", "--outdir", type=click.Path(path_type=Path), default=None,
               help="Output directory [default: ./<log stem>-magcal/].")
-@click.option("--mag", "mag", default="all", show_default=True,
-              help="Magnetometer stream id(s) to calibrate, comma-separated, or 'all'.")
+@click.option("--mag", "mags", multiple=True, callback=options.mag_ids, metavar="ID[,ID...]|all",
+              help=MAG_HELP.format(what="calibrate"))
 @click.option("--imu", "imu", default=None, help="IMU stream id [default: the first with accelerometer and gyro].")
 @click.option("--method", type=click.Choice(METHOD_CHOICES), default="auto", show_default=True,
               help="Calibration method; auto picks the best one available for the log.")
@@ -152,7 +161,7 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
                    "adds ardupilot.param for ArduPilot logs and px4.params for PX4 ULogs].")
 @click.option("--start", "start_s", type=float, default=None, help="Use data from this time on (s from log start).")
 @click.option("--end", "end_s", type=float, default=None, help="Use data up to this time (s from log start).")
-@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--format", "fmt", default=None, callback=options.log_format, help=FORMAT_HELP)
 @click.option("--strict", is_flag=True,
               help="Refuse a cut log (one that ends inside a record) instead of reading it up to its last "
                    "complete record with a warning.")
@@ -161,7 +170,7 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
               help="Deprecated: a cut log is read up to its last complete record by default.")
 @click.option("--json", "as_json", is_flag=True, help="Print the calibration document on stdout.")
 @click.option("--force", is_flag=True, help="Overwrite existing outputs.")
-@click.option("--location", default=None, metavar="LAT,LON[,ALT]", callback=_location,
+@click.option("--location", default=None, metavar="LAT,LON[,ALT]", callback=options.location,
               help="Where the log was recorded (deg, deg, m): dip and field strength from the World Magnetic Model "
                    "[default: the log's position stream, if any].")
 @click.option("--date", default=None, metavar="YYYY-MM-DD", callback=_date,
@@ -181,21 +190,22 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
 @verbosity
 @click.pass_context
 @handle_errors
-def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str | None, method: str, outputs: str,
-        start_s: float | None, end_s: float | None, fmt: str | None, strict: bool, as_json: bool,
+def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...], imu: str | None, method: str,
+        outputs: str, start_s: float | None, end_s: float | None, fmt: str | None, strict: bool, as_json: bool,
         force: bool, location: tuple[float, float, float] | None, date: str | None, robust_loss: str,
         effects: tuple[str, ...], fail_on: tuple[Any, ...]) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from .document import dumps_json
     from .pipeline import calibrate
-    from .writers import FIRMWARE_OUTPUTS, check_targets
+    from .writers import FIRMWARE_OUTPUTS
 
+    options.time_window(start_s, end_s)
     names = _parse_outputs(outputs)
     auto = _firmware_output(ctx, log, fmt, names)
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
-    check_targets(outdir, names + ([auto] if auto else []), force)
-    cfg = Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=not strict,
-                 location=location, date=date, robust_loss=robust_loss, effects=() if effects == AUTO else effects,
+    _check_outdir(outdir, names + ([auto] if auto else []), force)
+    cfg = Config(method=method, mag=",".join(mags) or "all", imu=imu, start_s=start_s, end_s=end_s,
+                 allow_truncated=not strict, location=location, date=date, robust_loss=robust_loss, effects=() if effects == AUTO else effects,
                  diagnose=effects == AUTO)
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
@@ -218,6 +228,16 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mag: str, imu: str |
     for p in written:
         click.echo(f"wrote {p}")
     _fit_gates(result, fail_on)
+
+
+def _check_outdir(outdir: Path, names: list[str], force: bool) -> None:
+    """Before the work: no output of `names` exists in `outdir` without --force (exit 2), and it is writable."""
+    from .atomic import check_writable
+    from .writers import check_targets, get_writer
+
+    options.refuse_existing((outdir / f for n in names for f in get_writer(n).files), force, ", or choose another -o")
+    check_targets(outdir, names, force)
+    check_writable(outdir, create=True, hint="Choose another -o")
 
 
 def _write_fit_outputs(ctx: click.Context, result: Any, outdir: Path, names: list[str], auto: str | None
@@ -343,9 +363,8 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
 
     The truth lists the injected effects in the log's magnetometer unit and with the reader's channel ids.
     """
-    from .atomic import write_text
+    from .atomic import check_writable, write_text
     from .document import dumps_json
-    from .errors import OutputError
     from .logwriters import write_log
     from .pipeline import utc_now
     from .readers import open_recording
@@ -353,10 +372,10 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
     from .synth import truth_calibration
 
     truth_path = truth_path or out.with_name(out.name + ".truth.json")
+    options.log_extension(out)
+    options.refuse_existing((out, truth_path), force)
     for p in (out, truth_path):
-        if p.exists() and not force:
-            msg = f"{p}: exists already. Pass --force to overwrite it"
-            raise OutputError(msg)
+        check_writable(p.parent, hint="Choose another path")
     _stderr(ctx, f"simulating {scenario} (seed {seed})" + (f" with {', '.join(e.id for e in effects)}"
                                                              if effects else ""))
     sim = run_simulation(scenario, seed, rate, mag_rate, duration, effects=effects)
@@ -370,7 +389,7 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
 @cli.command("inspect", epilog=EXIT_CODES)
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document instead of the table.")
-@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--format", "fmt", default=None, callback=options.log_format, help=FORMAT_HELP)
 @click.option("--receive-time", is_flag=True, help="ROS bags and MCAP: time samples by receive time, not header stamps.")
 @verbosity
 @click.pass_context
@@ -383,12 +402,18 @@ def inspect_cmd(ctx: click.Context, log: Path, as_json: bool, fmt: str | None, r
     click.echo(to_json(rec) if as_json else to_table(rec))
 
 
-def _vehicle_params(ctx: click.Context, params_path: Path | None, source: str) -> dict[str, float]:
-    """--params (a parameter file or a log), else the document's source log when it exists, else none."""
+#: log formats that carry the vehicle's parameters, which `export` reads from a document's source log
+PARAM_FORMATS = ("dataflash", "ulog")
+
+
+def _vehicle_params(ctx: click.Context, params_path: Path | None, cal_path: Path, cal: Any) -> dict[str, float]:
+    """--params (a parameter file or a log), else the document's source log; refused when that log is missing
+    but would have held the parameters (the export would silently differ)."""
     from .firmware.flown import load_params
 
     if params_path is not None:
         return load_params(params_path)
+    source = cal.source.path
     src = Path(source)
     if source and src.is_file():
         _stderr(ctx, f"vehicle parameters from the document's source log {src.name}")
@@ -396,6 +421,11 @@ def _vehicle_params(ctx: click.Context, params_path: Path | None, source: str) -
             return load_params(src)
         except MagcalError as exc:
             _stderr(ctx, f"warning: {exc}")
+    elif source and cal.source.format in PARAM_FORMATS:
+        msg = (f"{cal_path}: the source log {src} is missing, so the vehicle's parameters (compass slots, "
+               "orientations, device ids) are unknown and the parameters would differ. Restore the log, or pass "
+               "--params with the log or the vehicle's parameter file")
+        raise MagcalError(msg)
     return {}
 
 
@@ -408,7 +438,8 @@ def _vehicle_params(ctx: click.Context, params_path: Path | None, source: str) -
 @click.option("--style", type=click.Choice(["default", "mavproxy", "nsh"]), default="default", show_default=True,
               help="default: Mission Planner .param / QGroundControl .params; mavproxy: 'NAME VALUE' lines "
                    "(ArduPilot); nsh: 'param set NAME VALUE' lines (PX4).")
-@click.option("--mag", "mags", multiple=True, help="Magnetometer id to export; repeatable [default: all].")
+@click.option("--mag", "mags", multiple=True, callback=options.mag_ids, metavar="ID[,ID...]|all",
+              help=MAG_HELP.format(what="export"))
 @click.option("--slot", type=int, default=None,
               help="Parameter slot for one --mag: ArduPilot 1-3, PX4 0-3 [default: from the device ids].")
 @click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), default=None,
@@ -430,9 +461,7 @@ def export_cmd(ctx: click.Context, calibration: Path, ardupilot_out: Path | None
                mags: tuple[str, ...], slot: int | None, params_path: Path | None, rotation: str,
                custom_above_deg: float, external: bool | None, force: bool) -> None:
     """Write firmware parameters for the calibration in CALIBRATION (a magcal document)."""
-    from .atomic import write_text
-    from .document import load
-    from .errors import OutputError
+    from .atomic import check_writable, write_text
     from .firmware.export import Options, export
     from .firmware.paramfile import render
 
@@ -440,24 +469,29 @@ def export_cmd(ctx: click.Context, calibration: Path, ardupilot_out: Path | None
     if not targets:
         msg = "give --ardupilot OUT.param or --px4 OUT.params"
         raise click.UsageError(msg)
-    for _, out in targets:
-        if out.exists() and not force:
-            msg = f"{out}: exists already. Pass --force to overwrite it"
-            raise OutputError(msg)
-    cal = load(calibration)
-    params = _vehicle_params(ctx, params_path, cal.source.path)
-    options = Options(rotation, custom_above_deg, external, slot)
-    for firmware, out in targets:
-        exp = export(cal, firmware, params, options, list(mags) or None)
-        kind = {"default": "mission-planner" if firmware == "ardupilot" else "qgc"}.get(style, style)
+    kinds = {fw: {"default": "mission-planner" if fw == "ardupilot" else "qgc"}.get(style, style) for fw, _ in targets}
+    for firmware, kind in kinds.items():
         if (firmware, kind) in (("ardupilot", "nsh"), ("px4", "mavproxy")):
             msg = f"{style} is not a {firmware} parameter format"
             raise click.BadParameter(msg, param_hint="--style")
+    if slot is not None and len(mags) > 1:
+        msg = f"--slot applies to one magnetometer, but --mag gives {len(mags)} ({', '.join(mags)}); give one --mag"
+        raise click.UsageError(msg)
+    cal = options.calibration_document(calibration, "CALIBRATION", "Run: magcal export CAL.json --ardupilot "
+                                       "OUT.param (or --px4 OUT.params); a log with the vehicle's parameters goes "
+                                       "to --params")
+    options.refuse_existing((out for _, out in targets), force)
+    for _, out in targets:
+        check_writable(out.parent, hint="Choose another output file")
+    params = _vehicle_params(ctx, params_path, calibration, cal)
+    opts = Options(rotation, custom_above_deg, external, slot)
+    for firmware, out in targets:
+        exp = export(cal, firmware, params, opts, list(mags) or None)
         for line in exp.notes + exp.warnings:
             _stderr(ctx, line)
         for m in exp.mags:
             click.echo(m.lost_text())
-        write_text(out, render(exp.params, kind, exp.header(), exp.integers))
+        write_text(out, render(exp.params, kinds[firmware], exp.header(), exp.integers))
         click.echo(f"wrote {out}")
 
 
@@ -466,8 +500,9 @@ def export_cmd(ctx: click.Context, calibration: Path, ardupilot_out: Path | None
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
 @click.option("-o", "--output", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="CSV file to write: t [s], id, the calibrated field x, y, z and its magnitude.")
-@click.option("--mag", "mags", multiple=True, help="Magnetometer id to apply; repeatable [default: all].")
-@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--mag", "mags", multiple=True, callback=options.mag_ids, metavar="ID[,ID...]|all",
+              help=MAG_HELP.format(what="apply"))
+@click.option("--format", "fmt", default=None, callback=options.log_format, help=FORMAT_HELP)
 @click.option("--force", is_flag=True, help="Overwrite an existing output.")
 @verbosity
 @click.pass_context
@@ -476,15 +511,13 @@ def apply_cmd(ctx: click.Context, calibration: Path, log: Path, out: Path, mags:
               force: bool) -> None:
     """Apply CALIBRATION to LOG and write the calibrated field over time as CSV."""
     from .apply import apply_to_recording
-    from .atomic import write_text
-    from .document import load
-    from .errors import OutputError
+    from .atomic import check_writable, write_text
     from .readers import open_recording
 
-    if out.exists() and not force:
-        msg = f"{out}: exists already. Pass --force to overwrite it"
-        raise OutputError(msg)
-    cal = load(calibration)
+    cal = options.calibration_document(calibration, "CALIBRATION", "The arguments look swapped; run: magcal "
+                                       "apply CAL.json LOG -o OUT.csv")
+    options.refuse_existing((out,), force, ", or choose another -o")
+    check_writable(out.parent, hint="Choose another -o")
     rec = open_recording(log, fmt)
     if rec.cut is not None:
         _stderr(ctx, f"warning: {rec.cut.message}")
@@ -504,7 +537,7 @@ def apply_cmd(ctx: click.Context, calibration: Path, log: Path, out: Path, mags:
               help="Also write diagnosis.json (the diagnosis and every effect's verdict) to this directory.")
 @click.option("--json", "as_json", is_flag=True, help="Print the diagnosis and the effects as one JSON document.")
 @click.option("--force", is_flag=True, help="Overwrite an existing diagnosis.json.")
-@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--format", "fmt", default=None, callback=options.log_format, help=FORMAT_HELP)
 @verbosity
 @click.pass_context
 @handle_errors
@@ -513,18 +546,18 @@ def diagnose_cmd(ctx: click.Context, log: Path, cal_path: Path | None, outdir: P
     """Find what physics the calibrated model leaves out of LOG, model it, and show the held-out improvement."""
     import json
 
-    from .atomic import atomic_path
-    from .document import load
+    from .atomic import atomic_path, check_writable
     from .pipeline import calibrate
 
-    target = None if outdir is None else outdir / "diagnosis.json"
-    if target is not None and target.exists() and not force:
-        msg = f"{target} exists; use --force to overwrite it"
-        raise click.UsageError(msg)
     mag, imu = "all", None
     if cal_path is not None:
-        cal = load(cal_path)
+        cal = options.calibration_document(cal_path, "--calibration",
+                                           "Give the calibration, or leave --calibration out")
         mag, imu = ",".join(m.id for m in cal.magnetometers), cal.imu.id
+    target = None if outdir is None else outdir / "diagnosis.json"
+    if outdir is not None and target is not None:
+        options.refuse_existing((target,), force, ", or choose another -o")
+        check_writable(outdir, create=True, hint="Choose another -o")
     cfg = Config(method="map", mag=mag, imu=imu, diagnose=True)
     result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
     doc = {"log": str(log.resolve()), "diagnosis": result.calibration.diagnosis,
@@ -554,21 +587,26 @@ def diagnose_cmd(ctx: click.Context, log: Path, cal_path: Path | None, outdir: P
 @click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: _gates(v, "check"),
               help="More failure conditions, e.g. 'interference_pct>30,field_norm_rms_pct>3' (see "
                    "docs/firmware-export.md).")
-@click.option("--mag", "mags", multiple=True, help="Compass id to check; repeatable [default: all].")
+@click.option("--mag", "mags", multiple=True, callback=options.mag_ids, metavar="ID[,ID...]|all",
+              help=MAG_HELP.format(what="check"))
 @click.option("--refit/--no-refit", default=True, show_default=True,
               help="Also calibrate the log anew and report the heading change that calibration would bring.")
-@click.option("--format", "fmt", default=None, help="Force the log format instead of sniffing it (e.g. mcap).")
+@click.option("--format", "fmt", default=None, callback=options.log_format, help=FORMAT_HELP)
+@click.option("--require-measured", is_flag=True,
+              help="Fail (exit 3) when a gate cannot be measured from the log [default: reported as not measured].")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON document.")
 @verbosity
 @click.pass_context
 @handle_errors
 def check_cmd(ctx: click.Context, log: Path, cal_path: Path | None, params_path: Path | None,
               max_heading_error_deg: float, fail_on: tuple[Any, ...], mags: tuple[str, ...], refit: bool,
-              fmt: str | None, as_json: bool) -> None:
-    """Judge the compass calibration LOG was flown with; exit 3 when a gate fails (post-flight CI)."""
+              fmt: str | None, require_measured: bool, as_json: bool) -> None:
+    """Judge the compass calibration LOG was flown with; exit 3 when a gate fails (post-flight CI).
+
+    A gate the log cannot measure is reported as not measured and does not fail unless --require-measured.
+    """
     from . import gates
-    from .check import run_check
-    from .document import load
+    from .check import CheckOptions, run_check
     from .firmware.flown import load_params
 
     if cal_path is not None and params_path is not None:
@@ -579,9 +617,14 @@ def check_cmd(ctx: click.Context, log: Path, cal_path: Path | None, params_path:
         raise click.BadParameter(msg, param_hint="--max-heading-error-deg")
     conditions = () if max_heading_error_deg == float("inf") else (
         gates.Condition("heading_error_deg", ">", max_heading_error_deg),)
+    calibration = None if cal_path is None else options.calibration_document(
+        cal_path, "--calibration", "A log or parameter file the vehicle flew with goes to --params")
+    source = (None if cal_path is None and params_path is None else
+              f"the calibration document {cal_path.resolve()}" if cal_path is not None else
+              f"the parameter file {params_path.resolve()}" if params_path is not None else None)
     report = run_check(log, (*conditions, *fail_on), params=None if params_path is None else load_params(params_path),
-                       calibration=None if cal_path is None else load(cal_path), mags=list(mags) or None,
-                       refit=refit, fmt=fmt, progress=lambda m: _stderr(ctx, m))
+                       calibration=calibration, mags=list(mags) or None, refit=refit, fmt=fmt,
+                       progress=lambda m: _stderr(ctx, m), options=CheckOptions(require_measured, source))
     click.echo(report.to_json() if as_json else report.to_text(), nl=False)
     if not report.passed:
         failed = [f"{c.id}: {', '.join(c.failed)}" for c in report.compasses if c.failed and c.gated]

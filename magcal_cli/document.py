@@ -157,6 +157,9 @@ def load(path: Path) -> Calibration:
     except OSError as exc:
         msg = f"{path}: cannot read the calibration ({exc.strerror or exc}). Check the path"
         raise CalibrationFileError(msg) from None
+    except UnicodeDecodeError:
+        msg = f"{path}: not a calibration document (binary data, not JSON or YAML). Give the file magcal fit wrote"
+        raise CalibrationFileError(msg) from None
     try:
         doc = yaml.safe_load(text) if path.suffix.lower() in (".yaml", ".yml") else json.loads(text)
     except (yaml.YAMLError, json.JSONDecodeError) as exc:

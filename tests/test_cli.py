@@ -89,15 +89,15 @@ def test_cut_log_uses_the_complete_part(runner: CliRunner, tmp_path: Path) -> No
 
 
 def test_outputs_are_not_overwritten_without_force(runner: CliRunner, tmp_path: Path) -> None:
-    """A second run into the same directory refuses (exit 1) until --force is given."""
+    """A second run into the same directory refuses (a usage error, exit 2) until --force is given."""
     out = tmp_path / "out"
     args = ["fit", str(SAMPLE), "-o", str(out), "-q", "--outputs", "json"]
     assert runner.invoke(cli, args).exit_code == 0
     before = (out / "calibration.json").read_bytes()
     again = runner.invoke(cli, args)
-    assert again.exit_code == 1
-    assert again.stderr.strip() == f"Error: {out / 'calibration.json'}: exists already. Pass --force to overwrite " \
-                                   "it, or choose another -o"
+    assert again.exit_code == 2
+    assert again.stderr.strip().splitlines()[-1] == f"Error: {out / 'calibration.json'}: exists already. Pass " \
+                                                    "--force to overwrite it, or choose another -o"
     assert (out / "calibration.json").read_bytes() == before
     assert runner.invoke(cli, [*args, "--force"]).exit_code == 0
 
@@ -137,4 +137,4 @@ def test_simulate_writes_log_and_truth(runner: CliRunner, tmp_path: Path) -> Non
     assert result.exit_code == 0, result.output
     truth = json.loads((tmp_path / "sim.mcap.truth.json").read_text())
     assert truth["method"] == "truth" and truth["simulation"]["seed"] == 3
-    assert runner.invoke(cli, args).exit_code == 1
+    assert runner.invoke(cli, args).exit_code == 2

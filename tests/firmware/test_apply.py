@@ -56,7 +56,7 @@ def test_apply_cli(tmp_path: Path) -> None:
     data = rows(out.read_text())
     assert np.median(data[:, 4]) == pytest.approx(273.383, rel=0.01)
     again = CliRunner().invoke(cli, ["apply", str(truth), str(SAMPLE), "-o", str(out)])
-    assert again.exit_code == 1 and "exists already. Pass --force to overwrite it" in again.stderr
+    assert again.exit_code == 2 and "exists already. Pass --force to overwrite it" in again.stderr
 
 
 def test_apply_errors() -> None:

@@ -18,8 +18,8 @@ ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "sample_logs" / "handheld.bin"
 
 
-def write_doc(path: Path, o: tuple[float, float, float] = (100.0, 0.0, 0.0), source: str = "gone.bin") -> Path:
-    """A hand-made document: MAG[0], identity iron, offset o (mGauss)."""
+def write_doc(path: Path, o: tuple[float, float, float] = (100.0, 0.0, 0.0), source: str = "") -> Path:
+    """A hand-made document: MAG[0], identity iron, offset o (mGauss); no source log unless `source`."""
     mag = MagCalibration("MAG[0]", "milligauss", 500.0 * np.eye(3), o, 60.0, np.zeros((13, 13)), 500.0)
     cal = Calibration(Source(source, "dataflash", "", 0, 1), "map", ImuCalibration("IMU[0]"), (mag,), "0", "t")
     path.write_text(dumps_json(cal))
@@ -73,7 +73,7 @@ def test_export_errors(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "nsh is not a ardupilot parameter format" in result.output
     (tmp_path / "exists.param").write_text("")
     result = runner.invoke(cli, ["export", str(doc), "--ardupilot", str(tmp_path / "exists.param")])
-    assert result.exit_code == 1 and "exists.param: exists already. Pass --force to overwrite it" in result.stderr
+    assert result.exit_code == 2 and "exists.param: exists already. Pass --force to overwrite it" in result.stderr
     big = write_doc(tmp_path / "big.json", o=(2000.0, 0.0, 0.0))
     result = runner.invoke(cli, ["export", str(big), "--ardupilot", str(tmp_path / "b.param")])
     lines = result.stderr.strip().splitlines()
