@@ -4,6 +4,9 @@ For each compass: the raw field the reader rebuilt, corrected as flown (`firmwar
 consistency; the residual iron and interference left, fitted against the log's roll and pitch
 (`firmware.residual`), with the level heading error they cause; and, when a new magcal calibration of the
 same log succeeds, the heading change that calibration would bring as the firmware would hold it.
+
+A gate whose metric the log cannot measure (too few headings, no current) is "not measured": reported, and a
+failure only with `require_measured` (--require-measured).
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ SCHEMA = "magcal.check/1"
 
 @dataclass
 class CompassCheck:
-    """One compass: metrics, what could not be measured and why, details, the gate verdict."""
+    """One compass: metrics, what could not be measured and why, details, the gates failed and not measured."""
 
     id: str
     unit: str
@@ -61,6 +64,7 @@ class CompassCheck:
     details: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)
+    unmeasured: list[str] = field(default_factory=list)
 
     @property
     def gated(self) -> bool:
@@ -69,8 +73,8 @@ class CompassCheck:
 
     @property
     def verdict(self) -> str:
-        """pass, fail, or fail/pass with '(not used: not gated)'."""
-        word = "fail" if self.failed else "pass"
+        """pass, fail or not measured, with '(not used for yaw: not gated)' for a compass not used."""
+        word = "fail" if self.failed else "not measured" if self.unmeasured else "pass"
         return word if self.gated else f"{word} (not used for yaw: not gated)"
 
 
@@ -84,18 +88,34 @@ class CheckReport:
     conditions: tuple[gates.Condition, ...]
     compasses: list[CompassCheck]
     notes: list[str] = field(default_factory=list)
+    require_measured: bool = False
 
     @property
     def passed(self) -> bool:
-        """True when no gated compass fails."""
+        """True when no gated compass fails (a gate not measured does not fail unless require_measured)."""
         return not any(c.failed and c.gated for c in self.compasses)
+
+    @property
+    def unmeasured(self) -> int:
+        """How many gates of gated compasses could not be measured (and do not fail)."""
+        return sum(len(c.unmeasured) for c in self.compasses if c.gated)
+
+    def verdict(self) -> str:
+        """The last line: PASSED or FAILED, with the gates not measured."""
+        if not self.passed:
+            return "FAILED"
+        n = self.unmeasured
+        return "PASSED" if not n else (f"PASSED, but {n} gate{'s' if n > 1 else ''} not measured "
+                                       "(--require-measured fails on them)")
 
     def to_json(self) -> str:
         """The report as one JSON document (`magcal.check/1`)."""
         doc = {"schema": SCHEMA, "log": self.log, "calibration_source": self.calibration_source,
                "levelling": self.levelling, "gates": [str(c) for c in self.conditions], "passed": self.passed,
+               "require_measured": self.require_measured,
                "compasses": [{"id": c.id, "unit": c.unit, "slot": c.slot, "used": c.used, "samples": c.samples,
-                              "verdict": c.verdict, "failed": c.failed, "metrics": c.metrics,
+                              "verdict": c.verdict, "failed": c.failed, "gates_not_measured": c.unmeasured,
+                              "metrics": c.metrics,
                               "not_measured": c.missing, "details": c.details, "notes": c.notes}
                              for c in self.compasses],
                "notes": self.notes}
@@ -110,8 +130,9 @@ class CheckReport:
                          f"{c.verdict.upper()}")
             lines += [f"  {line}" for line in _describe(c)]
             lines += [f"  failed: {f}" for f in c.failed]
+            lines += [f"  gate not measured: {f}" for f in c.unmeasured]
         lines += [f"note: {n}" for n in self.notes]
-        lines.append("PASSED" if self.passed else "FAILED")
+        lines.append(self.verdict())
         return "\n".join(lines) + "\n"
 
 
@@ -236,21 +257,39 @@ def _change(c: CompassCheck, f: Flown, cal: Calibration, vehicle: dict[str, floa
                   "new_method": cal.method}
 
 
-def check_recording(rec: Recording, conditions: tuple[gates.Condition, ...], *,
-                    params: dict[str, float] | None = None, calibration: Calibration | None = None,
-                    mags: list[str] | None = None, new: Calibration | None = None,
-                    why_no_new: str = "no new calibration") -> CheckReport:
-    """Check every selected compass of a recording against the calibration flown and, if given, a new one."""
+def flown_or_refuse(rec: Recording, mags: list[str] | None, params: dict[str, float] | None,
+                    calibration: Calibration | None) -> tuple[list[Flown], str]:
+    """The compasses as flown and where their calibration came from; FirmwareError when none is known."""
     flown, source = flown_fields(rec, mags, params, calibration)
     if not flown:
         msg = f"{rec.path.name}: none of the selected magnetometers is in the calibration; check --mag"
         raise FirmwareError(msg)
+    return flown, source
+
+
+@dataclass(frozen=True)
+class CheckOptions:
+    """How to judge: require every gate measured; how to name the calibration source in the header."""
+
+    require_measured: bool = False
+    source: str | None = None           # e.g. "the calibration document /abs/cal.json" [default: flown_fields's]
+
+
+def check_recording(rec: Recording, conditions: tuple[gates.Condition, ...], *,
+                    params: dict[str, float] | None = None, calibration: Calibration | None = None,
+                    mags: list[str] | None = None, new: Calibration | None = None,
+                    why_no_new: str = "no new calibration", options: CheckOptions | None = None,
+                    flown: tuple[list[Flown], str] | None = None) -> CheckReport:
+    """Check every selected compass of a recording against the calibration flown and, if given, a new one."""
+    options = options or CheckOptions()
+    compasses, source = flown or flown_or_refuse(rec, mags, params, calibration)
     vehicle = dict(rec.params) if params is None else params
-    report = CheckReport(str(rec.path), source, "", conditions, [])
+    report = CheckReport(str(rec.path), options.source or source, "", conditions, [],
+                         require_measured=options.require_measured)
     if params is None and calibration is None and any("changed during the log" in n for n in rec.notes):
         report.notes.append("compass parameters changed during the log; the check applies their last values to "
                             "every sample (cut the log with the reader's notes in mind)")
-    for f in flown:
+    for f in compasses:
         c = CompassCheck(f.id, f.unit, f.slot, f.used, len(f.t))
         norm = np.linalg.norm(f.field, axis=1)
         c.metrics["field_norm_rms_pct"] = float(100 * np.sqrt(np.mean((norm / np.median(norm) - 1) ** 2)))
@@ -264,19 +303,23 @@ def check_recording(rec: Recording, conditions: tuple[gates.Condition, ...], *,
                 c.missing["heading_change_deg"] = str(exc)
         else:
             c.missing["heading_change_deg"] = why_no_new if new is None else "the new calibration lacks it"
-        c.failed = gates.failures(conditions, c.metrics, c.missing)
+        c.failed, c.unmeasured = gates.judge(conditions, c.metrics, c.missing)
+        if options.require_measured:
+            c.failed, c.unmeasured = gates.failures(conditions, c.metrics, c.missing), []
         report.compasses.append(c)
     return report
 
 
 def run_check(log: Path, conditions: tuple[gates.Condition, ...], *, params: dict[str, float] | None = None,
               calibration: Calibration | None = None, mags: list[str] | None = None, refit: bool = True,
-              fmt: str | None = None, progress: Progress = lambda _: None) -> CheckReport:
-    """Read `log`, optionally calibrate it anew, and check it (`check_recording`)."""
+              fmt: str | None = None, progress: Progress = lambda _: None,
+              options: CheckOptions | None = None) -> CheckReport:
+    """Read `log`, refuse it when no flown calibration is known, optionally calibrate it anew, and check it."""
     from .readers import open_recording
 
     progress(f"reading {log.name}")
     rec = open_recording(log, fmt)
+    flown = flown_or_refuse(rec, mags, params, calibration)         # before the refit, which takes long
     new, why = None, "skipped (--no-refit)"
     if refit:
         progress("fitting a new calibration for comparison")
@@ -289,4 +332,4 @@ def run_check(log: Path, conditions: tuple[gates.Condition, ...], *, params: dic
         except MagcalError as exc:
             why = f"the new calibration failed: {str(exc).split(': ', 1)[-1]}"
     return check_recording(rec, conditions, params=params, calibration=calibration, mags=mags, new=new,
-                           why_no_new=why)
+                           why_no_new=why, options=options, flown=flown)

@@ -5,8 +5,9 @@
     OP        := ">" | ">=" | "<" | "<="
     NUMBER    := a decimal number, optionally with an exponent (2, 0.5, 1e-3)
 
-Each condition describes a failure. A magnetometer fails when any condition holds for it, or when a metric a
-condition names could not be measured for it (what cannot be measured cannot pass a gate). The expression
+Each condition describes a failure. `judge` sorts the conditions that hold from those whose metric could not
+be measured: `magcal check` reports the latter as "not measured" (failing only with --require-measured), while
+`fit --fail-on` (`failures`) counts both, since what the fit cannot measure cannot pass its gate. The expression
 is parsed with one regular expression per condition; nothing is evaluated as code.
 """
 
@@ -65,15 +66,23 @@ def parse(text: str, known: Mapping[str, str], option: str = "--fail-on") -> tup
     return tuple(out)
 
 
+def _verdict(c: Condition, metrics: Mapping[str, float | None], why_missing: Mapping[str, str] | None
+             ) -> tuple[str, bool] | None:
+    """(text, measured) when `c` fails or cannot be measured; None when it passes."""
+    value = metrics.get(c.metric)
+    if value is None:
+        return f"{c} (not measured: {(why_missing or {}).get(c.metric, 'not measured')})", False
+    return (f"{c} (measured {value:.3g})", True) if c.holds(value) else None
+
+
+def judge(conditions: tuple[Condition, ...], metrics: Mapping[str, float | None],
+          why_missing: Mapping[str, str] | None = None) -> tuple[list[str], list[str]]:
+    """(conditions that hold, with the measured value; conditions whose metric is missing, with why)."""
+    verdicts = [v for v in (_verdict(c, metrics, why_missing) for c in conditions) if v is not None]
+    return [t for t, measured in verdicts if measured], [t for t, measured in verdicts if not measured]
+
+
 def failures(conditions: tuple[Condition, ...], metrics: Mapping[str, float | None],
              why_missing: Mapping[str, str] | None = None) -> list[str]:
-    """The conditions that fail for one magnetometer, each with the measured value (or why it is missing)."""
-    out = []
-    for c in conditions:
-        value = metrics.get(c.metric)
-        if value is None:
-            reason = (why_missing or {}).get(c.metric, "not measured")
-            out.append(f"{c} (not measured: {reason})")
-        elif c.holds(value):
-            out.append(f"{c} (measured {value:.3g})")
-    return out
+    """The conditions that fail for one magnetometer, one whose metric could not be measured included."""
+    return [v[0] for v in (_verdict(c, metrics, why_missing) for c in conditions) if v is not None]

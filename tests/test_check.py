@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli import gates, so3
-from magcal_cli.check import check_recording, heading_gap_deg
+from magcal_cli.check import CheckOptions, check_recording, heading_gap_deg
 from magcal_cli.cli import cli
 from magcal_cli.firmware import FirmwareError
 from magcal_cli.firmware.export import Options, export
@@ -101,14 +101,21 @@ def test_a_document_as_the_flown_calibration() -> None:
     assert c.slot == "document" and c.metrics["heading_error_deg"] < 0.3
 
 
-def test_what_cannot_be_measured_fails_a_gate_and_says_why() -> None:
-    """Few headings: no heading error (the gap is named); a gate on it fails as 'not measured'."""
+def test_what_cannot_be_measured_is_not_measured_and_says_why() -> None:
+    """Few headings: no heading error (the gap is named); a gate on it is 'not measured' and passes, unless
+    require_measured (--require-measured) makes it fail (issue 13 item 6)."""
     fl = flight(5, turns=0.3)
-    c = check_recording(fl.recording, GATE + (gates.Condition("heading_change_deg", ">", 1.0),)).compasses[0]
+    conditions = GATE + (gates.Condition("heading_change_deg", ">", 1.0),)
+    report = check_recording(fl.recording, conditions)
+    c = report.compasses[0]
     assert c.metrics.get("heading_error_deg") is None
     assert "fly a slow full turn" in c.missing["heading_error_deg"]
-    assert c.failed[0].startswith("heading_error_deg>5 (not measured: the vehicle's headings leave a")
-    assert c.failed[1] == "heading_change_deg>1 (not measured: no new calibration)"
+    assert c.failed == [] and c.verdict == "not measured" and report.passed
+    assert c.unmeasured[0].startswith("heading_error_deg>5 (not measured: the vehicle's headings leave a")
+    assert c.unmeasured[1] == "heading_change_deg>1 (not measured: no new calibration)"
+    assert report.to_text().endswith("PASSED, but 2 gates not measured (--require-measured fails on them)\n")
+    strict = check_recording(fl.recording, conditions, options=CheckOptions(require_measured=True))
+    assert strict.compasses[0].failed == c.unmeasured and not strict.passed
 
 
 def test_throttle_stands_in_for_a_missing_current() -> None:
