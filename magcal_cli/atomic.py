@@ -31,7 +31,8 @@ def check_writable(folder: Path, create: bool = False, hint: str = "Choose anoth
             raise OutputError(msg)
         probe = probe.parent
     if not probe.is_dir():
-        msg = f"{probe}: is a file, not a folder, so nothing can be written in {folder}. {hint}"
+        what = "is a file, not a folder" if probe == folder else "cannot create the output directory (Not a directory)"
+        msg = f"{folder}: {what}. {hint}"
         raise OutputError(msg)
     try:
         fd, name = tempfile.mkstemp(prefix=".magcal-probe-", dir=probe)

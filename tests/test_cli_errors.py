@@ -104,8 +104,11 @@ def test_an_output_under_a_regular_file_is_refused_before_the_fit(logs: Path, tm
     (tmp_path / "file").write_text("")
     result = run("fit", logs / "s.bin", "-o", tmp_path / "file" / "out", "--outputs", "json")
     assert result.exit_code == 1
-    assert result.stderr == (f"Error: {tmp_path / 'file'}: is a file, not a folder, so nothing can be written in "
-                             f"{tmp_path / 'file' / 'out'}. Choose another -o\n")
+    assert result.stderr == (f"Error: {tmp_path / 'file' / 'out'}: cannot create the output directory (Not a "
+                             "directory). Choose another -o\n")
+    result = run("apply", logs / "out" / "calibration.json", logs / "s.bin", "-o", tmp_path / "file" / "f.csv")
+    assert result.exit_code == 1
+    assert result.stderr == f"Error: {tmp_path / 'file'}: is a file, not a folder. Choose another -o\n"
     result = run("apply", logs / "out" / "calibration.json", logs / "s.bin", "-o", tmp_path / "nodir" / "f.csv")
     assert result.exit_code == 1
     assert result.stderr == f"Error: {tmp_path / 'nodir'}: no such folder. Create it, or choose another -o\n"
