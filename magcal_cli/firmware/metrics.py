@@ -40,7 +40,13 @@ FIRMWARE_OF_FORMAT = {"dataflash": "ardupilot", "ulog": "px4"}
 
 
 def heading_std_deg(mag: MagCalibration) -> float | None:
-    """Worst 1-sigma heading error (deg) of a level vehicle from the covariance of D and o (first order).
+    """Worst 1-sigma heading error (deg) of a level vehicle from the covariance of D and o (first order)."""
+    curve = heading_std_curve_deg(mag)
+    return None if curve is None else float(curve.max())
+
+
+def heading_std_curve_deg(mag: MagCalibration, headings_deg: FloatArray = HEADINGS_DEG) -> FloatArray | None:
+    """1-sigma heading error (deg) of a level vehicle at each heading, from the covariance of D and o.
 
     With m = A (y - o) and y = D m_b + o: dm = -A (dD m_b + do); the heading atan2(-m_y, m_x) moves by
     (m_y dm_x - m_x dm_y) / (m_x^2 + m_y^2).
@@ -48,7 +54,7 @@ def heading_std_deg(mag: MagCalibration) -> float | None:
     cov = mag.cov_of(*_D_O.names)
     if not np.all(np.isfinite(cov)):
         return None
-    psi = np.deg2rad(HEADINGS_DEG)
+    psi = np.deg2rad(headings_deg)
     dip = np.arctan2(np.sin(np.deg2rad(mag.dip_deg)), abs(np.cos(np.deg2rad(mag.dip_deg))))
     mb = np.stack([np.cos(dip) * np.cos(psi), -np.cos(dip) * np.sin(psi), np.full_like(psi, np.sin(dip))], axis=1)
     A = mag.A
@@ -61,7 +67,8 @@ def heading_std_deg(mag: MagCalibration) -> float | None:
     h2 = mb[:, 0] ** 2 + mb[:, 1] ** 2
     g = (mb[:, 1, None] * jac[:, 0, :] - mb[:, 0, None] * jac[:, 1, :]) / h2[:, None]
     var = np.einsum("ni,ij,nj->n", g, cov, g)
-    return float(np.rad2deg(np.sqrt(max(float(var.max()), 0.0))))
+    out: FloatArray = np.rad2deg(np.sqrt(np.clip(var, 0.0, None)))
+    return out
 
 
 def _interference(cal: Calibration, mag: MagCalibration, peak_current: float | None) -> tuple[float | None, str]:

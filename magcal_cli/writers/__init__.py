@@ -34,7 +34,7 @@ WRITERS: dict[str, str | type[Writer]] = {
     "json": "magcal_cli.writers.calfile:JsonWriter",
     "yaml": "magcal_cli.writers.calfile:YamlWriter",
     "report": "magcal_cli.writers.report:TextReport",
-    "plots": "magcal_cli.writers.plots:HtmlReport",
+    "plots": "magcal_cli.writers.report_html:HtmlReport",
     "ardupilot": "magcal_cli.writers.ardupilot:ArduPilotWriter",
     "px4": "magcal_cli.writers.px4:Px4Writer",
 }

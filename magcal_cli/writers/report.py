@@ -28,16 +28,16 @@ DISPLAY = {"tesla": ("microtesla", "uT"), "millitesla": ("microtesla", "uT"), "m
            "nanotesla": ("microtesla", "uT"), "gauss": ("milligauss", "mG"), "milligauss": ("milligauss", "mG")}
 
 
-def _vec(v: npt.ArrayLike, fmt: str = "{:+.3f}") -> str:
+def vec(v: npt.ArrayLike, fmt: str = "{:+.3f}") -> str:
     return "[" + ", ".join(fmt.format(x) for x in np.ravel(v)) + "]"
 
 
 def _mat(m: npt.ArrayLike, indent: int, fmt: str = "{:+.4f}") -> str:
-    rows = [_vec(r, fmt) for r in np.asarray(m)]
+    rows = [vec(r, fmt) for r in np.asarray(m)]
     return ("\n" + " " * indent).join(rows)
 
 
-def _advice(mag: MagCalibration, misalign_deg: float, norm_before: float) -> list[str]:
+def advice(mag: MagCalibration, misalign_deg: float, norm_before: float) -> list[str]:
     """Next steps for one magnetometer, from its quality numbers."""
     q, out = mag.quality, []
     if q is not None and q.coverage_pct < 30.0:
@@ -71,13 +71,13 @@ def render(result: RunResult) -> str:
     still_s = sum(s.end - s.start for s in still.segments)
     imu = cal.imu
     lines += [f"IMU:     {imu.id}: {len(still.segments)} still segments ({still_s:.1f} s); noise per sample "
-              f"accel {_vec(still.acc_noise, '{:.3g}')} m/s^2, gyro {_vec(still.gyr_noise, '{:.3g}')} rad/s"]
+              f"accel {vec(still.acc_noise, '{:.3g}')} m/s^2, gyro {vec(still.gyr_noise, '{:.3g}')} rad/s"]
     if imu.gyroscope_bias is not None:
         std = imu.gyroscope_bias_std if imu.gyroscope_bias_std is not None else np.full(3, np.nan)
-        lines.append(f"         gyroscope bias {_vec(imu.gyroscope_bias, '{:+.5f}')} +- {_vec(std, '{:.5f}')} rad/s")
+        lines.append(f"         gyroscope bias {vec(imu.gyroscope_bias, '{:+.5f}')} +- {vec(std, '{:.5f}')} rad/s")
     if imu.accelerometer_bias is not None:
         std = imu.accelerometer_bias_std if imu.accelerometer_bias_std is not None else np.full(3, np.nan)
-        lines.append(f"         accelerometer bias {_vec(imu.accelerometer_bias)} +- {_vec(std)} m/s^2")
+        lines.append(f"         accelerometer bias {vec(imu.accelerometer_bias)} +- {vec(std)} m/s^2")
     else:
         lines.append(f"         accelerometer bias: not estimated by {cal.method}")
     for mag in cal.magnetometers:
@@ -105,15 +105,15 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
         before = float(100.0 * np.std(r) / np.mean(r))
     q = mag.quality
     lines = [f"Magnetometer {mag.id} (log unit: {mag.unit})", "  What was found",
-             f"    hard iron b        {_vec(mag.o * f)} +- {_vec(mag.std_of('o') * f, '{:.3f}')} {sym}",
+             f"    hard iron b        {vec(mag.o * f)} +- {vec(mag.std_of('o') * f, '{:.3f}')} {sym}",
              f"    field strength     {mag.field_strength * f:.3f} {sym} (source: {mag.field_strength_source})",
              f"    dip                {mag.dip_deg:.2f} +- {float(mag.std_of('dip')):.2f} deg",
              f"    misalignment       {misalign:.2f} +- {w_sd:.2f} deg to the IMU axes "
-             f"(roll, pitch, yaw {_vec(np.rad2deg(so3.as_rpy(u)), '{:+.2f}')} deg)",
+             f"(roll, pitch, yaw {vec(np.rad2deg(so3.as_rpy(u)), '{:+.2f}')} deg)",
              f"    soft iron P/|F|    {_mat(mag.soft_iron, 23)}",
              f"    A = D^-1 [1/{sym}]".ljust(23) + _mat(mag.A / f, 23, "{:+.6f}")]
     if mag.held:
-        lines += textwrap.wrap(_held_sentence(mag), 100, initial_indent="    ", subsequent_indent="    ")
+        lines += textwrap.wrap(held_sentence(mag), 100, initial_indent="    ", subsequent_indent="    ")
     if q is not None:
         lines += ["  How good",
                   f"    field-norm spread  raw |y| {before:.2f} % RMS -> calibrated "
@@ -122,11 +122,11 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
                   f"    coverage           {q.coverage_pct:.0f} % of the sphere of field directions",
                   f"    solver             {'converged' if q.converged else 'NOT converged'} "
                   f"after {q.iterations} iterations"]
-    lines += ["  What to do next"] + [f"    - {a}" for a in _advice(mag, misalign, before)]
+    lines += ["  What to do next"] + [f"    - {a}" for a in advice(mag, misalign, before)]
     return lines
 
 
-def _held_sentence(mag: MagCalibration) -> str:
+def held_sentence(mag: MagCalibration) -> str:
     """One sentence on a partial calibration: what was held, at what, and why."""
     names = ", ".join(str(h["parameter"]) for h in mag.held)
     sources = "; ".join(sorted({str(h["source"]) for h in mag.held}))
@@ -146,7 +146,7 @@ class TextReport:
         return [write_text(outdir / self.files[0], render(result))]
 
 
-def _fmt_param(value: Any, std: Any) -> str:
+def fmt_param(value: Any, std: Any) -> str:
     """'v +- s' for a number or a vector (std may be missing)."""
     if isinstance(value, list) and value and not isinstance(value[0], list):
         s = std if isinstance(std, list) else [float("nan")] * len(value)
@@ -161,7 +161,7 @@ def _render_effect(e: dict[str, Any]) -> str:
     params = e.get("params") or {}
     std = e.get("std") or {}
     units_of = e.get("units") or {}
-    parts = [f"{k} = {_fmt_param(v, std.get(k))} {units_of.get(k, '')}".rstrip() for k, v in params.items()]
+    parts = [f"{k} = {fmt_param(v, std.get(k))} {units_of.get(k, '')}".rstrip() for k, v in params.items()]
     test = e.get("test") or {}
     p = test.get("p_value")
     kind = {"wald": "Wald", "score": "score test"}.get(str(test.get("kind")), str(test.get("kind")))
