@@ -92,7 +92,7 @@ def over_time(v: MagView) -> Plot:
     rows = 3 if v.dip_cal is not None else 2
     height = 1.75 * rows + 0.4
     fig, axes = plt.subplots(rows, 1, figsize=(WIDTH_IN, height), sharex=True,
-                             gridspec_kw=_margins(height, hspace=0.12, right_in=0.6))
+                             gridspec_kw=_margins(height, hspace=0.3, right_in=0.6))
     s = thin(len(v.t))
     t = v.t[s]
     ax = axes[0]
@@ -101,7 +101,7 @@ def over_time(v: MagView) -> Plot:
     ax.plot(t, v.norm_cal_pct[s], color=CAL, label="calibrated |m|")
     ax.set_ylabel("field strength\nerror [%]")
     _robust_ylim(ax, v.norm_raw_pct, v.norm_cal_pct)
-    ax.legend(loc="upper right", ncols=2, frameon=False)
+    _legend_above(ax, 2)
     if v.dip_raw is not None and v.dip_cal is not None:
         ax = axes[1]
         _shade(ax, v.still, v.windows)
@@ -110,7 +110,7 @@ def over_time(v: MagView) -> Plot:
         ax.axhline(v.dip_deg, color=REF, ls="--", lw=0.8, label=f"fitted dip {v.dip_deg:.1f} deg")
         ax.set_ylabel("dip [deg]")
         _robust_ylim(ax, v.dip_raw, v.dip_cal)
-        ax.legend(loc="upper right", ncols=3, frameon=False)
+        _legend_above(ax, 3)
     ax = axes[-1]
     _shade(ax, v.still, v.windows)
     for a, b in v.excluded:
@@ -133,6 +133,18 @@ def over_time(v: MagView) -> Plot:
     return Plot("Over time", "Top: the field strength, flat at 0 when calibrated. Middle: the field's dip below "
                 "the accelerometer's horizontal (noisy while the vehicle accelerates). Bottom: what the calibration "
                 f"leaves: field strength (blue, left scale) and dip (green, right scale). Grey: still segments.{where}", _png(fig))
+
+
+def _unwrapped(err: FloatArray) -> FloatArray:
+    """A heading error with NaN where it wraps through +-180 deg, so no vertical line joins the two ends."""
+    out = np.array(err, dtype=np.float64)
+    out[1:][np.abs(np.diff(out)) > 180.0] = np.nan
+    return out
+
+
+def _legend_above(ax: Axes, ncols: int) -> None:
+    """A legend right-aligned above the axes, where it hides no data (and needs no 'best' search)."""
+    ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), ncols=ncols, frameon=False, borderaxespad=0.1)
 
 
 def _robust_ylim(ax: Axes, *series: FloatArray) -> None:
@@ -180,9 +192,9 @@ def quality(v: MagView, h: HeadingView) -> Plot:
     ax.set(xlim=(-180, 180), ylim=(-90, 90), xticks=range(-180, 181, 90), yticks=range(-90, 91, 45),
            xlabel="azimuth in the sensor frame [deg]", ylabel="elevation [deg]", title="orientation coverage")
     ax = axes[1, 1]
-    ax.plot(h.headings, h.raw, color=RAW, label="raw readings")
+    ax.plot(h.headings, _unwrapped(h.raw), color=RAW, label="raw readings")
     if h.firmware is not None:
-        ax.plot(h.headings, h.firmware, color="#9467bd", label=f"{h.firmware_name} parameters")
+        ax.plot(h.headings, _unwrapped(h.firmware), color="#9467bd", label=f"{h.firmware_name} parameters")
     ax.axhline(0.0, color=REF, lw=0.6)
     ax.set(xlim=(0, 360), xticks=range(0, 361, 90), xlabel="heading [deg]", ylabel="heading error [deg]",
            title="level heading error")
@@ -210,9 +222,9 @@ def effects(views: list[EffectView]) -> Plot | None:
     plt = _pyplot()
     cols = min(len(views), 2)
     rows = -(-len(views) // cols)
-    height = 2.9 * rows
+    height = 2.9 * rows + 0.3
     fig, axes = plt.subplots(rows, cols, figsize=(WIDTH_IN, height), squeeze=False,
-                             gridspec_kw=_margins(height, wspace=0.3, hspace=0.45))
+                             gridspec_kw=_margins(height, wspace=0.3, hspace=0.45, top_in=0.6))
     for ax, e in zip(axes.ravel(), views, strict=False):
         ok = np.isfinite(e.x) & np.isfinite(e.before) & np.isfinite(e.after)
         x, before, after = e.x[ok], e.before[ok], e.after[ok]
@@ -227,9 +239,9 @@ def effects(views: list[EffectView]) -> Plot | None:
                 ax.plot(mid, med, "-", color=c, lw=1.6)
         ax.set(xlabel=e.xlabel, ylabel=e.ylabel, title=f"{e.effect_id} ({e.status})")
         _robust_ylim(ax, before, after)
-        ax.legend(loc="best", markerscale=5, frameon=False)
     for ax in axes.ravel()[len(views):]:
         ax.set_axis_off()
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="upper center", ncols=2, markerscale=5, frameon=False)
     return Plot("Modelled effects", "Each modelled effect's residual against its channel, without the effect "
                 "(red) and with it removed (blue); lines are binned medians. A slope that flattens is the effect "
                 "the model now explains.", _png(fig))

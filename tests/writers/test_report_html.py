@@ -1,0 +1,107 @@
+"""report.html: its order, its self-containment, the grouped warnings and the numbers behind its plots."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from magcal_cli.config import Config
+from magcal_cli.findings import Finding, Severity
+from magcal_cli.firmware.metrics import heading_std_curve_deg, heading_std_deg
+from magcal_cli.pipeline import RunResult, calibrate_recording
+from magcal_cli.synth import Simulation
+from magcal_cli.writers import get_writer
+from magcal_cli.writers.report_data import heading_view, mag_view
+from magcal_cli.writers.report_html import render_html
+from magcal_cli.writers.report_summary import groups, verdicts
+
+
+@pytest.fixture(scope="module")
+def result(sim: Simulation) -> RunResult:
+    """The base-model fit of the shared hand-held simulation."""
+    return calibrate_recording(sim.recording, Config(method="map"))
+
+
+@pytest.fixture(scope="module")
+def page(result: RunResult) -> str:
+    """The HTML report of that fit."""
+    return render_html(result)
+
+
+def test_sections_come_summary_first(page: str) -> None:
+    """Summary (verdict, key numbers, next steps), then method, magnetometers, effects, diagnosis, warnings, provenance."""
+    ids = re.findall(r"<section id='([^']+)'", page)
+    assert ids[0] == "summary" and ids[1] == "method" and ids[2].startswith("mag-")
+    assert ids[-4:] == ["effects", "diagnosis", "warnings", "provenance"]
+    summary = page[page.index("id='summary'"):page.index("id='method'")]
+    assert "What to do next" in summary and "field strength error" in summary
+
+
+def test_page_is_self_contained_and_wraps(page: str) -> None:
+    """No script, no external resource; every image an embedded PNG; long lines wrap (issue 13 item 1)."""
+    assert "<script" not in page and "<link" not in page and not re.search(r"(src|href)=['\"](https?:|//)", page)
+    images = re.findall(r"<img src='([^']*)'", page)
+    assert len(images) >= 3 and all(i.startswith("data:image/png;base64,") for i in images)
+    assert "overflow-wrap:anywhere" in page and "white-space:pre-wrap" in page
+
+
+def test_plots_sit_beside_their_magnetometer(page: str, result: RunResult) -> None:
+    """Each magnetometer's section holds its own text and its figures side by side."""
+    for mag in result.calibration.magnetometers:
+        start = page.index(f"<h2>Magnetometer {mag.id}")
+        section = page[start:page.index("</section>", start)]
+        assert "class='pair'" in section and "hard iron b" in section
+        assert section.count("<img ") >= 3 and "Field on the sphere" in section
+
+
+def test_writer_writes_report_html(result: RunResult, tmp_path: Path) -> None:
+    """The `plots` output writes report.html."""
+    (path,) = get_writer("plots").write(result, tmp_path)
+    assert path.name == "report.html" and path.read_text(encoding="utf-8").startswith("<!doctype html>")
+
+
+def test_verdict_follows_quality(result: RunResult) -> None:
+    """A clean simulated fit is good; a field-strength spread above 5 % makes it not usable, with the reason."""
+    (v,) = verdicts(result)
+    assert v.level == "good" and v.reasons == ()
+    mag = result.calibration.magnetometers[0]
+    assert mag.quality is not None
+    worse = replace(mag, quality=replace(mag.quality, field_norm_rms_pct=6.0))
+    cal = replace(result.calibration, magnetometers=(worse,))
+    (bad,) = verdicts(replace(result, calibration=cal))
+    assert bad.level == "poor" and bad.reasons == ("the calibrated field strength still varies by 6.00 % RMS",)
+
+
+def test_warnings_grouped_in_full() -> None:
+    """Findings group by code, warnings first, naming the sensors; every message is kept whole (issue 13 item 7)."""
+    long = "MAG[1]: this log leaves the accelerometer bias poorly determined: " + "x" * 300
+    fs = (Finding(Severity.INFO, "method_note", "MAG[0]: started from the gyro-integrated trajectory"),
+          Finding(Severity.WARNING, "poorly_observable", "MAG[0]: this log leaves the bias poorly determined"),
+          Finding(Severity.WARNING, "poorly_observable", long))
+    gs = groups(fs, ["MAG[0]", "MAG[1]"])
+    assert [g.code for g in gs] == ["poorly_observable", "method_note"]
+    assert gs[0].sensors == ("MAG[0]", "MAG[1]") and gs[0].messages[1] == long
+    assert gs[0].title == "Parameters the log determines poorly"
+
+
+def test_heading_band_is_the_metric(result: RunResult) -> None:
+    """The plotted 1-sigma band is the curve whose maximum is the heading_std_deg gate (one copy of the math)."""
+    mag = result.calibration.magnetometers[0]
+    curve = heading_std_curve_deg(mag)
+    assert curve is not None and float(curve.max()) == heading_std_deg(mag)
+    view = heading_view(result, mag)
+    assert view.std is not None and np.array_equal(view.std, curve)
+    assert view.raw.shape == view.headings.shape
+
+
+def test_dip_view_recovers_the_fitted_dip(result: RunResult) -> None:
+    """The accelerometer-referenced dip of the calibrated field scatters around the fitted dip."""
+    mag = result.calibration.magnetometers[0]
+    view = mag_view(result, mag)
+    assert view is not None and view.dip_cal is not None
+    assert np.nanmedian(view.dip_cal) == pytest.approx(mag.dip_deg, abs=1.0)
+    assert np.sqrt(np.mean(view.norm_cal_pct ** 2)) < 1.0
