@@ -228,3 +228,31 @@ def check_signal(stream: Stream) -> None:
            "disconnected or not enabled (or the column is a placeholder). Check the sensor and its logging, and "
            "record again")
     raise InsufficientDataError(msg)
+
+
+#: an acceleration beyond this (m/s^2, 6 g) is an impact: no vehicle or hand motion a calibration uses reaches it
+IMPACT = 6.0 * G
+#: a gyro reading within this share of the log's largest, where that is at least GYRO_FAST, is taken as saturated
+SATURATION_SHARE, GYRO_FAST = 0.97, np.deg2rad(1000.0)
+#: margin (s) around unmeasured samples: the rotation just before and after an impact is not trustworthy either
+UNMEASURED_MARGIN_S = 0.25
+
+
+def unmeasured_windows(acc: Stream, gyr: Stream) -> tuple[tuple[float, float], ...]:
+    """Time windows (s) whose motion the IMU did not measure: impacts and a gyro at the top of its range.
+
+    A crash spins the vehicle beyond the gyro's range and shakes the accelerometer beyond gravity; the
+    integrated rotation across it is wrong by tens of degrees, so a trajectory must not be carried through.
+    """
+    w = np.abs(gyr.xyz).max(axis=1)
+    top = float(w.max()) if w.size else 0.0
+    bad_g = w >= SATURATION_SHARE * top if top >= GYRO_FAST else np.zeros(w.size, dtype=bool)
+    bad_a = np.linalg.norm(acc.xyz, axis=1) > IMPACT
+    times = np.sort(np.concatenate([gyr.t[bad_g], acc.t[bad_a]]))
+    out: list[list[float]] = []
+    for t in times:
+        if out and t - UNMEASURED_MARGIN_S <= out[-1][1]:
+            out[-1][1] = float(t + UNMEASURED_MARGIN_S)
+        else:
+            out.append([float(t - UNMEASURED_MARGIN_S), float(t + UNMEASURED_MARGIN_S)])
+    return tuple((a, b) for a, b in out)

@@ -16,9 +16,10 @@ import numpy.typing as npt
 from . import __version__, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from .config import Config
-from .detect import StillResult, check_signal, detect_still, pooled_std
+from .detect import IMPACT, StillResult, check_signal, detect_still, pooled_std, unmeasured_windows
 from .errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
 from .findings import Finding, Severity
+from .models.accel import G
 from .models.params import MAG
 from .models.partial import MagPrior, flown_prior
 from .models.problem import Problem
@@ -89,6 +90,13 @@ def utc_now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(stamp))
 
 
+def _known_physics(cfg: Config, aux: tuple[Stream, ...]) -> tuple[str, ...]:
+    """Effects `--effects auto` models in every fit: a flight's acceleration where its position measured it."""
+    from .effects.nongravity import flying
+
+    return ("nongravity_acceleration",) if cfg.diagnose and flying(aux) else ()
+
+
 def select_problem(rec: Recording, cfg: Config) -> Problem:
     """Pick the IMU and magnetometers named by the config and cut them to [start, end]."""
     return _select(rec, cfg)[0]
@@ -139,8 +147,17 @@ def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
                 for m, exc in dropped]
     aux = tuple(st.between(cfg.start_s, cfg.end_s) for st in rec.streams if st.kind in AUX_KINDS)
     still = detect_still(acc, gyr, cfg.still, tuple(good))
-    return Problem(where, acc.id, acc, gyr, tuple(good), still, tuple(st for st in aux if len(st) >= 2),
-                   onboard_priors(rec, good)), findings
+    unmeasured = unmeasured_windows(acc, gyr)
+    if unmeasured:
+        spans = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in unmeasured)
+        findings.append(Finding(Severity.WARNING, "unmeasured_motion",
+                                f"{acc.id}: the IMU did not measure the motion at {spans} (an impact above "
+                                f"{IMPACT / G:.0f} g or the gyro at the top of its range, "
+                                f"{np.degrees(np.abs(gyr.xyz).max()):.0f} deg/s): the trajectory is not carried "
+                                "through, and the samples there are not used", {"windows_s": unmeasured}))
+    aux = tuple(st for st in aux if len(st) >= 2)
+    return Problem(where, acc.id, acc, gyr, tuple(good), still, aux, onboard_priors(rec, good), unmeasured,
+                   _known_physics(cfg, aux)), findings
 
 
 def onboard_priors(rec: Recording, mags: list[Stream]) -> dict[str, MagPrior]:

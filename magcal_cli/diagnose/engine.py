@@ -47,10 +47,11 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
                                         mag.native_unit)
     start = base if step <= 1 else fit_map(problem, thin, loss, dip_prior, declination=declination)
     before = ppc.check(problem, thin, start, replicates)
-    sel: Selection = select(problem, thin, start, tuple(registry.EFFECTS), declination, loss, dip_prior)
+    candidates = tuple(e for e in registry.EFFECTS if e not in problem.base_effects)
+    sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior)
     modelled = tuple(v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None)
     after = ppc.check(problem, thin, sel.estimate, replicates) if modelled else before
-    est = replace(sel.estimate, effects=sel.verdicts)
+    est, full = replace(sel.estimate, effects=sel.verdicts), sel.estimate
     if step > 1:
         note = f"{mag.id}: diagnosed on every {step}th of {base.epochs.size} readings; effects fitted on all"
         full = fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
@@ -60,6 +61,9 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
                                  p_value=fitted[v.id].p_value) if v.id in fitted else v for v in sel.verdicts)
         est = replace(full, effects=verdicts, notes=(*full.notes, note))
         sel = replace(sel, verdicts=verdicts)                 # the paragraph quotes the values fitted on all
+    # the effects every fit modelled (Problem.base_effects) stay in the document beside the diagnosis' verdicts
+    forced = tuple(f for f in full.effects if f.id in problem.base_effects)
+    est = replace(est, effects=(*forced, *est.effects))
     block: dict[str, Any] = {"sensor": mag.id, "ppc": before.document(), "located": before.located(mag.id)}
     if sel.heldout is not None:
         lo, hi = sel.heldout.ci95()

@@ -155,7 +155,7 @@ def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generat
     k = ep.t.size
     acc = acc_pred + rng.standard_normal((k, 3)) * noise.acc / s_acc[:, None]
     mag = mag_pred + rng.standard_normal((k, 3)) * noise.mag
-    chol = np.linalg.inv(pre.l_inv)
+    chol = np.linalg.cholesky(pre.cov)          # not inv(l_inv): a broken interval has l_inv = 0 (gyro.py)
     r = (chol @ fg.r[:, :, None])[:, :, 0]
     xi = (chol @ rng.standard_normal((k - 1, 3, 1)))[:, :, 0]
     delta = pre.delta @ so3.exp(r - xi)

@@ -91,7 +91,7 @@ def _extend(problem: Problem, mag: Stream, est: MapEstimate, bound: Sequence[Bou
     pre = ctx.pre
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
         pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ctx.ep.t, pre.bias, pre.noise_std,
-                           f"{problem.where}: {mag.id}", scale_jacobian=True)
+                           f"{problem.where}: {mag.id}", scale_jacobian=True, breaks=problem.unmeasured)
     lin = ctx.linearize(layout, all_bound, pre=pre, holdout=ctx.holdout)
     sol = solve(lin, ctx.states, theta, Options(max_iterations=0))
     # one Gauss-Newton step with every candidate free: residuals with the candidates' signal removed, for the

@@ -94,7 +94,8 @@ def scores_in(ctx: FitContext, windows: Sequence[tuple[float, float]], keep: Flo
     sol = solve(lin, ctx.states, np.zeros(0), Options(max_iterations=3, abs_cost_tol=1e-2))
     fa, fm, fg = sol.factors[0], sol.factors[1], sol.factors[2]
     logdet = float(np.sum(np.log(ctx.noise.acc)) + np.sum(np.log(ctx.noise.mag)))
-    g_logdet = -np.log(np.abs(np.linalg.det(ctx.pre.l_inv)))
+    det = np.abs(np.linalg.det(ctx.pre.l_inv))
+    g_logdet = -np.log(np.where(det > 0, det, 1.0))       # a broken interval (l_inv = 0, gyro.py) scores nothing
     nll = 0.5 * (np.sum(fa.r**2, axis=1) + np.sum(fm.r**2, axis=1)) + logdet
     nll[:-1] += (0.5 * np.sum(fg.r**2, axis=1) + g_logdet) * w[:-1] * w[1:]
     sq = np.sum((fm.r * ctx.noise.mag * ctx.ep.scale) ** 2, axis=1)

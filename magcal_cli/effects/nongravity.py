@@ -25,6 +25,8 @@ WGS84_A, WGS84_E2 = 6378137.0, 6.69437999014e-3
 GRID_HZ = 10.0
 WINDOW_S = 2.0
 POLY_ORDER = 7
+#: fixes further apart than this (s) leave a gap the acceleration is not interpolated across
+MAX_GAP_S = 1.0
 #: below this RMS (m/s^2) the vehicle hardly accelerates: nothing to test
 MIN_RMS = 0.2
 
@@ -44,7 +46,35 @@ def acceleration_ned(pos: Stream, t: FloatArray) -> FloatArray:
         msg = f"the position ({pos.id}) is too short to differentiate"
         raise NotTestable(msg)
     acc = savgol_filter(ned, window, POLY_ORDER, deriv=2, delta=1.0 / GRID_HZ, axis=0)
-    return np.stack([np.interp(t, grid, acc[:, i]) for i in range(3)], axis=1)
+    # a degree-7 fit extrapolates wildly at the ends and across gaps between fixes (17 m/s^2 at the first fix of
+    # a real log): no acceleration is known there, so none is claimed
+    half = 0.5 * WINDOW_S
+    gaps = np.flatnonzero(np.diff(pos.t) > MAX_GAP_S)
+    edges = [(pos.t[0] - half, pos.t[0] + half), (pos.t[-1] - half, pos.t[-1] + half),
+             *((pos.t[i] - half, pos.t[i + 1] + half) for i in gaps)]
+    for a, b in edges:
+        acc[(grid >= a) & (grid <= b)] = 0.0
+    out = np.stack([np.interp(t, grid, acc[:, i]) for i in range(3)], axis=1)
+    out[(t < pos.t[0]) | (t > pos.t[-1])] = 0.0
+    return out
+
+
+def flying(aux: tuple[Stream, ...]) -> bool:
+    """True when the log's position shows the vehicle accelerating (RMS >= MIN_RMS): a flight or a drive whose
+    accelerometer is not a plumb line, and whose acceleration the log measured."""
+    try:
+        s = pick(aux, Kind.POSITION)
+    except NotTestable:
+        return False
+    finite = np.all(np.isfinite(s.values), axis=1)
+    if finite.sum() < 10:
+        return False
+    s = Stream(s.kind, s.id, s.t[finite], s.values[finite], s.source, s.native_unit)
+    try:
+        a_n = acceleration_ned(s, s.t)
+    except NotTestable:
+        return False
+    return bool(np.sqrt(np.mean(np.sum(a_n**2, axis=1))) >= MIN_RMS)
 
 
 class NonGravity(Effect):

@@ -70,12 +70,13 @@ class Prepared:
     theta0: FloatArray
     rot0: FloatArray
     notes: tuple[str, ...] = ()
+    breaks: tuple[tuple[float, float], ...] = ()      # Problem.unmeasured
 
     def repreintegrated(self, bias: FloatArray) -> Prepared:
         """The same inputs with the gyro preintegrated at `bias` (rad/s)."""
-        pre = preintegrate(self.gyr_t, self.gyr, self.t, bias, self.noise.gyr, self.where)
+        pre = preintegrate(self.gyr_t, self.gyr, self.t, bias, self.noise.gyr, self.where, breaks=self.breaks)
         return Prepared(self.where, self.mag_id, self.t, self.y, self.acc_factor, pre, self.gyr_t, self.gyr,
-                        self.noise, self.scale, self.theta0, self.rot0, self.notes)
+                        self.noise, self.scale, self.theta0, self.rot0, self.notes, self.breaks)
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,7 +120,7 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
     gyr = problem.gyr
     still = bool(problem.still.segments)
     bias = problem.still.gyr_bias if still else np.zeros(3)
-    pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where)
+    pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured)
     h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
     r_d, db = map_init.wu_luo(h, so3.log(pre.delta), pre.duration, window)
@@ -128,7 +129,7 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
         if still:                                      # not still after all: their gyro level is an upper bound
             noise = Noise(noise.acc, noise.gyr / GYRO_START_DIVISOR, noise.mag)
         bias = bias + db
-        pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where)
+        pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured)
         why = "no still segment" if not still else (f"the still segments' gyro bias is {np.linalg.norm(db):.4f} "
                                                     "rad/s away from the field kinematics'")
         notes.append(f"{mag.id}: {why}; gyro bias started from the Wu & Luo alignment and the gyro noise from "

@@ -42,13 +42,15 @@ class Preintegrated:
     duration: FloatArray
     noise_std: FloatArray
     d_scale: FloatArray | None = None
+    #: (K-1,) intervals that overlap a window the gyro could not measure (saturation, impact): no gyro factor
+    broken: npt.NDArray[np.bool_] | None = None
 
 
     def scaled(self, variance_factor: float) -> Preintegrated:
         """The same preintegration with its noise covariance multiplied by `variance_factor`."""
         return Preintegrated(self.epochs, self.bias, self.delta, self.d_bias, self.cov * variance_factor,
                              self.l_inv / np.sqrt(variance_factor), self.duration,
-                             self.noise_std * np.sqrt(variance_factor), self.d_scale)
+                             self.noise_std * np.sqrt(variance_factor), self.d_scale, self.broken)
 
 
 def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray, IntArray]:
@@ -61,8 +63,17 @@ def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray,
     return sample.astype(np.int64), dur, interval.astype(np.int64)
 
 
+def broken_intervals(epochs: FloatArray, windows: tuple[tuple[float, float], ...]) -> npt.NDArray[np.bool_]:
+    """(K-1,) True where the interval between consecutive epochs overlaps one of the `windows` (s)."""
+    out = np.zeros(max(epochs.size - 1, 0), dtype=bool)
+    for t0, t1 in windows:
+        out |= (epochs[1:] > t0) & (epochs[:-1] < t1)
+    return out
+
+
 def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: FloatArray,
-                 noise_std: FloatArray, where: str = "gyro", scale_jacobian: bool = False) -> Preintegrated:
+                 noise_std: FloatArray, where: str = "gyro", scale_jacobian: bool = False,
+                 breaks: tuple[tuple[float, float], ...] = ()) -> Preintegrated:
     """Preintegrate gyro samples gyr (N, 3) rad/s at t_imu (N,) between consecutive epochs (K,) s.
 
     noise_std (3,) is the per-sample white-noise std (rad/s) at the nominal IMU period dt; a piece of
@@ -74,6 +85,8 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
     recursions (eqs. 35, 44, 63) run over the Lmax piece slots, vectorised over all intervals at once.
     `scale_jacobian`: also d dR / d s for a gyro scale error (the bias Jacobian with each piece weighted by its
     rotation vector: the scale acts as a per-sample bias diag(w_j) s; effects/gyro_scale.py).
+    `breaks`: time windows the gyro did not measure (Problem.unmeasured); an interval overlapping one carries no
+    gyro factor (L^-1 = 0) and an orientation-unknown covariance (pi^2 rad^2) for the filters.
     """
     if epochs.size < 2 or epochs[0] < t_imu[0] or np.any(np.diff(epochs) <= 0.0):
         msg = (f"{where}: preintegration needs at least two increasing magnetometer epochs inside the IMU "
@@ -109,8 +122,12 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
         msg = (f"{where}: a preintegration interval has no gyro noise (zero-length or degenerate); check the "
                "time stamps")
         raise InsufficientDataError(msg) from None
-    return Preintegrated(epochs, np.array(bias, dtype=np.float64), delta, d_bias, cov, np.linalg.inv(chol),
-                         np.diff(epochs), np.array(noise_std, dtype=np.float64), d_scale)
+    l_inv = np.linalg.inv(chol)
+    broken = broken_intervals(epochs, breaks) if breaks else None
+    if broken is not None and broken.any():
+        l_inv[broken], cov[broken] = 0.0, np.pi**2 * np.eye(3)
+    return Preintegrated(epochs, np.array(bias, dtype=np.float64), delta, d_bias, cov, l_inv,
+                         np.diff(epochs), np.array(noise_std, dtype=np.float64), d_scale, broken)
 
 
 def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_at: int,

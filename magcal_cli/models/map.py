@@ -263,7 +263,8 @@ def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
         ratio = noise.gyr / hit.noise_std
         if np.allclose(ratio, ratio[0], rtol=1e-12):
             return hit.scaled(float(ratio[0]) ** 2)
-    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}")
+    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}",
+                       breaks=problem.unmeasured)
     cache[key] = pre
     return pre
 
@@ -297,8 +298,9 @@ def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise
     BASE.put(theta, "dip", dip)
     att = map_init.attitudes(m_b, ep.acc, dip)
     delta = pre.delta @ so3.exp(pre.d_bias @ db)
-    candidates = {"gyro-integrated": map_init.integrated(delta, att), "accelerometer/magnetometer": att}
-    lin = make_linearize(ep, pre, noise)
+    candidates = {"gyro-integrated": map_init.integrated(delta, att, pre.broken),
+                  "accelerometer/magnetometer": att}
+    lin = make_linearize(ep, pre, noise, holdout=held_out(ep.t, problem.unmeasured))
     costs = {k: sum(float(np.sum(f.r**2)) for f in lin(s, theta, False)) for k, s in candidates.items()}
     best = min(costs, key=costs.__getitem__)
     notes.append(f"{ep.mag_id}: started from the {best} trajectory")
@@ -319,6 +321,7 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
     accelerometer and magnetometer readings the fit must not see (validation); `warm`: a fit of the same
     magnetometer to start from (its trajectory, parameters and noise levels).
     """
+    effects = (*problem.base_effects, *(e for e in effects if e not in problem.base_effects))
     args = (problem, mag, loss, dip_prior, noise_rounds, imu_start, {} if cache is None else cache, effects,
             declination, holdout, warm)
     with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
@@ -372,7 +375,7 @@ def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated,
         full[layout.cols(*b.names())] = b.effect.start()
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
         pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias, pre.noise_std,
-                           f"{problem.where}: {mag.id}", scale_jacobian=True)
+                           f"{problem.where}: {mag.id}", scale_jacobian=True, breaks=problem.unmeasured)
     return layout, tuple(bound), untestable, full, pre
 
 
@@ -423,7 +426,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     layout, bound, untestable, theta, pre = _with_effects(problem, mag, ep, pre, theta, effects, declination)
     if warm is not None:                  # the effect blocks that fit also had
         layout.carry(theta, warm.layout, warm.theta)
-    hold = held_out(ep.t, holdout)
+    hold = held_out(ep.t, holdout + problem.unmeasured)
     held = warm.held if warm is not None else None
     if prior is not None:
         held = _rechoose(partial.prior_of(layout, theta, prior, ep.scale, dip_prior),
@@ -458,7 +461,8 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = theta[bg]
         if float(np.linalg.norm(db)) * float(pre.duration.max()) > REPREINTEGRATE_RAD:
-            pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias + db, noise.gyr, where, scale_jac)
+            pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias + db, noise.gyr, where, scale_jac,
+                               problem.unmeasured)
             theta[bg] = 0.0
             log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue
@@ -617,7 +621,8 @@ def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: 
     d = BASE.get(theta_si, "D").reshape(3, 3, order="F")
     scale = float(np.cbrt(abs(np.linalg.det(d))))
     ep = epochs_for(problem, mag, scale)
-    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr)
+    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr,
+                       breaks=problem.unmeasured)
     jac = BASE.si_factors(scale)
     theta = theta_si / jac
     BASE.put(theta, "gyroscope_bias", 0.0)

@@ -120,12 +120,17 @@ def attitudes(m_b: FloatArray, up_b: FloatArray, dip: float) -> FloatArray:
     return nav @ body.transpose(0, 2, 1)
 
 
-def integrated(delta: FloatArray, anchor: FloatArray) -> FloatArray:
+def integrated(delta: FloatArray, anchor: FloatArray, broken: npt.NDArray[np.bool_] | None = None) -> FloatArray:
     """Gyro-integrated trajectory R_k = R_0 dR_0 ... dR_k-1, with R_0 chosen to best match `anchor` (K, 3, 3).
 
     The paper starts from a fixed attitude; aligning the whole integrated trajectory to the per-epoch
-    attitudes (one Wahba problem over all epochs) starts it from the data instead.
+    attitudes (one Wahba problem over all epochs) starts it from the data instead. Across a `broken` interval
+    (K-1,) the gyro says nothing: each unbroken piece is integrated and aligned on its own.
     """
-    rel = np.concatenate([np.eye(3)[None], so3.cumulative_product(delta, reproject=False)])  # R_0^T R_k
-    r0 = so3.project(np.einsum("kij,klj->il", anchor, rel))           # argmin sum |anchor_k - R_0 rel_k|
-    return np.asarray(r0 @ rel, dtype=np.float64)
+    cuts = [0, *(np.flatnonzero(broken) + 1 if broken is not None else []), delta.shape[0] + 1]
+    out = np.empty_like(anchor)
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        rel = np.concatenate([np.eye(3)[None], so3.cumulative_product(delta[a:b - 1], reproject=False)])
+        r0 = so3.project(np.einsum("kij,klj->il", anchor[a:b], rel))   # argmin sum |anchor_k - R_0 rel_k|
+        out[a:b] = r0 @ rel
+    return np.asarray(out, dtype=np.float64)

@@ -27,6 +27,12 @@ class Problem:
     aux: tuple[Stream, ...] = ()
     #: the calibration each magnetometer flew with (by id), the prior of a partial calibration
     priors: Mapping[str, MagPrior] = field(default_factory=dict)
+    #: time windows (s) whose motion the IMU did not measure (gyro saturated, impact): the trajectory is broken
+    #: there and the samples inside are not used
+    unmeasured: tuple[tuple[float, float], ...] = ()
+    #: effects every fit of this problem models, whatever else is chosen: known physics the log measures (a
+    #: flight's own acceleration from its GPS), not a hypothesis for the diagnosis to test
+    base_effects: tuple[str, ...] = ()
 
     def channels(self, kind: Kind) -> tuple[Stream, ...]:
         """The auxiliary streams of one kind, in log order."""
