@@ -11,6 +11,7 @@ from ..errors import LogReadError
 from ..streams import Cut, Recording
 from . import ReadOptions
 from .cut import mark_cut, refuse_if_strict
+from .rosbag1_fast import read_indexed_bag1
 from .rosbag_batch import Batcher, read_ros2_storage
 from .rosmsg import Collector, wanted
 
@@ -76,8 +77,7 @@ class RosbagReader:
             ignored = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections if c not in conns})
             if ignored:
                 notes.append(ignored_note(ignored))
-            done, cut = read_ros2_storage(bag, reader, conns, fast := Collector(), options, notes) \
-                if conns and bag.is_dir() else (False, None)
+            done, cut = _fast(bag, reader, conns, fast := Collector(), options, notes) if conns else (False, None)
             if done:
                 collector = fast
             why = _read_messages(reader, conns, collector, notes) if conns and not done else ""
@@ -89,6 +89,17 @@ class RosbagReader:
             with contextlib.suppress(*errors):
                 reader.close()
         return mark_cut(collector.recording(path, fmt, options, notes), cut)
+
+
+def _fast(bag: Path, reader: Any, conns: list[Any], collector: Collector, options: ReadOptions,
+          notes: list[str]) -> tuple[bool, Cut | None]:
+    """Read the bag chunk by chunk (ROS 1 index) or from its ROS 2 storage; (False, None) when that is no help."""
+    if bag.is_dir():
+        return read_ros2_storage(bag, reader, conns, collector, options, notes)
+    bad = read_indexed_bag1(bag, reader, conns, collector)
+    if bad:
+        notes.append(f"corrupt data: skipped {bad} messages that did not decode")
+    return bad is not None, None
 
 
 def _db3_cut(bag: Path) -> Cut | None:

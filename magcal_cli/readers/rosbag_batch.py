@@ -110,13 +110,12 @@ def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> 
                           f"({','.join(str(i) for i in ids)}) ORDER BY timestamp")
         bad = 0
         while block := cur.fetchmany(BATCH):
-            raws: dict[int, list[bytes]] = defaultdict(list)
-            recv: dict[int, list[int]] = defaultdict(list)
-            for topic_id, stamp, data in block:
-                raws[topic_id].append(data)
-                recv[topic_id].append(stamp)
-            for i in raws:
-                bad += decode_into(collector, decoders[i], ids[i].topic, raws[i], recv[i])
+            topic_ids, stamps, datas = zip(*block, strict=True)
+            tid = np.array(topic_ids, dtype=np.int64)
+            for i in np.unique(tid).tolist():
+                sel = np.flatnonzero(tid == i).tolist()
+                bad += decode_into(collector, decoders[i], ids[i].topic, [datas[j] for j in sel],
+                                   [stamps[j] for j in sel])
         return bad
     finally:
         con.close()

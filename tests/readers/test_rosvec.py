@@ -241,3 +241,40 @@ def test_real_logs_read_like_per_message_decoding(realdata: Path, name: str) -> 
     if not path.exists():
         pytest.skip(f"{path} is not there (see ../shared/realdata/README.md)")
     assert_same_recording(open_recording(path), per_message(path))
+
+
+@pytest.mark.parametrize("kind", ["bag", "ros2-mcap", "ros2-sqlite3"])
+def test_bags_take_the_fast_paths(tmp_path: Path, sim: Simulation, kind: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whole bags are read chunk by chunk (ROS 1 index) or from their storage, not message by message."""
+    from magcal_cli.readers import rosbag
+
+    path = tmp_path / ("x.bag" if kind == "bag" else "bag")
+    if kind == "bag":
+        write_bag(sim, path, chunk_size=20_000)
+    else:
+        write_ros2(sim, path, kind.split("-")[1])
+    ref = open_recording(path)
+
+    def refuse(*args: Any) -> str:
+        raise AssertionError(args)
+
+    monkeypatch.setattr(rosbag, "_read_messages", refuse)
+    assert_same_recording(open_recording(path), ref)
+
+
+def test_ros1_fast_path_gives_way_on_a_corrupt_chunk(tmp_path: Path, sim: Simulation) -> None:
+    """A damaged chunk: the chunk reader declines and rosbags' iteration resumes after it, as before."""
+    from magcal_cli.readers.rosbag1_fast import read_indexed_bag1
+
+    write_bag(sim, tmp_path / "x.bag", chunk_size=20_000)
+    data = bytearray((tmp_path / "x.bag").read_bytes())
+    data[len(data) // 2:len(data) // 2 + 64] = bytes(64)
+    (tmp_path / "bad.bag").write_bytes(bytes(data))
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    with AnyReader([tmp_path / "bad.bag"], default_typestore=get_typestore(Stores.ROS1_NOETIC)) as reader:
+        conns = [c for c in reader.connections if wanted(c.topic, c.msgtype)]
+        assert read_indexed_bag1(tmp_path / "bad.bag", reader, conns, Collector()) is None
+    assert any(n.startswith("corrupt data: skipped 1 unreadable chunks") for n in open_recording(
+        tmp_path / "bad.bag").notes)
