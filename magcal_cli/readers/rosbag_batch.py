@@ -77,6 +77,8 @@ def read_ros2_storage(bag: Path, reader: Any, conns: list[Any], collector: Colle
     """Read a ROS 2 bag's MCAP or sqlite3 storage directly: (done, cut); not done when sqlite fails midway."""
     from .mcap import collect
 
+    if any(getattr(r, "compression_mode", None) for r in getattr(reader, "readers", [None])):
+        return False, None                  # rosbag2 compressed the files or each message: rosbags undoes it
     if mcaps := sorted(bag.glob("*.mcap")):
         cut = None
         for f in mcaps:

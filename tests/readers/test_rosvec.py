@@ -278,3 +278,23 @@ def test_ros1_fast_path_gives_way_on_a_corrupt_chunk(tmp_path: Path, sim: Simula
         assert read_indexed_bag1(tmp_path / "bad.bag", reader, conns, Collector()) is None
     assert any(n.startswith("corrupt data: skipped 1 unreadable chunks") for n in open_recording(
         tmp_path / "bad.bag").notes)
+
+
+@pytest.mark.parametrize("mode", ["message", "file"])
+def test_ros2_bags_rosbag2_compressed_read_like_per_message(tmp_path: Path, mode: str) -> None:
+    """Per-message or per-file zstd compression by rosbag2: left to rosbags, which undoes it; same result."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    store, rng = store_of(False), np.random.default_rng(4)
+    writer = Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode[mode.upper()], CompressionFormat.ZSTD)
+    with writer:
+        conn = writer.add_connection("/imu/mag", "sensor_msgs/msg/MagneticField", typestore=store)
+        for i in range(200):
+            msg = make(store, "sensor_msgs/msg/MagneticField", "imu", rng)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = 50, i * 1_000_000
+            writer.write(conn, 50 * 10**9 + i * 1_000_000, bytes(store.serialize_cdr(msg, msg.__msgtype__)))
+    rec = open_recording(tmp_path / "bag")
+    assert len(rec.streams[0]) == 200
+    assert_same_recording(rec, per_message(tmp_path / "bag"))
