@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sqlite3
 from collections import defaultdict
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
@@ -79,13 +79,14 @@ def read_ros2_storage(bag: Path, reader: Any, conns: list[Any], collector: Colle
 
     if any(getattr(r, "compression_mode", None) for r in getattr(reader, "readers", [None])):
         return False, None                  # rosbag2 compressed the files or each message: rosbags undoes it
-    if mcaps := sorted(bag.glob("*.mcap")):
+    files = storage_files(bag)
+    if files and all(f.suffix == ".mcap" for f in files):
         cut = None
-        for f in mcaps:
+        for f in files:
             cut = collect(f, collector, options, notes, note_ignored=False) or cut
         return True, cut
-    dbs = sorted(bag.glob("*.db3"))
-    if not dbs:
+    dbs = [f for f in files if f.suffix == ".db3"]
+    if not dbs or len(dbs) != len(files):
         return False, None
     bad = 0
     try:
@@ -96,6 +97,17 @@ def read_ros2_storage(bag: Path, reader: Any, conns: list[Any], collector: Colle
     if bad:
         notes.append(f"corrupt data: skipped {bad} messages that did not decode")
     return True, None
+
+
+def storage_files(bag: Path) -> list[Path]:
+    """The storage files metadata.yaml lists, in its (time) order; [] when it cannot say."""
+    import yaml
+
+    try:
+        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        return [bag / PurePath(str(x)).name for x in info["relative_file_paths"]]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return []
 
 
 def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> int:
