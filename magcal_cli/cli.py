@@ -242,18 +242,10 @@ def _check_outdir(outdir: Path, names: list[str], force: bool) -> None:
 
 def _write_fit_outputs(ctx: click.Context, result: Any, outdir: Path, names: list[str], auto: str | None
                        ) -> list[Path]:
-    """write_outputs; the firmware file fit adds on its own is skipped with a warning when the calibration
-    cannot be written as parameters (asked for with --outputs, it stays an error)."""
-    from .firmware import FirmwareError
-    from .writers import write_outputs
+    """fitrun.write_fit_outputs with its warnings on stderr (batch shares it)."""
+    from .fitrun import write_fit_outputs
 
-    try:
-        return write_outputs(result, outdir, names)
-    except FirmwareError as exc:
-        if auto is None or auto not in names:
-            raise
-        _stderr(ctx, f"warning: no {auto} parameter file written: {exc}")
-        return write_outputs(result, outdir, [n for n in names if n != auto])
+    return write_fit_outputs(result, outdir, names, auto, lambda m: _stderr(ctx, m))
 
 
 def _deprecated(ctx: click.Context, value: bool) -> bool:
@@ -281,27 +273,18 @@ def _gates(value: str | None, command: str) -> tuple[Any, ...]:
 
 def _firmware_output(ctx: click.Context, log: Path, fmt: str | None, names: list[str]) -> str | None:
     """The firmware output to add when --outputs was not given: ardupilot for DataFlash, px4 for ULog."""
-    from .readers import sniff
-    from .writers import FIRMWARE_OUTPUTS
+    from .fitrun import firmware_output
 
     if ctx.get_parameter_source("outputs") is not click.core.ParameterSource.DEFAULT:
         return None
-    try:
-        auto = FIRMWARE_OUTPUTS.get(fmt or sniff(log))
-    except MagcalError:
-        return None
-    return auto if auto not in names else None
+    return firmware_output(log, fmt, names)
 
 
 def _fit_gates(result: Any, conditions: tuple[Any, ...]) -> None:
     """Raise QualityGateError (exit 3) when a magnetometer meets a --fail-on condition."""
-    from . import gates
-    from .firmware.metrics import fit_metrics
+    from .fitrun import gate_failures
 
-    if not conditions:
-        return
-    failed = [f"{mag}: {f}" for mag, (metrics, why) in fit_metrics(result).items()
-              for f in gates.failures(conditions, metrics, why)]
+    failed = gate_failures(result, conditions)
     if failed:
         msg = f"fit --fail-on: {'; '.join(failed)}"
         raise QualityGateError(msg)
