@@ -130,10 +130,13 @@ class BatchDecoder:
         if not n:
             return ok, stamps, values
         head = length >= FRAME_LEN_AT + 4
-        frame_len = np.where(head, _gather(buf, np.where(head, start, 0) + FRAME_LEN_AT, "<u4"), 0).astype(np.int64)
+        if not head.any():                  # too short for a header, all of them (corrupt): rosbags decides
+            self._each(buf, start, length, np.arange(n), stamps, values, ok)
+            return ok, stamps, values
+        at = np.where(head, start, int(start[np.argmax(head)]))        # short ones read a valid place, unused
+        frame_len = np.where(head, _gather(buf, at + FRAME_LEN_AT, "<u4"), 0).astype(np.int64)
         if not self.ros1:           # only little-endian CDR (0x00 0x01) has the layout computed here
-            enc = _gather(buf, start, "<u2") if bool(np.all(length >= 2)) else np.zeros(n)
-            head &= enc == 0x0100
+            head &= _gather(buf, at, "<u2") == 0x0100
         key = np.where(head, frame_len * (1 << 32) + length, -1)
         uniq, inverse = np.unique(key, return_inverse=True)
         order = np.argsort(inverse, kind="stable")

@@ -298,3 +298,21 @@ def test_ros2_bags_rosbag2_compressed_read_like_per_message(tmp_path: Path, mode
     rec = open_recording(tmp_path / "bag")
     assert len(rec.streams[0]) == 200
     assert_same_recording(rec, per_message(tmp_path / "bag"))
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_random_bytes_never_raise(ros1: bool) -> None:
+    """Garbage of any length (including shorter than a header, and a whole buffer of 3 bytes) decodes to False."""
+    store, rng = store_of(ros1), np.random.default_rng(8)
+    for msgtype in TYPES:
+        dec = rosvec.BatchDecoder(store.fielddefs, msgtype, ros1,
+                                  lambda d, t=msgtype: store.deserialize_ros1(d, t) if ros1 else
+                                  store.deserialize_cdr(d, t))
+        for size in (0, 3, 40, 5000):
+            buf = rng.integers(0, 256, size, dtype=np.uint8)
+            buf[:2] = [0, 1][:size]
+            n = 25
+            start = np.sort(rng.integers(0, max(size - 1, 1), n)).astype(np.int64) if size else np.zeros(n, np.int64)
+            length = np.minimum(rng.integers(0, 400, n), size - start).astype(np.int64)
+            ok, stamps, values = dec(buf, start, length)
+            assert ok.shape == stamps.shape == (n,) and values.shape[0] == n
