@@ -69,6 +69,9 @@ class MagCalibration:
     #: parameters the log could not determine, held at a prior (partial calibration): document entries
     #: {"parameter", "held", "prior", "prior_std", "source"} in this magnetometer's unit (dip in degrees)
     held: tuple[dict[str, Any], ...] = ()
+    #: what fixed the orientation: "motion" (the log's accelerometer, gyro and magnetometer) or the vehicle's
+    #: attitude estimate and the World Magnetic Model ("vehicle attitude (ATT) + WMM2025")
+    reference: str = "motion"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "held", tuple(self.held))

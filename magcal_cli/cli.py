@@ -26,7 +26,7 @@ EXIT_CODES = ("Exit codes: 0 success; 1 the input could not be used (unreadable,
               "missing stream, too little motion, no convergence); 2 usage error; 3 a quality gate failed; "
               "123 internal error (a bug); 130 interrupted (Ctrl-C), nothing half-written left. A closed pipe "
               "(e.g. | head) ends the command quietly with 1.")
-METHOD_CHOICES = ("auto", "kok2012", "map", "ekf-ml", "ekf-aug")
+METHOD_CHOICES = ("auto", "kok2012", "map", "ekf-ml", "ekf-aug", "attitude")
 
 
 class QualityGateError(Exception):
@@ -155,7 +155,8 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
               help=MAG_HELP.format(what="calibrate"))
 @click.option("--imu", "imu", default=None, help="IMU stream id [default: the first with accelerometer and gyro].")
 @click.option("--method", type=click.Choice(METHOD_CHOICES), default="auto", show_default=True,
-              help="Calibration method; auto picks the best one available for the log.")
+              help="Calibration method; auto picks the best one available for the log. attitude: against the "
+                   "vehicle's own attitude estimate and the World Magnetic Model (flight logs with GPS).")
 @click.option("--outputs", default="json,yaml,report,plots", show_default=True,
               help="Comma-separated outputs to write: json, yaml, report, plots, ardupilot, px4 [the default "
                    "adds ardupilot.param for ArduPilot logs and px4.params for PX4 ULogs].")

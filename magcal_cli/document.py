@@ -38,6 +38,7 @@ def mag_to_dict(m: MagCalibration) -> dict[str, Any]:
                 "misalignment_deg": float(np.rad2deg(np.sqrt(max(np.trace(w_cov), 0.0))))},
         "quality": None if m.quality is None else dict(m.quality.__dict__),
         "held": [dict(h) for h in m.held],
+        "reference": m.reference,
         "covariance": {"order": MAG_PARAMS.to_order(), "matrix": _list(m.cov)},
     }
     return out
@@ -122,7 +123,8 @@ def from_dict(doc: dict[str, Any], where: str = "calibration") -> Calibration:
                 cov=_covariance(m, w),
                 field_strength=float(m["field_strength"]),
                 field_strength_source=str(m.get("field_strength_source", "data")),
-                quality=None if q is None else Quality(**q), held=tuple(m.get("held") or ())))
+                quality=None if q is None else Quality(**q), held=tuple(m.get("held") or ()),
+                reference=str(m.get("reference", "motion"))))
         imu_d = doc["imu"]
         std = imu_d.get("std", {})
         imu = ImuCalibration(str(imu_d["id"]), imu_d.get("accelerometer_bias"), imu_d.get("gyroscope_bias"),

@@ -40,6 +40,7 @@ METHODS: dict[str, str] = {
     "map": "magcal_cli.models.map:run",
     "ekf-ml": "magcal_cli.models.ekf_ml:run",
     "ekf-aug": "magcal_cli.models.ekf_aug:run",
+    "attitude": "magcal_cli.models.attitude_ref:run",
 }
 
 
@@ -196,8 +197,9 @@ def _with_position(rec: Recording, cfg: Config) -> Config:
     if cfg.location is None and pos and len(pos[0]):
         lat, lon, alt = np.median(pos[0], axis=0)
         cfg = replace(cfg, location=(float(lat), float(lon), float(alt)))
-    if cfg.location is not None and cfg.date is None and rec.t0 > 1e9:          # t0 is a Unix time
-        cfg = replace(cfg, date=time.strftime("%Y-%m-%d", time.gmtime(rec.t0)))
+    utc = rec.utc0 if rec.utc0 is not None else rec.t0 if rec.t0 > 1e9 else None   # t0 may be a Unix time
+    if cfg.location is not None and cfg.date is None and utc is not None:
+        cfg = replace(cfg, date=time.strftime("%Y-%m-%d", time.gmtime(utc)))
     return cfg
 
 
@@ -222,7 +224,8 @@ def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = N
                       coverage_pct(m_b[used]), bool(fit.converged), int(fit.iterations))
     strength, source = (float(np.cbrt(np.linalg.det(d))), "data") if ref is None else (ref.intensity * f, "wmm")
     cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
-                         fit.cov * np.outer(scale, scale), strength, source, quality, held_document(fit, f))
+                         fit.cov * np.outer(scale, scale), strength, source, quality, held_document(fit, f),
+                         fit.reference)
     return cal, MagSeries(t, raw, m_b)
 
 
@@ -377,6 +380,26 @@ def _run_method(run: MethodRun, problem: Problem, cfg: Config, method: str) -> t
     return merged, failed
 
 
+def _attitude_instead(problem: Problem, cfg: Config, exc: InsufficientDataError
+                      ) -> tuple[MethodResult, list[Finding]]:
+    """--method auto on a log whose own motion cannot determine the calibration: the vehicle's attitude estimate
+    and the World Magnetic Model as the reference, where the log has both (issue 12 item 2); else `exc`."""
+    from .models import attitude_ref
+
+    if cfg.method != "auto" or reference_for(cfg) is None:
+        raise exc
+    try:
+        att = attitude_ref.attitude_stream(problem)
+        result = attitude_ref.run(problem, cfg)
+    except InsufficientDataError:
+        raise exc from None
+    why = Finding(Severity.WARNING, "attitude_reference",
+                  f"the log's own motion cannot determine the calibration ({exc}); it was calibrated against the "
+                  f"vehicle's attitude estimate ({att.id}) and the World Magnetic Model instead, so it inherits "
+                  "the errors of that estimate (its heading came from the compass calibration it flew with)")
+    return result, [why]
+
+
 def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress = _noop) -> RunResult:
     """Calibrate every selected magnetometer of one log against its IMU."""
     path = Path(path)
@@ -407,7 +430,10 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
         raise MagcalError(msg)
     progress(f"{len(problem.still.segments)} still segments; fitting {method} "
              f"for {', '.join(m.id for m in problem.mags)}")
-    result, failed = _run_method(resolve(target, f"the {method} method"), problem, cfg, method)
+    try:
+        result, failed = _run_method(resolve(target, f"the {method} method"), problem, cfg, method)
+    except InsufficientDataError as exc:
+        result, failed = _attitude_instead(problem, cfg, exc)
     mags, series = [], {}
     ref = reference_for(cfg)
     streams = {m.id: m for m in problem.mags}

@@ -149,6 +149,9 @@ class Recording:
     params: Mapping[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     cut: Cut | None = None
+    #: the Unix time of t = 0 where the log states it (GPS week and time of week) although its clock is a boot
+    #: clock; None where unknown (then `t0` is a Unix time or the date is not known)
+    utc0: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "streams", tuple(self.streams))

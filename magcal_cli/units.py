@@ -60,3 +60,7 @@ def to_si(unit: str) -> float:
 def from_si(unit: str) -> float:
     """Factor converting an SI value to `unit`."""
     return 1.0 / TO_SI[canonical(unit)]
+
+
+#: GPS time: its epoch as a Unix time (1980-01-06), seconds per week, and GPS - UTC since 2017-01-01 (leap seconds)
+GPS_EPOCH_UNIX, GPS_WEEK_S, GPS_LEAP_S = 315_964_800.0, 604_800.0, 18.0

@@ -25,6 +25,7 @@ from ..readers.dataflash_mag import Correction, apply_correction, effective_scal
 from ..streams import Kind, Recording
 from ..synth import Simulation
 from ..synth_physics import local
+from ..units import GPS_EPOCH_UNIX, GPS_LEAP_S, GPS_WEEK_S
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -272,8 +273,10 @@ def _gps(rec: Recording, t5: FloatArray) -> tuple[npt.NDArray[np.int64], np.ndar
     t = pos[0].t if pos else t5
     gps = _records("GPS", len(t))
     gps["TimeUS"] = _us(t) + 900
-    gps["Status"], gps["NSats"], gps["HDop"], gps["GWk"] = 3, 14, 70, 2390
-    gps["GMS"] = (np.round(t * 1000).astype(np.int64) + 345_600_000) % 604_800_000
+    gps["Status"], gps["NSats"], gps["HDop"] = 3, 14, 70
+    gps_s = rec.t0 + t - GPS_EPOCH_UNIX + GPS_LEAP_S             # the simulation's own date (T0_ROS), GPS time
+    gps["GWk"] = np.floor(gps_s / GPS_WEEK_S)
+    gps["GMS"] = np.round((gps_s % GPS_WEEK_S) * 1000.0)
     if not pos:
         gps["Lat"], gps["Lng"], gps["Alt"] = 473_977_420, 85_455_940, 48_800        # 1e-7 deg, 1e-7 deg, cm
         return gps["TimeUS"], gps

@@ -30,6 +30,8 @@ class MagFit:
     log: tuple[str, ...] = ()
     #: entries the log could not determine, held at a prior (partial calibration): SI values
     held: tuple[HeldEntry, ...] = ()
+    #: what fixed the orientation: the log's own motion, or the vehicle's attitude estimate and the WMM
+    reference: str = "motion"
 
 
 @dataclass(frozen=True)

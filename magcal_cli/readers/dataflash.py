@@ -8,7 +8,7 @@ firmware logs (COMPASS_ORIENTn / AHRS_ORIENTATION already applied). See docs/rea
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import ClassVar
 
@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import LogReadError, MagcalError, StreamError, UnsupportedFormatError
 from ..streams import Cut, Kind, Recording
+from ..units import GPS_EPOCH_UNIX, GPS_LEAP_S, GPS_WEEK_S
 from . import ReadOptions
 from .cut import mark_cut, refuse_if_strict
 from .dataflash_binary import parse_binary
@@ -353,6 +354,22 @@ def _gps(path: Path, raw: RawLog, clock: Clock, notes: list[str]) -> list[Pendin
     return out
 
 
+def _utc_of_boot(raw: RawLog, clock: Clock) -> float | None:
+    """The Unix time of the log's boot clock zero, from GPS records with a fix (GWk weeks and GMS ms since the GPS
+    epoch, minus the leap seconds): the date the World Magnetic Model is evaluated on."""
+    for _, table in instances(raw, ("GPS", "GPS2")):
+        f = table.fmt
+        names = ("GWk", "GMS") if f.has("GWk", "GMS") else ("Week", "TimeMS") if f.has("Week", "TimeMS") else None
+        if names is None:                  # 3.x logs name them Week and TimeMS (then T is the boot time)
+            continue
+        week, ms = table.num(names[0]), table.num(names[1])
+        ok = (week > 0) & ((table.num("Status") >= 3) if f.has("Status") else True)
+        if ok.any():
+            utc = GPS_EPOCH_UNIX + week[ok] * GPS_WEEK_S + ms[ok] / 1000.0 - GPS_LEAP_S
+            return float(np.median(utc - time_of(table, clock)[ok]))
+    return None
+
+
 def build_ardupilot(path: Path, raw: RawLog) -> Recording:
     """The Recording of an ArduPilot log: raw field, IMU, attitude, battery, throttle, GPS, parameters."""
     notes = list(raw.notes)
@@ -377,4 +394,6 @@ def build_ardupilot(path: Path, raw: RawLog) -> Recording:
         pending.append(Pending((Kind.MAGNETOMETER,), f"MAG[{m.instance}]", m.t, m.raw * MG_TO_T, m.source,
                                ("milligauss",), None if m.resolution is None else m.resolution * MG_TO_T))
     pending += _attitude(path, raw, clock) + battery + throttle + _gps(path, raw, clock, notes)
-    return finish(path, "dataflash", pending, params, notes)
+    rec = finish(path, "dataflash", pending, params, notes)
+    boot = _utc_of_boot(raw, clock)
+    return rec if boot is None else replace(rec, utc0=boot + rec.t0)

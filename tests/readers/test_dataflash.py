@@ -453,3 +453,12 @@ def test_reconstructed_counts_keep_their_resolution(tmp_path: Path, sim: Simulat
                         (src.select(Kind.MAGNETOMETER),))
     got = detect_still(rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), cfg, (mag,))
     assert len(got.segments) == len(want.segments) >= 12
+
+
+def test_the_date_comes_from_gps_time(tmp_path: Path, sim: Simulation) -> None:
+    """A boot-clock log states its date through GPS week and time of week: utc0 is the simulation's start (the
+    World Magnetic Model is evaluated on that date, not today's), and a log without GPS time has none."""
+    path = tmp_path / "d.bin"
+    write_log(sim, path)
+    rec = open_recording(path)
+    assert rec.t0 < 1e6 and rec.utc0 == pytest.approx(sim.recording.t0, abs=0.01)

@@ -1,0 +1,182 @@
+"""The vehicle's attitude as the reference (issue 12 item 2; `--method attitude`).
+
+Where the autopilot logged its attitude estimate R_k (body -> true-north NED; ArduPilot ATT, PX4
+vehicle_attitude) and a position, the field the compass should read is known: y_k = D R_k^T m + o with m the
+World Magnetic Model's direction (declination and dip) at the log's position and date. The model is linear in
+(D, o), so each sensor axis is one small least-squares problem (ArduPilot WebTools MAGFit and pymavlink's
+magfit_WMM.py fit the same model with an iterative optimiser). What the attitude does not vary (the body-z
+field of a level flight) leans on the prior the partial calibration uses (the onboard calibration, else a
+sphere), and such entries are reported as held. The EKF's attitude errors are correlated in time, so the
+uncertainty is a block sandwich (10 s blocks) and never below the model-based one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from .. import so3
+from ..config import Config
+from ..effects.base import NotTestable, resample
+from ..effects.current import Current
+from ..errors import InsufficientDataError
+from ..streams import Kind, Stream
+from ..wmm import ReferenceField, reference_for
+from .kok2012 import gyro_bias_from_still
+from .map_effects import ALPHA
+from .params import MAG, Estimate, Layout
+from .partial import MagPrior, sphere_prior
+from .problem import Problem
+from .result import EffectFit, HeldEntry, MagFit, MethodResult
+
+FloatArray = npt.NDArray[np.float64]
+
+#: attitude streams whose nav frame is NED with x to true north (ArduPilot, PX4); a mocap or ROS frame is not
+NED_ATTITUDES = ("ATT", "vehicle_attitude", "AHR2")
+#: the WMM's stated 1-sigma error of the inclination (WMM2020 report, Table 5): 0.21 deg
+WMM_DIP_STD = np.deg2rad(0.21)
+#: block length (s) of the sandwich: the EKF's attitude error wanders over seconds
+BLOCK_S = 10.0
+#: an entry whose posterior std is above this share of its prior std was set by the prior: held
+HELD_SHARE = 0.5
+#: Huber threshold (robust std) for readings the attitude or the field do not explain (spikes, transients)
+HUBER_K = 3.0
+#: a battery current that varies less than this (A, std) cannot separate interference from the offsets
+MIN_CURRENT_STD = 1.0
+
+
+def current_at(problem: Problem, t: FloatArray) -> tuple[FloatArray, str] | None:
+    """The battery current (A) at times t where the log's varies enough to fit interference (magfit_WMM's
+    --cmot), with its channel id; else None."""
+    for s in problem.channels(Kind.BATTERY_CURRENT):
+        try:
+            i = resample(s, t)[:, 0]
+        except NotTestable:
+            continue
+        if float(np.std(i)) >= MIN_CURRENT_STD:
+            return i, s.id
+    return None
+
+
+def attitude_stream(problem: Problem) -> Stream:
+    """The autopilot's attitude estimate among the problem's channels, in a true-north NED frame."""
+    found = {s.id: s for s in problem.channels(Kind.ATTITUDE)}
+    for sid in NED_ATTITUDES:
+        if sid in found:
+            return found[sid]
+    have = f" (it has {', '.join(found)}, whose frame is not known to be north-east-down)" if found else ""
+    msg = (f"{problem.where}: --method attitude needs the autopilot's attitude estimate (ArduPilot ATT, PX4 "
+           f"vehicle_attitude){have}; use --method auto")
+    raise InsufficientDataError(msg)
+
+
+def rotations_at(att: Stream, t: FloatArray) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """Body -> nav rotations (N, 3, 3) at times t, by normalised linear interpolation of sign-aligned
+    quaternions (the log's attitude rate is far above the rotation's bandwidth), and where t is covered."""
+    q = att.values / np.linalg.norm(att.values, axis=1, keepdims=True)
+    flip = np.concatenate([[1.0], np.sign(np.sum(q[1:] * q[:-1], axis=1))])
+    q = q * np.cumprod(np.where(flip == 0, 1.0, flip))[:, None]
+    inside = (t >= att.t[0]) & (t <= att.t[-1])
+    qi = np.stack([np.interp(t, att.t, q[:, i]) for i in range(4)], axis=1)
+    return so3.from_quat(qi), inside & np.all(np.isfinite(qi), axis=1)
+
+
+def _solve_axis(x: FloatArray, y: FloatArray, prior_mean: FloatArray, prior_var: FloatArray,
+                blocks: npt.NDArray[np.int64]) -> tuple[FloatArray, FloatArray, float, FloatArray]:
+    """Robust MAP of y = x beta (+ Gaussian prior), its covariance (block sandwich, never below the model's),
+    the noise std and the residuals."""
+    w = np.ones(y.size)
+    beta = np.linalg.lstsq(x, y, rcond=None)[0]
+    p = 1.0 / prior_var
+    for _ in range(4):                                            # Huber IRLS: a few rounds settle it
+        r = y - x @ beta
+        sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-15)
+        w = np.minimum(1.0, HUBER_K * sigma / np.maximum(np.abs(r), 1e-300))
+        h = (x * (w / sigma**2)[:, None]).T @ x + np.diag(p)
+        beta = np.linalg.solve(h, (x * (w / sigma**2)[:, None]).T @ y + p * prior_mean)
+    r = y - x @ beta
+    model = np.linalg.inv(h)
+    score = x * (w * r / sigma**2)[:, None]
+    per_block = np.zeros((int(blocks.max()) + 1, x.shape[1]))
+    np.add.at(per_block, blocks, score)
+    meat = per_block.T @ per_block + np.diag(p)
+    sandwich = model @ meat @ model
+    widen = max(1.0, float(np.max(np.diag(sandwich) / np.diag(model))))
+    cov = np.asarray(model * widen, dtype=np.float64)
+    return np.asarray(beta, dtype=np.float64), cov, sigma, r
+
+
+def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField,
+                 prior: MagPrior | None) -> tuple[MagFit, EffectFit | None]:
+    """D and o of one magnetometer against the vehicle's attitude and the WMM field (SI), with the current
+    interference c (y += c I) where the log's current varies."""
+    where = f"{problem.where}: {mag.id}"
+    rot, ok = rotations_at(att, mag.t)
+    for a, b in problem.unmeasured:
+        ok &= ~((mag.t >= a) & (mag.t <= b))
+    ok &= np.all(np.isfinite(mag.xyz), axis=1)
+    if ok.sum() < 50:
+        msg = (f"{where}: only {int(ok.sum())} readings lie inside the attitude estimate's time span; "
+               "--method attitude needs the autopilot's attitude over the flight")
+        raise InsufficientDataError(msg)
+    c, s = np.cos(ref.dip), np.sin(ref.dip)
+    m_true = np.array([c * np.cos(ref.declination), c * np.sin(ref.declination), s])
+    u = np.einsum("nji,j->ni", rot[ok], m_true)                     # R^T m: the unit field in the body frame
+    y, t = mag.xyz[ok], mag.t[ok]
+    prior = prior or sphere_prior(y)
+    scale = float(np.cbrt(abs(np.linalg.det(prior.D)))) or float(np.median(np.linalg.norm(y, axis=1)))
+    sd = prior.rel_std * scale
+    current = current_at(problem, t)
+    x = np.column_stack([u, np.ones(len(u))] + ([] if current is None else [current[0]]))
+    blocks = np.floor((t - t[0]) / BLOCK_S).astype(np.int64)
+    d, o, c_i = np.zeros((3, 3)), np.zeros(3), np.zeros(3)
+    c_var = np.zeros(3)
+    cov = np.zeros((MAG.size, MAG.size))
+    held: list[HeldEntry] = []
+    rms = []
+    for i in range(3):
+        mean = np.append(prior.D[i], prior.o[i])
+        var = np.full(4, sd**2)
+        if current is not None:                                   # no prior on the interference: free
+            mean, var = np.append(mean, 0.0), np.append(var, np.inf)
+        beta, cv, _, r = _solve_axis(x, y[:, i], mean, var, blocks)
+        d[i], o[i] = beta[:3], beta[3]
+        if current is not None:
+            c_i[i], c_var[i] = beta[4], cv[4, 4]
+            cv = cv[:4, :4]
+        rms.append(float(np.sqrt(np.mean(r**2))))
+        cols = [MAG.cols("D")[i + 3 * j] for j in range(3)] + [MAG.cols("o")[i]]
+        cov[np.ix_(cols, cols)] = cv
+        for j, name in enumerate([f"D.{i}{k}" for k in range(3)] + [f"o.{'xyz'[i]}"]):
+            if np.sqrt(cv[j, j]) > HELD_SHARE * sd:
+                held.append(HeldEntry(name, float(mean[j]), sd, prior.source))
+    dip_col = MAG.cols("dip")[0]
+    cov[dip_col, dip_col] = WMM_DIP_STD**2
+    log = (f"{mag.id}: reference: the vehicle's attitude ({att.id}) and the {ref.model} field at "
+           f"{ref.latitude:.4f}, {ref.longitude:.4f} on {ref.date} (dip {ref.dip_deg:.2f} deg, declination "
+           f"{np.rad2deg(ref.declination):.2f} deg); {int(ok.sum())} readings",)
+    fit = MagFit(mag.id, d, o, ref.dip, cov, float(np.sqrt(np.mean(np.square(rms)))), int(ok.sum()), 4, True,
+                 log, tuple(held), reference=f"vehicle attitude ({att.id}) + {ref.model}")
+    if current is None:
+        return fit, None
+    # the axes are fitted separately: their c are independent to this order (the sandwich keeps the widening)
+    est = Estimate(Layout(Current.params), c_i, np.diag(c_var))
+    stat = float(np.sum(c_i**2 / c_var))
+    p = float(stats.chi2.sf(stat, 3))
+    return fit, EffectFit(Current.id, mag.id, "accepted" if p < ALPHA else "rejected", est, (current[1],), stat, 3, p)
+
+
+def run(problem: Problem, cfg: Config) -> MethodResult:
+    """Every magnetometer of the problem against the vehicle's attitude and the WMM."""
+    att = attitude_stream(problem)
+    ref = reference_for(cfg)
+    if ref is None:
+        msg = (f"{problem.where}: --method attitude needs the log's position (GPS) or --location LAT,LON for the "
+               "World Magnetic Model's field; use --method auto")
+        raise InsufficientDataError(msg)
+    done = [fit_attitude(problem, m, att, ref, problem.priors.get(m.id)) for m in problem.mags]
+    fits = tuple(f for f, _ in done)
+    notes = tuple(line for f in fits for line in f.log)
+    effects = tuple(e for _, e in done if e is not None)
+    return MethodResult("attitude", fits, gyro_bias_from_still(problem), {}, notes, effects=effects)
