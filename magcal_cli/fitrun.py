@@ -3,6 +3,7 @@ outputs written together, and the --fail-on verdict. No click: the batch workers
 
 from __future__ import annotations
 
+import errno
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -11,6 +12,10 @@ from .errors import MagcalError
 
 if TYPE_CHECKING:
     from .pipeline import RunResult
+
+#: the file system refusing a read or write: the user's environment, not a bug (exit 1, not 123)
+USER_ERRNOS = frozenset({errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.ENOTDIR,
+                         errno.EISDIR, errno.ENAMETOOLONG, errno.ENOENT})
 
 
 def firmware_output(log: Path, fmt: str | None, names: list[str]) -> str | None:

@@ -1,0 +1,223 @@
+"""Running batch jobs: one log's fit as `magcal fit` would run it (`run_one`, also the Dask task), and a pool of
+local worker processes that fit one log at a time each and are replaced after a few logs, so a huge log's
+memory goes back to the system."""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+import warnings
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from types import FrameType
+from typing import Any
+
+from .batch import AUTO_EFFECTS, Job, LogReport, write_status
+from .errors import MagcalError
+from .fitrun import USER_ERRNOS
+
+#: logs a local worker fits before it is replaced (its memory returned); forked from a preloaded server, a new
+#: worker costs milliseconds, not the seconds of importing numpy and scipy again
+TASKS_PER_WORKER = 1
+#: imported once in the fork server, so that every worker starts with them
+PRELOAD = ["magcal_cli.batch_run", "magcal_cli.pipeline", "magcal_cli.fitrun", "magcal_cli.firmware.metrics",
+           "magcal_cli.models.map", "magcal_cli.models.kok2012", "magcal_cli.writers.calfile",
+           "magcal_cli.writers.report", "magcal_cli.readers.dataflash", "magcal_cli.readers.mcap",
+           "magcal_cli.readers.ulog", "magcal_cli.readers.csvfile"]
+WORKER_DIED = ("the worker process fitting this log died (killed, e.g. out of memory, or crashed). Fit it alone "
+               "with magcal fit to see why")
+#: how often a Ctrl-C'd batch interrupts its workers again until they have stopped (s)
+STOP_POLL_S = 0.2
+Done = Callable[[LogReport], None]
+
+
+def _interrupt_once(_: int, __: FrameType | None) -> None:
+    """SIGINT in a worker: one KeyboardInterrupt; a second Ctrl-C must not break the clean-up it started."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _interruptible() -> Iterator[None]:
+    """Ctrl-C interrupts the fit inside the block; an idle worker ignores it (the main process decides)."""
+    main = threading.current_thread() is threading.main_thread()      # Dask runs tasks in threads
+    if main:
+        signal.signal(signal.SIGINT, _interrupt_once)
+    try:
+        yield
+    finally:
+        if main:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _worker_init() -> None:
+    """A local worker: Ctrl-C only while fitting (an idle worker would die printing a traceback); numpy's
+    RuntimeWarnings on degenerate data kept off stderr, as `magcal fit` keeps them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+
+
+def _mag_numbers(result: Any) -> list[dict[str, Any]]:
+    """The key numbers of each magnetometer for the summary."""
+    import numpy as np
+
+    from . import so3
+    from .firmware.metrics import heading_std_deg
+
+    out = []
+    for m in result.calibration.magnetometers:
+        q = m.quality
+        out.append({"id": m.id, "dip_deg": float(m.dip_deg),
+                    "field_norm_rms_pct": None if q is None else float(q.field_norm_rms_pct),
+                    "coverage_pct": None if q is None else float(q.coverage_pct),
+                    "misalignment_deg": float(np.rad2deg(so3.angle(m.misalignment))),
+                    "heading_std_deg": heading_std_deg(m)})
+    return out
+
+
+def _fit(job: Job, report: LogReport) -> None:
+    """Fit the log and write its outputs as `magcal fit` does, filling `report`; errors propagate."""
+    from .config import Config
+    from .fitrun import gate_failures, write_fit_outputs
+    from .pipeline import calibrate
+    from .writers import FIRMWARE_OUTPUTS
+
+    o = job.options
+    auto = o.effects == AUTO_EFFECTS
+    cfg = Config(method=o.method, mag=",".join(o.mags) or "all", allow_truncated=not o.strict,
+                 effects=() if auto else o.effects, diagnose=auto)
+    result = calibrate(job.log, cfg)
+    report.format, report.method = result.recording.format, result.calibration.method
+    names = list(job.names)
+    if job.auto and FIRMWARE_OUTPUTS.get(result.recording.format) == job.auto:
+        names.append(job.auto)
+    written = write_fit_outputs(result, job.outdir, names, job.auto, report.warnings.append)
+    report.outputs = [str(p) for p in written]
+    if result.recording.cut is not None:
+        report.warnings.append(f"warning: {result.recording.cut.message}")
+    report.warnings += [f"warning: {f.message}" for f in result.findings if f.severity.value == "warning"]
+    report.magnetometers = _mag_numbers(result)
+    failed = gate_failures(result, o.fail_on)
+    if failed:
+        report.status, report.exit_code, report.error = "gate_failed", 3, f"fit --fail-on: {'; '.join(failed)}"
+
+
+def run_one(job: Job) -> LogReport:
+    """Fit one log; every outcome but Ctrl-C is a report with the exit code `magcal fit` would have given."""
+    report = LogReport(str(job.log), job.name, str(job.outdir), "ok", 0)
+    start = time.perf_counter()
+    try:
+        with _interruptible():
+            _fit(job, report)
+    except KeyboardInterrupt:
+        report.status, report.exit_code, report.error = "interrupted", 130, "interrupted"
+        return report                               # no batch.json: the log is fitted again on the next run
+    except MagcalError as exc:
+        report.status, report.exit_code, report.error = "failed", 1, str(exc)
+    except OSError as exc:
+        if exc.errno in USER_ERRNOS:
+            report.status, report.exit_code = "failed", 1
+            report.error = f"{exc.filename or job.log}: {exc.strerror or exc}. Check the path, its permissions and free space"
+        else:
+            _internal(report, exc)
+    except Exception as exc:  # noqa: BLE001 - one log's bug must not stop the others
+        _internal(report, exc)
+    report.seconds = time.perf_counter() - start
+    write_status(job, report)
+    return report
+
+
+def _internal(report: LogReport, exc: BaseException) -> None:
+    """A bug while fitting: exit 123 with fit's message, the traceback kept for -v."""
+    report.status, report.exit_code = "failed", 123
+    report.error = (f"internal error ({type(exc).__name__}: {exc}). This is a bug in magcal; please report it "
+                    "with the command and log")
+    report.traceback = "".join(traceback.format_exception(exc))
+
+
+def died(job: Job, why: str = WORKER_DIED) -> LogReport:
+    """The report of a log whose worker process died under it."""
+    return LogReport(str(job.log), job.name, str(job.outdir), "failed", 123, error=f"{job.log}: {why}")
+
+
+def _context() -> Any:
+    """forkserver with magcal preloaded where available (workers start in milliseconds), else spawn; never
+    fork, which max_tasks_per_child refuses and which would copy the parent's threads."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(PRELOAD)
+    return ctx
+
+
+def _single_threaded_blas() -> None:
+    """N workers on N cores: BLAS threads in each would only compete (a user's own setting is kept)."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
+def _pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of `workers` processes, each replaced after TASKS_PER_WORKER logs (Python >= 3.11)."""
+    extra: dict[str, Any] = {"max_tasks_per_child": TASKS_PER_WORKER} if sys.version_info >= (3, 11) else {}
+    return ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_worker_init, **extra)
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    """Ctrl-C: interrupt the running fits (they clean up), drop the queued ones and wait for the workers."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not abandon the workers
+    try:
+        closing = threading.Thread(target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True})
+        closing.start()
+        while closing.is_alive():
+            # again and again: a log already queued to a fresh worker starts after the first signal, and
+            # `kill -INT` on magcal alone must reach the workers too (a worker takes only the first)
+            for pid in list(getattr(pool, "_processes", None) or {}):
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGINT)
+            closing.join(STOP_POLL_S)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def run_local(jobs: list[Job], workers: int, done: Done) -> list[LogReport]:
+    """Fit `jobs` in `workers` local processes, calling `done` as each finishes; a log whose worker dies is
+    fitted once more alone, then reported failed. KeyboardInterrupt propagates after the workers stopped."""
+    _single_threaded_blas()
+    reports: list[LogReport] = []
+    retry = _run_pool(jobs, workers, done, reports)
+    for job in retry:                               # which of the pool's logs killed it is unknown: each alone
+        again = _run_pool([job], 1, done, reports)
+        for j in again:
+            reports.append(died(j))
+            done(reports[-1])
+    return reports
+
+
+def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport]) -> list[Job]:
+    """One pool over `jobs`; returns the jobs whose futures the pool's breaking took with it."""
+    if not jobs:
+        return []
+    broken: list[Job] = []
+    pool = _pool(max(1, min(workers, len(jobs))))
+    try:
+        futures: dict[Future[LogReport], Job] = {pool.submit(run_one, j): j for j in jobs}
+        for fut in as_completed(futures):
+            try:
+                report = fut.result()
+            except BrokenProcessPool:
+                broken.append(futures[fut])
+                continue
+            reports.append(report)
+            done(report)
+    except KeyboardInterrupt:
+        _stop(pool)
+        raise
+    pool.shutdown(wait=True)
+    return broken
