@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -31,14 +32,15 @@ LOG_GLOBS = ("ardupilot/*.bin", "ardupilot/*.log", "px4/*.ulg", "px4/*.px4log", 
              "ros/*_sqlite3", "csv/*.csv", "broad/*.mat", "broad/*.hdf5")
 
 
-def fit(log: Path, package: Path | None, timeout: float = 900.0) -> dict[str, Any]:
-    """`magcal fit LOG --effects none --json` in a subprocess (with `package` first on the path when given)."""
+def fit(log: Path, package: Path | None, timeout: float = 900.0, extra: tuple[str, ...] = ("--effects", "none")
+        ) -> dict[str, Any]:
+    """`magcal fit LOG --json` plus `extra` options in a subprocess (with `package` first on the path when given)."""
     env = dict(os.environ)
     if package is not None:
         env["PYTHONPATH"] = str(package)
     with tempfile.TemporaryDirectory() as out:
         cmd = [sys.executable, "-m", "magcal_cli", "fit", str(log.resolve()), "-o", out, "--outputs", "json", "--json",
-               "--effects", "none"]
+               *extra]
         t0 = time.perf_counter()
         try:
             # cwd outside the work tree: `python -m` puts the cwd first on the path, ahead of PYTHONPATH
@@ -100,8 +102,12 @@ def summary(res: dict[str, Any], log: Path) -> dict[str, Any]:
     if doc is None:
         return row
     change = heading_change_deg(doc, log)
+    wmm = [float(x) for n in doc.get("notes", []) for x in re.findall(r"from the WMM\S* at the log's position "
+                                                                        r"\((-?[\d.]+) deg\)", n)]
+    row["method"] = doc.get("method")
     row["mags"] = [{
-        "id": m["id"], "held": [h["parameter"] for h in m.get("held", [])],
+        "id": m["id"], "held": [h["parameter"] for h in m.get("held", [])], "reference": m.get("reference", "motion"),
+        "wmm_dip_deg": wmm[0] if wmm else None,
         "held_source": sorted({h["source"] for h in m.get("held", [])}),
         "norm_rms_pct": m["quality"]["field_norm_rms_pct"], "dip_deg": m["dip_deg"],
         "coverage_pct": m["quality"]["coverage_pct"], "heading_change_deg": change.get(m["id"])}
@@ -129,23 +135,26 @@ def raw_spread(log: Path) -> dict[str, float]:
 def markdown(rows: list[dict[str, Any]], before: bool) -> str:
     """The results table."""
     head = "| log | " + ("before | " if before else "") + "after | magnetometer | held at a prior | raw spread % | " \
-        "calibrated spread % | dip deg | heading change deg | s |"
+        "calibrated spread % | dip deg (WMM) | heading change deg | s |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         b = r.get("before")
         before_txt = (f"exit {b['exit']}: {(b['error'] or 'ok')[:90]} | " if b else "— | ") if before else ""
         a = r["after"]
         if not a.get("mags"):
-            lines.append(f"| {r['log']} | {before_txt}exit {a['exit']}: {(a['error'] or '')[:120]} | | | | | | | "
+            lines.append(f"| {r['log']} | {before_txt}exit {a['exit']}: {(a['error'] or '')[:140]} | | | | | | | "
                          f"{a['seconds']} |")
             continue
         for i, m in enumerate(a["mags"]):
             held = ", ".join(m["held"]) or "nothing"
             hc = m["heading_change_deg"]
+            wmm = m.get("wmm_dip_deg")
+            how = f"{a.get('method')}" + (f" ({m['reference']})" if m.get("reference", "motion") != "motion" else "")
             lines.append(
                 f"| {r['log'] if i == 0 else ''} | {before_txt if i == 0 else ('| ' if before else '')}"
-                f"{'calibrated' if i == 0 else ''} | {m['id']} | {held} | {r['raw'].get(m['id'], float('nan')):.2f} | "
-                f"{m['norm_rms_pct']:.2f} | {m['dip_deg']:.1f} | {'—' if hc is None else f'{hc:.1f}'} | "
+                f"{'calibrated: ' + how if i == 0 else ''} | {m['id']} | {held} | "
+                f"{r['raw'].get(m['id'], float('nan')):.2f} | {m['norm_rms_pct']:.2f} | {m['dip_deg']:.1f}"
+                f"{'' if wmm is None else f' ({wmm:.1f})'} | {'—' if hc is None else f'{hc:.1f}'} | "
                 f"{a['seconds'] if i == 0 else ''} |")
         for n in a.get("not_calibrated", []):
             lines.append(f"| | {'| ' if before else ''}| {n[:140]} | | | | | | |")
@@ -158,7 +167,9 @@ def main() -> None:
     ap.add_argument("--realdata", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "realdata")
     ap.add_argument("--before", type=Path, default=None, help="an older checkout (folder holding magcal_cli/)")
     ap.add_argument("--out", type=Path, default=Path("docs/results/flight_logs"))
+    ap.add_argument("--fit", default="", help="options for `magcal fit` [default: none, i.e. fit's defaults]")
     args = ap.parse_args()
+    extra = tuple(args.fit.split())
     if not args.realdata.is_dir():
         print(f"{args.realdata}: no real logs here; nothing to measure")
         return
@@ -167,17 +178,18 @@ def main() -> None:
     for log in logs:
         name = str(log.relative_to(args.realdata))
         print(f"{name} ...", flush=True)
-        row: dict[str, Any] = {"log": name, "raw": raw_spread(log), "after": summary(fit(log, None), log)}
+        row: dict[str, Any] = {"log": name, "raw": raw_spread(log), "after": summary(fit(log, None, extra=extra), log)}
         if args.before is not None:
-            row["before"] = summary(fit(log, args.before), log)
+            row["before"] = summary(fit(log, args.before, extra=extra), log)
         rows.append(row)
     table = markdown(rows, args.before is not None)
     print(table)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str) + "\n")
     args.out.with_suffix(".md").write_text(
-        "# Every real log through `magcal fit --effects none`\n\n"
-        "Made by `python benchmarks/flight_logs.py" + (f" --before {args.before}" if args.before else "") + "`. "
+        f"# Every real log through `magcal fit {args.fit}`\n\n"
+        "Made by `python benchmarks/flight_logs.py" + (f" --before {args.before}" if args.before else "") +
+        (f" --fit '{args.fit}'" if args.fit else "") + "`. "
         "Raw spread: std/mean of |raw reading|; calibrated spread: the document's field_norm_rms_pct; heading "
         "change: largest difference over a level turn between the calibration the vehicle flew with and the "
         "fitted one.\n\n" + table)
