@@ -38,6 +38,48 @@ def _stderr(ctx: click.Context, message: str) -> None:
         click.echo(f"magcal: {message}", err=True)
 
 
+def _progress(ctx: click.Context) -> Any:
+    """The progress renderer on stderr (a context manager and the pipeline's hook): silent with -q, the live
+    stage/fraction/time-left line only when stderr is a terminal."""
+    from .progress import Progress
+
+    return Progress.for_stderr(bool(ctx.obj.get("quiet")))
+
+
+#: finding code -> its one-line form in the terminal ({max_factor} and {what} filled from the group's evidence)
+BRIEF = {"correlated_residuals": "residuals correlated in time beyond the noise model (uncertainty widened up to "
+                                 "{max_factor:.1f}x)",
+         "poorly_observable": "{what} poorly determined by the motion in this log (docs/recording-guide.md says "
+                              "which motion determines it)",
+         "dip_disagrees_with_wmm": "fitted dip differs from the World Magnetic Model's"}
+#: a kind with a single warning no longer than this is printed in full
+FULL_CHARS = 240
+
+
+def _warning_lines(findings: tuple[Any, ...], mag_ids: list[str], verbose: bool) -> list[str]:
+    """The fit's warnings for the terminal: every one in full with -v, else one line per kind naming the
+    magnetometers (report.html and report.txt keep the full text)."""
+    from .findings import Severity
+    from .writers.report_summary import groups
+
+    warnings = tuple(f for f in findings if f.severity is Severity.WARNING)
+    if verbose:
+        return [f.message for f in warnings]
+    out = []
+    for g in groups(warnings, mag_ids):
+        if len(g.messages) == 1 and len(g.messages[0]) <= FULL_CHARS:
+            out.append(g.messages[0])
+            continue
+        mine = [f for f in warnings if f.code == g.code]
+        factor = max((float(f.evidence.get("max_factor", 0.0)) for f in mine), default=0.0)
+        what = sorted({p.split(".")[0].replace("_", " ") for f in mine for p in f.evidence.get("parameters", [])})
+        text = BRIEF.get(g.code, g.title[:1].lower() + g.title[1:]).format(max_factor=factor,
+                                                                           what=", ".join(what) or "parameters")
+        who = ", ".join(g.sensors) if len(g.sensors) < 3 else f"{len(g.sensors)} magnetometers ({', '.join(g.sensors)})"
+        out.append(f"{who}: {text}" if who else text)
+    return out
+
+
 def handle_errors(func: F) -> F:
     """Map MagcalError to exit 1, quality gates to 3, interrupts to 130 and anything else (a bug) to 123."""
 
@@ -206,7 +248,8 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
     cfg = Config(method=method, mag=",".join(mags) or "all", imu=imu, start_s=start_s, end_s=end_s,
                  allow_truncated=not strict, location=location, date=date, robust_loss=robust_loss, effects=() if effects == AUTO else effects,
                  diagnose=effects == AUTO)
-    result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
+    with _progress(ctx) as progress:
+        result = calibrate(log, cfg, fmt, progress)
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
         names.append(auto)
     written = _write_fit_outputs(ctx, result, outdir, names, auto)
@@ -221,9 +264,15 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
         click.echo(f"{m.id}: {result.calibration.method}, dip {m.dip_deg:.1f} deg, misalignment "
                    f"{_angle_deg(m.misalignment):.2f} deg, field-norm error {q.field_norm_rms_pct:.2f} % RMS, "
                    f"coverage {q.coverage_pct:.0f} %" if q else m.id)
-    for f in result.findings:
-        if f.severity.value == "warning":
-            _stderr(ctx, f"warning: {f.message}")
+    lines = _warning_lines(result.findings, [m.id for m in result.calibration.magnetometers],
+                           bool(ctx.obj.get("verbose")))
+    for line in lines:
+        _stderr(ctx, f"warning: {line}")
+    full = sum(f.severity.value == "warning" for f in result.findings)
+    report = next((p for name in ("report.html", "report.txt") for p in written if p.name == name), None)
+    if full > len(lines):
+        _stderr(ctx, f"{full} warnings in {len(lines)} kinds; the full text is in "
+                     f"{report if report else 'the calibration document notes'} (-v prints it here)")
     for p in written:
         click.echo(f"wrote {p}")
     _fit_gates(result, fail_on)
@@ -541,7 +590,8 @@ def diagnose_cmd(ctx: click.Context, log: Path, cal_path: Path | None, outdir: P
         options.refuse_existing((target,), force, ", or choose another -o")
         check_writable(outdir, create=True, hint="Choose another -o")
     cfg = Config(method="map", mag=mag, imu=imu, diagnose=True)
-    result = calibrate(log, cfg, fmt, lambda m: _stderr(ctx, m))
+    with _progress(ctx) as progress:
+        result = calibrate(log, cfg, fmt, progress)
     doc = {"log": str(log.resolve()), "diagnosis": result.calibration.diagnosis,
            "effects": list(result.calibration.effects)}
     text = json.dumps(doc, indent=2, default=float) + "\n"
@@ -604,9 +654,10 @@ def check_cmd(ctx: click.Context, log: Path, cal_path: Path | None, params_path:
     source = (None if cal_path is None and params_path is None else
               f"the calibration document {cal_path.resolve()}" if cal_path is not None else
               f"the parameter file {params_path.resolve()}" if params_path is not None else None)
-    report = run_check(log, (*conditions, *fail_on), params=None if params_path is None else load_params(params_path),
-                       calibration=calibration, mags=list(mags) or None, refit=refit, fmt=fmt,
-                       progress=lambda m: _stderr(ctx, m), options=CheckOptions(require_measured, source))
+    with _progress(ctx) as progress:            # current() for the refit, which run_check starts without a hook
+        report = run_check(log, (*conditions, *fail_on), params=None if params_path is None else
+                           load_params(params_path), calibration=calibration, mags=list(mags) or None, refit=refit,
+                           fmt=fmt, progress=progress, options=CheckOptions(require_measured, source))
     click.echo(report.to_json() if as_json else report.to_text(), nl=False)
     if not report.passed:
         failed = [f"{c.id}: {', '.join(c.failed)}" for c in report.compasses if c.failed and c.gated]

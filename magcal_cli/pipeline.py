@@ -24,6 +24,7 @@ from .models.params import MAG
 from .models.partial import MagPrior, flown_prior
 from .models.problem import Problem
 from .models.result import MagFit, MethodResult
+from .progress import Hook, active, current
 from .readers import ReadOptions, open_recording
 from .readers.checks import normalised_field
 from .registry import resolve
@@ -31,7 +32,7 @@ from .streams import Kind, Recording, Stream
 from .wmm import ReferenceField, reference_for
 
 FloatArray = npt.NDArray[np.float64]
-Progress = Callable[[str], None]
+Progress = Hook
 MethodRun = Callable[[Problem, Config], MethodResult]
 
 #: method name -> "module:function(problem, config) -> MethodResult"
@@ -67,10 +68,6 @@ class RunResult:
     still: StillResult
     findings: tuple[Finding, ...]
     series: dict[str, MagSeries]
-
-
-def _noop(_: str) -> None:
-    """Default progress sink."""
 
 
 def sha256(path: Path) -> str:
@@ -400,17 +397,19 @@ def _attitude_instead(problem: Problem, cfg: Config, exc: InsufficientDataError
     return result, [why]
 
 
-def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress = _noop) -> RunResult:
-    """Calibrate every selected magnetometer of one log against its IMU."""
+def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress | None = None) -> RunResult:
+    """Calibrate every selected magnetometer of one log against its IMU (progress: default the current hook)."""
     path = Path(path)
+    progress = progress or current()
     progress(f"reading {path.name}")
     rec = open_recording(path, fmt, ReadOptions(allow_truncated=cfg.allow_truncated))
     return calibrate_recording(rec, cfg, progress)
 
 
-def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop) -> RunResult:
+def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None = None) -> RunResult:
     """Calibrate every selected magnetometer of a recording already read (or built in code) against its IMU."""
     path = rec.path
+    progress = progress or current()
     problem, dropped = _select(rec, cfg)
     method, chosen = _method_for(problem, cfg)
     cfg = _with_position(rec, cfg)
@@ -431,7 +430,8 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress = _noop)
     progress(f"{len(problem.still.segments)} still segments; fitting {method} "
              f"for {', '.join(m.id for m in problem.mags)}")
     try:
-        result, failed = _run_method(resolve(target, f"the {method} method"), problem, cfg, method)
+        with active(progress):          # the estimators and the diagnosis report through progress.current()
+            result, failed = _run_method(resolve(target, f"the {method} method"), problem, cfg, method)
     except InsufficientDataError as exc:
         result, failed = _attitude_instead(problem, cfg, exc)
     mags, series = [], {}

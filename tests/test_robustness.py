@@ -518,7 +518,7 @@ def test_poorly_observable_parameters_are_named(runner: CliRunner, tmp_path: Pat
     rot = so3.exp(np.stack([0 * t, 0 * t, 0.5 * t], 1)) @ so3.exp(
         np.stack([tilt * np.sin(0.31 * t), tilt * np.cos(0.23 * t), 0 * t], 1))
     path = write_rec(recording_of(rot, rate, 3), tmp_path / "flat.csv")
-    result = fit(runner, path, tmp_path / "o")
+    result = fit(runner, path, tmp_path / "o", "-v")           # -v: every warning in full (else one line per kind)
     assert result.exit_code == 0, result.stderr
     assert re.search(r"magcal: warning: flat.csv: mag: this log leaves the .* poorly determined .*To fix: ",
                      result.stderr)

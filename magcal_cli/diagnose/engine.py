@@ -16,6 +16,7 @@ import numpy as np
 from .. import effects as registry
 from ..models.map import MapEstimate, fit_map
 from ..models.problem import Problem
+from ..progress import Hook, current
 from ..streams import Stream
 from . import ppc
 from .select import Selection, select
@@ -35,25 +36,32 @@ class Diagnosis:
 
 
 def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: float = 0.0, loss: str = "l2",
-             dip_prior: float | None = None, replicates: int = ppc.REPLICATES) -> Diagnosis:
+             dip_prior: float | None = None, replicates: int = ppc.REPLICATES, progress: Hook | None = None
+             ) -> Diagnosis:
     """Diagnose the base fit `base` of `mag` (which must carry its context) against every registered effect.
 
     A log with more than DIAGNOSIS_EPOCHS magnetometer readings is diagnosed on every k-th reading (the tests
     have power to spare there, and the diagnosis costs some twenty fits); the effects it accepts are then
-    fitted on every reading.
+    fitted on every reading. `progress` defaults to the current hook (models.map calls this without one).
     """
+    hook = progress or current()
     step = int(np.ceil(base.epochs.size / DIAGNOSIS_EPOCHS))
     thin = mag if step <= 1 else Stream(mag.kind, mag.id, mag.t[::step], mag.values[::step], mag.source,
                                         mag.native_unit)
+    if step > 1:
+        hook(f"{mag.id} diagnosis: fitting every {step}th reading", 0)
     start = base if step <= 1 else fit_map(problem, thin, loss, dip_prior, declination=declination)
-    before = ppc.check(problem, thin, start, replicates)
+    before = ppc.check(problem, thin, start, replicates, progress=hook, stage="replicates of the base model")
     candidates = tuple(e for e in registry.EFFECTS if e not in problem.base_effects)
-    sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior)
+    sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior, hook)
     modelled = tuple(v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None)
-    after = ppc.check(problem, thin, sel.estimate, replicates) if modelled else before
+    after = ppc.check(problem, thin, sel.estimate, replicates, progress=hook,
+                      stage=f"replicates with {', '.join(modelled)}") if modelled else before
     est, full = replace(sel.estimate, effects=sel.verdicts), sel.estimate
     if step > 1:
         note = f"{mag.id}: diagnosed on every {step}th of {base.epochs.size} readings; effects fitted on all"
+        if modelled:
+            hook(f"{mag.id} diagnosis: fitting {', '.join(modelled)} on every reading", 0)
         full = fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
                        warm=base.context) if modelled else base
         fitted = {f.id: f for f in full.effects}

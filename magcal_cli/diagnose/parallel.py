@@ -7,7 +7,7 @@ threads share the problem's arrays without copying or pickling them.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
@@ -18,9 +18,21 @@ R = TypeVar("R")
 JOBS = int(os.environ.get("MAGCAL_JOBS", "0")) or min(2, os.cpu_count() or 1)
 
 
-def pmap(fn: Callable[[T], R], items: Sequence[T], jobs: int = JOBS) -> list[R]:
-    """[fn(x) for x in items], in order, on up to `jobs` threads."""
+def pmap(fn: Callable[[T], R], items: Sequence[T], jobs: int = JOBS,
+         done: Callable[[int, int], None] | None = None) -> list[R]:
+    """[fn(x) for x in items], in order, on up to `jobs` threads; `done(i, n)` after each of the first i results,
+    called in the caller's thread (where the progress hook lives)."""
     if jobs <= 1 or len(items) <= 1:
-        return [fn(x) for x in items]
+        return _collect((fn(x) for x in items), len(items), done)
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        return list(pool.map(fn, items))
+        return _collect(pool.map(fn, items), len(items), done)
+
+
+def _collect(results: Iterator[R], n: int, done: Callable[[int, int], None] | None) -> list[R]:
+    """The results as a list, reporting each arrival."""
+    out: list[R] = []
+    for r in results:
+        out.append(r)
+        if done is not None:
+            done(len(out), n)
+    return out

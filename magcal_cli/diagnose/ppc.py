@@ -24,6 +24,7 @@ from ..models.epochs import Epochs
 from ..models.map import FitContext, MapEstimate, point_at
 from ..models.problem import Problem
 from ..models.solve import Factor, Options, solve
+from ..progress import Hook, current
 from ..streams import Kind, Stream
 from .parallel import pmap
 
@@ -162,8 +163,10 @@ def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generat
     return replace(ep, acc=acc, mag=mag), replace(pre, delta=delta)
 
 
-def check(problem: Problem, mag: Stream, est: MapEstimate, replicates: int = REPLICATES, seed: int = 0) -> Check:
+def check(problem: Problem, mag: Stream, est: MapEstimate, replicates: int = REPLICATES, seed: int = 0,
+          progress: Hook | None = None, stage: str = "replicates") -> Check:
     """Compare the recording with `replicates` simulations from the fit `est`."""
+    hook = progress or current()
     ctx = est.context
     assert ctx is not None
     reg = regressors(problem, ctx)
@@ -178,7 +181,7 @@ def check(problem: Problem, mag: Stream, est: MapEstimate, replicates: int = REP
         _, v, w = battery(replace(ctx, ep=ep, pre=pre), sol.factors, sol.states, sol.theta, reg)
         return v, w
 
-    sims = pmap(one, [int(s) for s in seeds])
+    sims = pmap(one, [int(s) for s in seeds], done=lambda i, n: hook(f"{mag.id} diagnosis: {stage}", i, n))
     t_sim, w_sim = np.array([v for v, _ in sims]), np.array([w for _, w in sims])
     mean, sd = t_sim.mean(axis=0), np.maximum(t_sim.std(axis=0, ddof=1), 1e-12)
     z = (obs - mean) / sd

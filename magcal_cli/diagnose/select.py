@@ -28,6 +28,7 @@ from ..models.map import MapEstimate, fit_map, point_at
 from ..models.map_effects import Bound
 from ..models.problem import Problem
 from ..models.result import EffectFit
+from ..progress import Hook, current
 from ..streams import Stream
 from .score import Score, Screen, screen
 from .validate import FOLD_NOISE_ROUNDS, Heldout, crossvalidate
@@ -140,7 +141,8 @@ class Forward:
 
 
 def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float,
-            loss: str, dip_prior: float | None, holdout: tuple[tuple[float, float], ...] = ()) -> Forward:
+            loss: str, dip_prior: float | None, holdout: tuple[tuple[float, float], ...] = (),
+            progress: Hook | None = None) -> Forward:
     """Add the strongest significant candidate, refit, screen the rest given it; at most MAX_EFFECTS rounds.
 
     Re-screening after each addition matters: an unmodelled strong effect leaks into the score of every other
@@ -154,9 +156,12 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
     scores: dict[str, Score] = {}
     implausible: dict[str, str] = {}
     left = list(candidates)
+    hook = progress or current()
     for _ in range(MAX_EFFECTS + 2):
         if len(picked) == MAX_EFFECTS:
             break
+        hook(f"{mag.id} diagnosis: screening {len(left)} effects" + (f" beside {', '.join(picked)}" if picked else ""),
+             0)
         scr = screen(problem, mag, est, left, declination)
         screens.append(scr)
         scores.update({s.id: s for s in scr.scores})
@@ -166,6 +171,7 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         best = sig[0]
         rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE]
         pairs += [frozenset((best, r)) for r in rivals]
+        hook(f"{mag.id} diagnosis: fitting with {best}", 0)
         trial = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=(*picked, best),
                         declination=declination, holdout=holdout, warm=est.context)
         bad = beyond_limits(trial, best)
@@ -192,8 +198,10 @@ def beyond_limits(est: MapEstimate, eid: str) -> str:
 
 
 def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float = 0.0,
-           loss: str = "l2", dip_prior: float | None = None) -> Selection:
+           loss: str = "l2", dip_prior: float | None = None, progress: Hook | None = None) -> Selection:
     """Select forward against the base fit, check backward, validate on held-out data, decide."""
+    hook = progress or current()
+
     def fit(ids: tuple[str, ...], warm: MapEstimate) -> MapEstimate:
         return fit_map(problem, mag, loss, dip_prior, effects=ids, declination=declination, warm=warm.context)
 
@@ -201,7 +209,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         # what the training data alone finds significant against the base model (the first forward step)
         return tuple(holm(screen(problem, mag, fold_base, candidates, declination)))
 
-    fw = forward(problem, mag, base, candidates, declination, loss, dip_prior)
+    fw = forward(problem, mag, base, candidates, declination, loss, dip_prior, progress=hook)
     scr = fw.screens[0]
     picked = list(fw.picked)
     first = fw.picked
@@ -214,8 +222,9 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         if not weak:
             break
         picked = [p for p in picked if p not in weak]
+        hook(f"{mag.id} diagnosis: refitting without {', '.join(weak)}", 0)
         est = fit(tuple(picked), base) if picked else base
-    held = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior) if picked else None
+    held = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior, hook) if picked else None
     neff = n_eff(est) if picked else float("nan")
     verdicts: dict[str, EffectFit] = {}
     for f in est.effects:

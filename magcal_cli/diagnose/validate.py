@@ -20,6 +20,7 @@ from ..models.map import FitContext, MapEstimate, fit_map
 from ..models.map_effects import row_weights
 from ..models.problem import Problem
 from ..models.solve import Factor, Linearize, Options, solve
+from ..progress import Hook, current
 from ..streams import Stream
 from .parallel import pmap
 
@@ -111,7 +112,8 @@ Procedure = Callable[[MapEstimate, tuple[tuple[float, float], ...]], tuple[str, 
 
 
 def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Procedure, model: MapEstimate,
-                  declination: float = 0.0, loss: str = "l2", dip_prior: float | None = None) -> Heldout:
+                  declination: float = 0.0, loss: str = "l2", dip_prior: float | None = None,
+                  progress: Hook | None = None) -> Heldout:
     """Blocked cross-validation of the base model plus the effects `model` against the base model, both fitted
     on each training fold (each fit starts from its whole-log counterpart, `est` or `model`); inside each fold `procedure` also chooses effects from the training data alone (the
     fraction of folds choosing an effect is the nested check that the whole log did not choose it by chance)."""
@@ -139,7 +141,8 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Pr
         ok = n > 0
         return (nb - ne)[ok] / n[ok], float(sb.sum()), float(se.sum()), float(n.sum()), picked
 
-    parts = pmap(fold, folds(windows))
+    hook = progress or current()
+    parts = pmap(fold, folds(windows), done=lambda i, n: hook(f"{mag.id} diagnosis: held-out folds", i, n))
     gains = np.concatenate([p[0] for p in parts])
     before, after, count = sum(p[1] for p in parts), sum(p[2] for p in parts), sum(p[3] for p in parts)
     chosen = [p[4] for p in parts]

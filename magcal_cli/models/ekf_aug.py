@@ -19,6 +19,7 @@ import numpy.typing as npt
 from .. import so3
 from ..config import Config
 from ..errors import ConvergenceError
+from ..progress import Hook, current, noop
 from . import ekf
 from .ekf import Batch, Prepared
 from .params import BASE, Layout, ParamBlock
@@ -33,6 +34,8 @@ N = STATE.size
 PHI = STATE.slice("orientation_error")
 THETA = STATE.span(BASE.names[0], BASE.names[-1])
 GYRO_BIAS = STATE.slice("gyroscope_bias")
+#: epochs between progress reports inside a filter pass
+PROGRESS_EPOCHS = 128
 #: the authors' simulated field strength (uT): their absolute magnetometer stds are relative to it
 AUTHORS_FIELD_UT = 27.0
 
@@ -91,7 +94,8 @@ class Final:
     nis: FloatArray
 
 
-def filter_pass(batch: Batch, theta0: FloatArray, settings: Settings = Settings()) -> Final:
+def filter_pass(batch: Batch, theta0: FloatArray, settings: Settings = Settings(), progress: Hook = noop,
+                stage: str = "ekf-aug filter pass") -> Final:
     """One augmented-state EKF pass over B filters from theta0 (B, BASE.size)."""
     b, k_all = batch.size
     rot = batch.rot0.copy()
@@ -102,6 +106,8 @@ def filter_pass(batch: Batch, theta0: FloatArray, settings: Settings = Settings(
     ss_mag, nis = np.zeros(b), np.zeros(b)
     eye6 = np.eye(6)
     for k in range(k_all):
+        if k % PROGRESS_EPOCHS == 0:
+            progress(stage, k, k_all)
         if k > 0:                                                   # predict: R <- R Gamma, P <- F P F^T + Q
             g = (batch.d_bias[:, k - 1] @ (BASE.get(x, "gyroscope_bias") - batch.bias)[:, :, None])[:, :, 0]
             step, jr = so3.exp_and_right_jacobian(g)
@@ -134,10 +140,11 @@ def filter_pass(batch: Batch, theta0: FloatArray, settings: Settings = Settings(
     return Final(x, cov, np.sqrt(ss_mag / (3.0 * n_valid)), nis / n_valid)
 
 
-def fit_batch(preps: Sequence[Prepared], settings: Settings = Settings()) -> list[ekf.Estimate]:
+def fit_batch(preps: Sequence[Prepared], settings: Settings = Settings(), progress: Hook = noop
+              ) -> list[ekf.Estimate]:
     """The augmented EKF on several prepared filters at once (one Python loop per epoch for all)."""
     batch = ekf.stack(preps)
-    final = filter_pass(batch, np.array([p.theta0 for p in preps]), settings)
+    final = filter_pass(batch, np.array([p.theta0 for p in preps]), settings, progress)
     out = []
     for i, p in enumerate(preps):
         cov = final.cov[i, THETA, THETA]
@@ -150,7 +157,8 @@ def fit_batch(preps: Sequence[Prepared], settings: Settings = Settings()) -> lis
     return out
 
 
-def run(problem: Problem, cfg: Config) -> MethodResult:
-    """Wu et al. 2018 for every magnetometer of the problem, each against the IMU (batched in one filter loop)."""
+def run(problem: Problem, cfg: Config, progress: Hook | None = None) -> MethodResult:
+    """Wu et al. 2018 for every magnetometer of the problem, each against the IMU (batched in one filter loop);
+    progress defaults to the current hook (the pipeline calls every method as run(problem, cfg))."""
     preps = [ekf.prepare(problem, m) for m in problem.mags]    # dip starts from the data (docs/method-ekf.md)
-    return ekf.method_result("ekf-aug", problem, fit_batch(preps))
+    return ekf.method_result("ekf-aug", problem, fit_batch(preps, progress=progress or current()))

@@ -24,6 +24,7 @@ import numpy.typing as npt
 from .. import so3
 from ..config import Config
 from ..errors import ConvergenceError
+from ..progress import Hook, current, noop
 from . import ekf
 from .ekf import Batch, Prepared
 from .epochs import Noise
@@ -47,6 +48,8 @@ DIP = LAYOUT.slice("dip").start
 #: log-likelihood) falls below this: the last step moved theta by ~0.03 standard deviations
 DECREMENT_TOL = 1e-3
 MAX_ITERATIONS = 30
+#: epochs between progress reports inside a filter pass (a pass over a 20-minute log has ~10^5)
+PROGRESS_EPOCHS = 128
 #: largest change of a log variance factor per step (a factor e^2 ~ 7 in variance)
 MAX_LOG_VAR_STEP = 2.0
 #: the warm start is used unless it moved D or o by more than this (field units) from the start values
@@ -97,7 +100,8 @@ def _d_measurement_jacobian(m: ekf.Measured, d_basis: FloatArray, psi: FloatArra
     return out
 
 
-def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True) -> Pass:
+def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True, progress: Hook = noop,
+                stage: str = "ekf-ml filter pass") -> Pass:
     """Run B orientation EKFs at parameters theta (B, P); with `derivatives`, also the exact gradient and Fisher
     information of the negative log-likelihood (forward-mode sensitivities of the recursion).
 
@@ -126,6 +130,8 @@ def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True) -> Pa
     eye6 = np.eye(6)
     acc_diag, mag_diag = (np.arange(3), np.arange(3)), (np.arange(3, 6), np.arange(3, 6))
     for k in range(k_all):
+        if k % PROGRESS_EPOCHS == 0:
+            progress(stage, k, k_all)
         if k > 0:                                                   # predict over the interval k-1 -> k
             gm, gt = gamma[:, k - 1], gamma_t[:, k - 1]
             rot = rot @ gm
@@ -193,7 +199,7 @@ def start_theta(preps: Sequence[Prepared]) -> FloatArray:
     return theta
 
 
-def warm_start(batch: Batch, theta: FloatArray) -> FloatArray:
+def warm_start(batch: Batch, theta: FloatArray, progress: Hook = noop) -> FloatArray:
     """theta (B, P) moved to one augmented-EKF pass's estimate (`ekf_aug`), where that pass stayed near the start.
 
     The pass costs less than one likelihood pass and halves the Fisher-scoring passes (7 -> 3 on `handheld` and
@@ -201,7 +207,8 @@ def warm_start(batch: Batch, theta: FloatArray) -> FloatArray:
     """
     from . import ekf_aug
 
-    aug = ekf_aug.filter_pass(batch, theta[:, THETA]).theta
+    aug = ekf_aug.filter_pass(batch, theta[:, THETA], progress=progress,
+                              stage="ekf-ml warm start (augmented EKF)").theta
     moved = np.abs(aug[:, BASE.span("D", "o")] - theta[:, LAYOUT.span("D", "o")]).max(axis=1)
     ok = np.all(np.isfinite(aug), axis=1) & (moved < WARM_START_LIMIT)
     out = theta.copy()
@@ -235,11 +242,16 @@ class Fit:
     log: tuple[str, ...]
 
 
-def fisher_scoring(batch: Batch, theta0: FloatArray, max_iterations: int = MAX_ITERATIONS) -> Fit:
+def fisher_scoring(batch: Batch, theta0: FloatArray, max_iterations: int = MAX_ITERATIONS, progress: Hook = noop
+                   ) -> Fit:
     """Minimise the negative log-likelihood of B filters at once: Fisher-scoring steps, halved when they raise it."""
+
+    def stage(n: int) -> str:          # the number of passes is known only at the end: each is shown on its own
+        return f"ekf-ml likelihood pass {n} (at most {max_iterations + 1})"
+
     b = theta0.shape[0]
     acc_theta = theta0.copy()
-    acc = filter_pass(batch, acc_theta)
+    acc = filter_pass(batch, acc_theta, progress=progress, stage=stage(1))
     full, dec = _step(acc, np.ones(b, dtype=bool))
     converged = dec < DECREMENT_TOL
     done = converged.copy()
@@ -248,7 +260,7 @@ def fisher_scoring(batch: Batch, theta0: FloatArray, max_iterations: int = MAX_I
     it = 0
     while not np.all(done) and it < max_iterations:
         it += 1
-        new = filter_pass(batch, acc_theta + fraction[:, None] * full)
+        new = filter_pass(batch, acc_theta + fraction[:, None] * full, progress=progress, stage=stage(it + 1))
         # a step may not raise -log L beyond its rounding (~1e-16 of each of ~1e4 terms)
         tol = 1e-12 * np.abs(acc.nll) + 1e-9
         better = (new.nll <= acc.nll + tol) & ~done & np.all(np.isfinite(new.grad), axis=1)
@@ -268,15 +280,15 @@ def fisher_scoring(batch: Batch, theta0: FloatArray, max_iterations: int = MAX_I
     return Fit(acc_theta, acc, it, converged, tuple(log))
 
 
-def fit_batch(preps: Sequence[Prepared]) -> list[ekf.Estimate]:
+def fit_batch(preps: Sequence[Prepared], progress: Hook = noop) -> list[ekf.Estimate]:
     """Maximum-likelihood calibration of several prepared filters at once (one Python loop per epoch for all)."""
     preps = list(preps)
-    theta = warm_start(ekf.stack(preps), start_theta(preps))
+    theta = warm_start(ekf.stack(preps), start_theta(preps), progress)
     fit = None
     iterations = 0
     for _ in range(3):                              # re-preintegrate when the gyro bias moved far (rarely needed)
         batch = ekf.stack(preps)
-        fit = fisher_scoring(batch, theta)
+        fit = fisher_scoring(batch, theta, progress=progress)
         iterations += fit.iterations + 1                   # filter passes: the start and one per trial
         theta = fit.theta
         redo = ekf.needs_repreintegration(batch, theta[:, GYRO_BIAS])
@@ -300,8 +312,9 @@ def fit_batch(preps: Sequence[Prepared]) -> list[ekf.Estimate]:
     return out
 
 
-def run(problem: Problem, cfg: Config) -> MethodResult:
-    """Kok & Schoen 2016 for every magnetometer of the problem, each against the IMU (batched in one filter loop)."""
+def run(problem: Problem, cfg: Config, progress: Hook | None = None) -> MethodResult:
+    """Kok & Schoen 2016 for every magnetometer of the problem, each against the IMU (batched in one filter loop);
+    progress defaults to the current hook (the pipeline calls every method as run(problem, cfg))."""
     preps = [ekf.prepare(problem, m) for m in problem.mags]    # dip starts from the data (docs/method-ekf.md)
-    return ekf.method_result("ekf-ml", problem, fit_batch(preps))
+    return ekf.method_result("ekf-ml", problem, fit_batch(preps, progress or current()))
 

@@ -1,0 +1,172 @@
+"""stderr: the progress line's text, rate and time left (fake clock, fake terminal), its absence with -q or off a
+terminal, and the warnings grouped one line per kind."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from magcal_cli import progress as progress_mod
+from magcal_cli.cli import cli
+from magcal_cli.diagnose.parallel import pmap
+from magcal_cli.progress import Progress, active, current, duration, noop
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "sample_logs" / "handheld.csv"
+
+
+class Clock:
+    """A clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def live(clock: Clock, width: int = 80) -> tuple[Progress, io.StringIO]:
+    """A renderer on a fake terminal of `width` columns."""
+    out = io.StringIO()
+    return Progress(out, live=True, clock=clock, width=lambda: width), out
+
+
+def frames(out: io.StringIO) -> list[str]:
+    """The live line's successive texts."""
+    return [f.removesuffix(progress_mod.CLEAR) for f in out.getvalue().split("\r") if f]
+
+
+def test_fraction_and_time_left_from_the_stage_rate() -> None:
+    """Stage, percentage and the time left extrapolated from the stage's own rate (shown after ETA_AFTER_S)."""
+    clock = Clock()
+    p, out = live(clock)
+    p("fit MAG[0]", 0, 100)
+    clock.t += 0.5
+    p("fit MAG[0]", 10, 100)
+    clock.t += 1.5                         # 20 steps in 2 s: 80 left at 10 per second
+    p("fit MAG[0]", 20, 100)
+    assert frames(out) == ["magcal: fit MAG[0]:   0 %", "magcal: fit MAG[0]:  10 %", "magcal: fit MAG[0]:  20 %, 8 s left"]
+
+
+def test_redraws_at_most_rate_hz_in_a_hot_loop() -> None:
+    """A thousand calls within 0.1 s draw once; a new stage is drawn at once (up to STAGE_HZ)."""
+    clock = Clock()
+    p, out = live(clock)
+    for i in range(1000):
+        clock.t += 1e-4
+        p("loop", i, 1000)
+    assert len(frames(out)) == 1
+    clock.t += 0.06
+    p("next stage", 0)
+    assert frames(out)[-1] == "magcal: next stage"
+    clock.t += 0.06
+    p("next stage", 1)                     # same stage within 1/RATE_HZ: not redrawn
+    assert len(frames(out)) == 2
+
+
+def test_messages_are_lines_and_erase_the_live_line() -> None:
+    """A message erases the live line and prints a line; close() erases the live line before results."""
+    clock = Clock()
+    p, out = live(clock)
+    p("pass 1", 5, 10)
+    p("reading x.bin")
+    assert out.getvalue().endswith("\r" + progress_mod.CLEAR + "magcal: reading x.bin\n")
+    clock.t += 1.0
+    p("pass 1", 6, 10)
+    p.close()
+    assert out.getvalue().endswith(progress_mod.CLEAR + "\r" + progress_mod.CLEAR)
+
+
+def test_long_line_is_cut_to_the_terminal_width() -> None:
+    """A line that wraps could not be rewritten in place: it is cut to the width minus one."""
+    p, out = live(Clock(), width=30)
+    p("x" * 100, 1, 2)
+    assert len(frames(out)[0]) == 29
+
+
+def test_not_a_terminal_or_quiet_prints_no_live_line() -> None:
+    """Off a terminal: messages only; quiet: nothing."""
+    out = io.StringIO()
+    p = Progress(out, live=False)
+    p("reading x.bin")
+    p("pass", 1, 2)
+    p.close()
+    assert out.getvalue() == "magcal: reading x.bin\n"
+    quiet = io.StringIO()
+    q = Progress(quiet, live=False, lines=False)
+    q("reading x.bin")
+    q("pass", 1, 2)
+    assert quiet.getvalue() == ""
+
+
+def test_duration_and_current_hook() -> None:
+    """Times read as people say them; active() sets the hook code without an argument finds."""
+    assert [duration(s) for s in (8.4, 125, 3780)] == ["8 s", "2 min 05 s", "1 h 03 min"]
+    assert current() is noop
+    seen: list[tuple[str, float | None, float | None]] = []
+
+    def hook(stage: str, done: float | None = None, total: float | None = None) -> None:
+        seen.append((stage, done, total))
+
+    with active(hook):
+        assert current() is hook
+        pmap(lambda x: x * 2, [1, 2, 3], jobs=2, done=lambda i, n: current()("replicates", i, n))
+    assert current() is noop
+    assert seen == [("replicates", 1, 3), ("replicates", 2, 3), ("replicates", 3, 3)]
+
+
+def _as_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make the CLI's stderr renderer believe stderr is a terminal."""
+    real = Progress.for_stderr.__func__  # type: ignore[attr-defined]
+
+    def fake(cls: type[Progress], quiet: bool) -> Progress:
+        p: Progress = real(cls, quiet)
+        p.live = not quiet
+        return p
+
+    monkeypatch.setattr(Progress, "for_stderr", classmethod(fake))
+
+
+@pytest.mark.parametrize(("terminal", "quiet"), [(False, False), (True, True), (True, False)])
+def test_cli_progress_only_on_a_terminal_without_q(runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     terminal: bool, quiet: bool) -> None:
+    """fit --method ekf-aug reports its filter pass on a terminal; with -q, or off a terminal, no live line."""
+    if terminal:
+        _as_terminal(monkeypatch)
+    monkeypatch.setattr(progress_mod, "RATE_HZ", 1e9)          # draw every report: the test is fast
+    args = ["fit", str(SAMPLE), "-o", str(tmp_path / "out"), "--method", "ekf-aug", "--outputs", "json"]
+    result = runner.invoke(cli, [*args, *(["-q"] if quiet else [])])
+    assert result.exit_code == 0, result.output
+    shown = "\r" in result.stderr and "ekf-aug filter pass" in result.stderr
+    assert shown is (terminal and not quiet)
+    if quiet:
+        assert result.stderr == ""
+    else:
+        assert "magcal: reading handheld.csv\n" in result.stderr
+
+
+def test_warnings_grouped_one_line_per_kind_and_in_full_with_v() -> None:
+    """log171's kinds: a long warning repeated per compass is one line naming them; a short single one stays whole."""
+    from magcal_cli.cli import _warning_lines
+    from magcal_cli.findings import Finding, Severity
+
+    long_tail = " (quantised readings, unmodelled motion or a disturbance); the uncertainty of D was widened" * 3
+    found = (
+        Finding(Severity.WARNING, "unmeasured_motion", "IMU[0]: the IMU did not measure the motion at 227.4-228.0 s"),
+        *(Finding(Severity.WARNING, "correlated_residuals", f"log.bin: {m}: the residuals are correlated{long_tail}",
+                  {"max_factor": f}) for m, f in (("MAG[0]", 3.2), ("MAG[1]", 10.6), ("MAG[2]", 4.0))),
+        Finding(Severity.WARNING, "poorly_observable", f"log.bin: MAG[2]: this log leaves the accelerometer bias "
+                f"poorly determined{long_tail}", {"parameters": ["accelerometer_bias.x", "accelerometer_bias.y"]}),
+        Finding(Severity.INFO, "reader_note", "MAG[0]: undid the firmware correction"),
+    )
+    mags = ["MAG[0]", "MAG[1]", "MAG[2]"]
+    assert _warning_lines(found, mags, verbose=False) == [
+        "IMU[0]: the IMU did not measure the motion at 227.4-228.0 s",
+        "3 magnetometers (MAG[0], MAG[1], MAG[2]): residuals correlated in time beyond the noise model (uncertainty "
+        "widened up to 10.6x)",
+        "MAG[2]: accelerometer bias poorly determined by the motion in this log (docs/recording-guide.md says which "
+        "motion determines it)"]
+    assert _warning_lines(found, mags, verbose=True) == [f.message for f in found[:5]]
