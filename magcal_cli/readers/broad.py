@@ -60,7 +60,7 @@ class BroadReader:
             data = _load_hdf5(path) if path.read_bytes()[:8] == b"\x89HDF\r\n\x1a\n" else _load_mat(path)
         except (OSError, ValueError, KeyError, TypeError) as exc:
             msg = (f"{path}: cannot read it as a BROAD HDF5/MAT trial ({type(exc).__name__}: {exc}). "
-                   "Re-copy the file")
+                   "Check that it is a BROAD trial, or pass --format for another log type")
             raise LogReadError(msg) from None
         missing = [k for k in REQUIRED if k not in data]
         if missing:
@@ -96,7 +96,7 @@ class BroadReader:
             if ok.any():
                 rot = ENU_TO_NED @ so3.from_quat(q[ok])                  # IMU -> ENU, then ENU -> NED
                 streams.append(Stream(Kind.ATTITUDE, "opt_quat", t[ok], so3.as_quat(rot),
-                                      f"{path.name}#opt_quat", "1"))
+                                      f"{path.name}#opt_quat", "quaternion wxyz"))
                 if not ok.all():
                     notes.append(f"{path.name}#opt_quat: motion capture lost the board in "
                                  f"{int((~ok).sum())} of {n} samples")

@@ -239,8 +239,9 @@ def _header_line(fh: IO[bytes], where: str) -> tuple[str, int]:
     for line_no, raw in enumerate(iter(fh.readline, b""), start=1):
         try:
             line = raw.decode("utf-8-sig" if line_no == 1 else "utf-8")
-        except UnicodeDecodeError as exc:
-            msg = f"{where}: cannot read the CSV file ({exc}). Save it as UTF-8 text"
+        except UnicodeDecodeError as exc:          # often a binary log taken for CSV by its name
+            msg = (f"{where}: cannot read the CSV file ({exc}). Save it as UTF-8 text, or pass --format if it is "
+                   "another log type")
             raise LogReadError(msg) from None
         if line.strip() and not line.lstrip().startswith("#"):
             return line.rstrip("\r\n"), line_no

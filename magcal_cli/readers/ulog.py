@@ -248,7 +248,7 @@ def _other_pieces(tp: _Topics) -> list[Piece]:
     if q is not None:
         # msg/VehicleAttitude.msg: q is (w, x, y, z), rotation from the FRD body frame to NED
         out.append(Piece(Kind.ATTITUDE, "vehicle_attitude", tp.stamps(att, "vehicle_attitude"), q,
-                         tp.source("vehicle_attitude", "q"), "1"))
+                         tp.source("vehicle_attitude", "q"), "quaternion wxyz"))
     for i in tp.instances("battery_status"):
         ds, sid = tp.get("battery_status", i), f"battery_status[{i}]"
         t = np.asarray(ds.data["timestamp"], dtype=np.int64)

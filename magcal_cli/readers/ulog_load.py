@@ -155,7 +155,10 @@ def load_ulog(path: Path, wanted: list[str]) -> Loaded:
                "corrupt header). Update pyulog (pip install --upgrade pyulog) or re-copy the log")
         raise LogReadError(msg) from None
     except ULogException as exc:
-        msg = f"{path}: not a readable ULog ({_first_line(exc)}). Re-copy the log from the vehicle"
+        # a header cut short is a damaged copy; a header that does not parse is another format
+        fix = ("Re-copy the log from the vehicle" if "too short" in str(exc) else
+               "Check that it is a PX4 .ulg log, or pass --format for another log type")
+        msg = f"{path}: not a readable ULog ({_first_line(exc)}). {fix}"
         raise LogReadError(msg) from None
     except (TypeError, ValueError, KeyError, IndexError, OverflowError, struct.error, UnicodeDecodeError,
             MemoryError) as exc:
