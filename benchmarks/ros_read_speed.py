@@ -226,7 +226,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size-mb", type=float, default=100.0, help="size of each timed log (MB)")
     ap.add_argument("--big-gb", type=float, default=1.0, help="size of the peak-memory ROS 2 bag (GB; 0: skip)")
-    ap.add_argument("--formats", default=",".join(FORMATS))
+    ap.add_argument("--formats", default=",".join(FORMATS), help='timed formats ("" for the big bag only)')
     ap.add_argument("--out", type=Path, default=None, help="write the results as Markdown here")
     ap.add_argument("--tmp", type=Path, default=None, help="folder for the generated logs (default: system temp)")
     ap.add_argument("--run", choices=["magcal", "baseline"], help=argparse.SUPPRESS)
@@ -240,7 +240,7 @@ def main() -> int:
     lines = ["| log | size (MB) | messages | magcal (s) | MB/s | baseline | baseline (s) | MB/s | ratio | "
              "peak RSS magcal / baseline (MB) |", "|---|---|---|---|---|---|---|---|---|---|"]
     try:
-        for fmt in args.formats.split(","):
+        for fmt in filter(None, args.formats.split(",")):
             probe = write(fmt, tmp / f"probe-{fmt}{'.mcap' if fmt == 'mcap' else '.bag' if fmt == 'ros1' else ''}",
                           WINDOW_S)
             duration = WINDOW_S * args.size_mb * 1e6 / size_of(probe)

@@ -35,7 +35,7 @@ def decode_into(collector: Collector, decoder: BatchDecoder, topic: str, raws: l
     """Decode raw messages of one topic into `collector`; how many did not decode."""
     if not raws:
         return 0
-    length = np.fromiter((len(r) for r in raws), dtype=np.int64, count=len(raws))
+    length = np.fromiter(map(len, raws), dtype=np.int64, count=len(raws))
     start = np.concatenate([[0], np.cumsum(length)[:-1]]).astype(np.int64)
     buf = np.frombuffer(b"".join(raws), dtype=np.uint8)
     ok, stamps, values = decoder(buf, start, length)

@@ -108,8 +108,11 @@ class Collector:
         """(header stamps, receive times, values) of one topic, in arrival order."""
         self._flush(key)
         blocks = self.blocks[key]
-        return (np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]),
-                np.concatenate([b[2].reshape(len(b[0]), -1) for b in blocks]))
+        if len(blocks) > 1:         # one block from now on: the pieces are freed as soon as they are joined
+            joined = (np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]),
+                      np.concatenate([b[2].reshape(len(b[0]), -1) for b in blocks]))
+            blocks[:] = [joined]
+        return blocks[0]
 
     def keys(self) -> list[tuple[str, str]]:
         """The topics that have messages."""
@@ -119,15 +122,20 @@ class Collector:
         return sum(len(v) for v in self.values.values()) + sum(len(b[0]) for bs in self.blocks.values() for b in bs)
 
     def recording(self, path: Path, fmt: str, options: ReadOptions, notes: list[str]) -> Recording:
-        """Streams relative to the earliest sample, cleaned, in SI, with every remark in `notes`."""
+        """Streams relative to the earliest sample, cleaned, in SI, with every remark in `notes`.
+
+        Empties the collector: each topic's arrays are freed once its streams are built (peak memory)."""
         keys = sorted(self.keys(), key=lambda k: (ROS_TYPES[k[1]][0] != "imu", k[0]))
         arrays = {k: self.arrays(k) for k in keys}
         times = _time_bases(arrays, options, notes)
         t0 = min((int(ts.min()) for ts in times.values() if ts.size), default=0)
         streams: list[Stream] = []
         for key in keys:
-            t = (times[key] - t0).astype(np.float64) * 1e-9
-            streams += _streams(path, key, t, arrays[key][2], notes)
+            t = (times.pop(key) - t0).astype(np.float64) * 1e-9
+            values = arrays.pop(key)[2]
+            self.blocks.pop(key, None)
+            streams += _streams(path, key, t, values, notes)
+            del t, values
         return Recording(path, fmt, tuple(streams), t0=t0 * 1e-9, notes=tuple(notes))
 
 
