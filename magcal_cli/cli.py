@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import re
 import sys
 import traceback
 import warnings
@@ -72,7 +73,7 @@ def _warning_lines(findings: tuple[Any, ...], mag_ids: list[str], verbose: bool)
             continue
         mine = [f for f in warnings if f.code == g.code]
         factor = max((float(f.evidence.get("max_factor", 0.0)) for f in mine), default=0.0)
-        what = sorted({p.split(".")[0].replace("_", " ") for f in mine for p in f.evidence.get("parameters", [])})
+        what = sorted({m.group(1) for f in mine if (m := re.search(r"leaves the (.+?) poorly determined", f.message))})
         text = BRIEF.get(g.code, g.title[:1].lower() + g.title[1:]).format(max_factor=factor,
                                                                            what=", ".join(what) or "parameters")
         who = ", ".join(g.sensors) if len(g.sensors) < 3 else f"{len(g.sensors)} magnetometers ({', '.join(g.sensors)})"
