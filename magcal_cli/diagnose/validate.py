@@ -91,6 +91,8 @@ def scores_in(ctx: FitContext, windows: Sequence[tuple[float, float]], keep: Flo
     for a, b in windows:
         inside |= (t >= a) & (t < b)
     w = (inside & (keep > 0)).astype(np.float64)
+    if ctx.excluded is not None:                 # readings the IMU's motion did not cover are nobody's score
+        w = w * ctx.excluded
     lin = _frozen(ctx.linearize(holdout=w), ctx.theta)
     sol = solve(lin, ctx.states, np.zeros(0), Options(max_iterations=3, abs_cost_tol=1e-2))
     fa, fm, fg = sol.factors[0], sol.factors[1], sol.factors[2]

@@ -80,14 +80,17 @@ class FitContext:
     theta: FloatArray
     holdout: FloatArray | None = None
     held: Held | None = None
+    #: (K,) 0 at readings inside windows the IMU did not measure (Problem.unmeasured): never part of any cost
+    excluded: FloatArray | None = None
 
     def linearize(self, layout: Layout | None = None, bound: tuple[Bound, ...] | None = None,
                   ep: Epochs | None = None, pre: Preintegrated | None = None,
                   holdout: FloatArray | None = None) -> Linearize:
         """The fit's cost, optionally with another layout and effects, data or held-out weights."""
+        w = self.excluded if holdout is None else holdout if self.excluded is None else holdout * self.excluded
         return make_linearize(self.ep if ep is None else ep, self.pre if pre is None else pre, self.noise,
                               self.layout if layout is None else layout, self.bound if bound is None else bound,
-                              holdout, self.held)
+                              w, self.held)
 
 
 @dataclass(frozen=True, eq=False)
@@ -529,7 +532,8 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     est = _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen, layout,
                     held)
     fitted = results(bound, layout, est.theta, est.cov, mag.id, problem.imu_id)
-    ctx = FitContext(ep, pre, noise, layout, bound, sol.states, sol.theta, hold, held)
+    ctx = FitContext(ep, pre, noise, layout, bound, sol.states, sol.theta, hold, held,
+                     held_out(ep.t, problem.unmeasured))
     return replace(est, effects=tuple(fitted + untestable), context=ctx, held=held)
 
 
