@@ -146,8 +146,8 @@ def discover(inputs: list[str], exclude: Path) -> list[Path]:
         path = Path(raw)
         if path.exists():
             matches, explicit = [path], True
-        elif GLOB_CHARS & set(raw):
-            matches, explicit = [Path(m) for m in sorted(glob.glob(raw, recursive=True))], False  # noqa: PTH207 - absolute patterns too
+        elif GLOB_CHARS & set(raw) and (hits := sorted(glob.glob(raw, recursive=True))):  # noqa: PTH207 - absolute patterns
+            matches, explicit = [Path(m) for m in hits], False
         else:
             msg = f"{raw}: no such file, folder or glob match. Check the path"
             raise BatchUsageError(msg)

@@ -63,19 +63,20 @@ def run_dask(jobs: list[Job], address: str, done: Done) -> tuple[list[LogReport]
     busy: dict[Any, tuple[Job, str]] = {}
     seen = set(_workers(client))
     free = deque(sorted(seen))
-    running = distributed.as_completed()
 
-    def submit() -> None:
+    def submit() -> list[Any]:
         """Give each free worker the next job; pinned loosely, so a job whose worker left runs elsewhere."""
+        sent = []
         while pending and free:
             worker, job = free.popleft(), pending.popleft()
             fut = client.submit(run_one, job, workers=[worker], allow_other_workers=True, pure=False,
                                 key=f"magcal-batch-{job.name}-{id(job)}")
             busy[fut] = (job, worker)
-            running.add(fut)
+            sent.append(fut)
+        return sent
 
     try:
-        submit()
+        running = distributed.as_completed(submit(), loop=client.loop)   # ours, not a default client
         for fut in running:
             job, worker = busy.pop(fut)
             try:
@@ -89,7 +90,8 @@ def run_dask(jobs: list[Job], address: str, done: Done) -> tuple[list[LogReport]
             seen |= now
             if worker in now:
                 free.append(worker)
-            submit()
+            for new in submit():
+                running.add(new)
     except KeyboardInterrupt:
         client.cancel(list(busy))                   # a running fit finishes and renames its outputs whole
         raise

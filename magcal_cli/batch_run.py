@@ -48,19 +48,20 @@ def _interrupt_once(_: int, __: FrameType | None) -> None:
 def _interruptible() -> Iterator[None]:
     """Ctrl-C interrupts the fit inside the block; an idle worker ignores it (the main process decides)."""
     main = threading.current_thread() is threading.main_thread()      # Dask runs tasks in threads
-    if main:
-        signal.signal(signal.SIGINT, _interrupt_once)
+    previous = signal.signal(signal.SIGINT, _interrupt_once) if main else None
     try:
         yield
     finally:
         if main:
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGINT, previous)    # a pool worker's: ignored; a caller's own: as it was
 
 
 def _worker_init() -> None:
     """A local worker: Ctrl-C only while fitting (an idle worker would die printing a traceback); numpy's
     RuntimeWarnings on degenerate data kept off stderr, as `magcal fit` keeps them."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):                             # blocked since the fork server's start
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     warnings.filterwarnings("ignore", category=RuntimeWarning)
 
 
@@ -152,9 +153,31 @@ def _context() -> Any:
     fork, which max_tasks_per_child refuses and which would copy the parent's threads."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
+    from multiprocessing import forkserver
+
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(PRELOAD)
+    # the server starts with Ctrl-C ignored (inherited through exec): it preloads for seconds before it
+    # ignores SIGINT itself, and a Ctrl-C then would print its traceback. Blocked meanwhile, a Ctrl-C at
+    # magcal stays pending (Linux keeps a blocked signal though ignored) and arrives at the unblocking; the
+    # workers take Ctrl-C in run_one
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    # wait for the preload with a bare process: a pool worker queued behind it and served after a Ctrl-C'd
+    # magcal has exited would fail on the pool's vanished semaphores and print that traceback
+    ready = ctx.Process(target=_ready, daemon=True)
+    ready.start()
+    ready.join()
     return ctx
+
+
+def _ready() -> None:
+    """The forkserver's first child: it returns at once; its start means the preload is done."""
 
 
 def _single_threaded_blas() -> None:

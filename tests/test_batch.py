@@ -1,0 +1,196 @@
+"""magcal batch: logs from files, folders and globs fitted in local processes or on a real local Dask cluster,
+a corrupt log reported without stopping the others, resumability, --json, exit codes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from magcal_cli import batch, batch_run
+from magcal_cli.batch import FitOptions, Job, discover, output_names
+from magcal_cli.cli import cli
+from magcal_cli.logwriters import write_log
+from magcal_cli.synth import simulate
+
+#: short, slow-rate logs and the base model: a few seconds per fit
+FAST = ["--effects", "none", "--outputs", "json", "-q"]
+CORRUPT_MESSAGE = "not a DataFlash log"
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder with three good logs (DataFlash, MCAP in a subfolder, CSV) and one corrupt DataFlash log."""
+    root = tmp_path_factory.mktemp("logs")
+    (root / "sub").mkdir()
+    for seed, name in ((1, "alpha.bin"), (2, "sub/bravo.mcap"), (3, "charlie.csv")):
+        write_log(simulate("handheld", seed, rate=50.0, mag_rate=25.0, duration=40.0), root / name)
+    (root / "corrupt.bin").write_bytes(np.random.default_rng(0).bytes(5000))
+    (root / "notes.json").write_text("{}")            # neither a log nor one by its extension: not picked up
+    return root
+
+
+def _run(runner, *args: str):
+    """`magcal batch ARGS` in-process; the result and its --json document when one was printed."""
+    result = runner.invoke(cli, ["batch", *args], catch_exceptions=False)
+    doc = json.loads(result.stdout) if "--json" in args and result.stdout.strip() else None
+    return result, doc
+
+
+def _by_name(doc: dict) -> dict[str, dict]:
+    """The --json entries by log folder name."""
+    return {e["name"]: e for e in doc["logs"]}
+
+
+def test_local_jobs_corrupt_log_resume_and_json(runner, logs: Path, tmp_path: Path) -> None:
+    """--jobs 2 over a folder: the corrupt log fails with fit's exit 1 and error line, the others succeed; a
+    second run skips them; a newer log needs --force; the --json document has one entry per log."""
+    out = tmp_path / "out"
+    result, doc = _run(runner, str(logs), "-o", str(out), "--jobs", "2", "--json", *FAST)
+    assert result.exit_code == 1, result.stderr
+    entries = _by_name(doc)
+    assert set(entries) == {"alpha", "bravo", "charlie", "corrupt"}
+    bad = entries["corrupt"]
+    assert (bad["status"], bad["exit_code"]) == ("failed", 1)
+    assert CORRUPT_MESSAGE in bad["error"] and "corrupt.bin" in bad["error"]
+    assert f"Error: {bad['error']}" in result.stderr or "could not be fitted (corrupt)" in result.stderr
+    for name in ("alpha", "bravo", "charlie"):
+        e = entries[name]
+        assert (e["status"], e["exit_code"], e["error"]) == ("ok", 0, None)
+        assert (out / name / "calibration.json").is_file() and (out / name / "batch.json").is_file()
+        mag = e["magnetometers"][0]
+        assert 0 < mag["field_norm_rms_pct"] < 2 and abs(mag["dip_deg"]) > 10 and e["seconds"] > 0
+    assert not [p for p in out.rglob(".*")], "staging files left behind"
+    # --json schema
+    assert doc["format"] == "magcal-batch" and doc["exit_code"] == 1
+    assert doc["runner"] == {"kind": "local", "workers": 2, "scheduler": None}
+    assert doc["counts"] == {"logs": 4, "ok": 3, "skipped": 0, "failed": 1, "gate_failed": 0, "interrupted": 0}
+    assert set(bad) == {"log", "name", "outdir", "status", "exit_code", "seconds", "error", "format", "method",
+                        "magnetometers", "outputs", "warnings", "traceback"}
+    assert Path(entries["bravo"]["log"]) == (logs / "sub" / "bravo.mcap").resolve()
+
+    # resumable: the good logs are up to date, the corrupt one is tried again
+    result, _ = _run(runner, str(logs), "-o", str(out), "--jobs", "2", *FAST[:-1])
+    assert result.exit_code == 1
+    rows = {line.split()[0]: line for line in result.stdout.splitlines()[1:-1]}
+    assert all("skipped (up to date)" in rows[n] for n in ("alpha", "bravo", "charlie"))
+    assert "failed" in rows["corrupt"] and f"Error: {bad['error']}" in rows["corrupt"]
+    assert "[1/4]" in result.stderr            # progress on stderr without -q
+
+    # a log newer than its outputs: refitting it would overwrite them, which needs --force
+    os.utime(logs / "alpha.bin", ns=((logs / "alpha.bin").stat().st_mtime_ns + 10**9,) * 2)
+    result, _ = _run(runner, str(logs / "alpha.bin"), "-o", str(out), *FAST)
+    assert result.exit_code == 2 and "--force" in result.stderr
+    result, doc = _run(runner, str(logs / "alpha.bin"), str(logs / "sub"), "-o", str(out), "--force", "--json",
+                       *FAST)
+    assert result.exit_code == 0, result.stderr
+    assert [(e["name"], e["status"]) for e in doc["logs"]] == [("alpha", "ok"), ("bravo", "skipped")]
+
+
+def test_discover_folders_globs_and_names(tmp_path: Path) -> None:
+    """Folders are searched recursively (bag folders whole; DIR, hidden and non-log files left out), globs
+    expand, each log is taken once, and colliding stems get unique relative names."""
+    for rel in ("a/x.bin", "a/deep/y.mcap", "b/x.bin", "a/x.ulg", "a/readme.txt", "a/.hidden.bin", "out/z.bin"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(b"notes" if rel.endswith(".txt") else b"\xa3\x95" + bytes(40))
+    bag = tmp_path / "a" / "bag1"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (bag / "bag1_0.db3").write_bytes(b"SQLite format 3\x00")
+    found = discover([str(tmp_path), str(tmp_path / "b" / "*.bin")], exclude=tmp_path / "out")
+    rel = sorted(str(p.relative_to(tmp_path)) for p in found)
+    assert rel == ["a/bag1", "a/deep/y.mcap", "a/x.bin", "a/x.ulg", "b/x.bin"]
+    names = output_names(found)
+    assert sorted(names.values()) == ["a__x.bin", "a__x.ulg", "b__x.bin", "bag1", "y"]
+    assert [p.name for p in discover([str(tmp_path / "**" / "*.mcap")], tmp_path / "out")] == ["y.mcap"]
+    (tmp_path / "empty").mkdir()
+    for bad in ([str(tmp_path / "nothing*.bin")], [str(tmp_path / "missing.bin")], [str(tmp_path / "empty")]):
+        with pytest.raises(batch.BatchUsageError):
+            discover(bad, exclude=tmp_path / "out")
+
+
+def test_usage_errors(runner, logs: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No log found and --jobs with --scheduler are usage errors (2); --scheduler without distributed names
+    the extra to install (1); all before any work."""
+    result, _ = _run(runner, str(tmp_path / "none*.bin"), "-o", str(tmp_path / "o"))
+    assert result.exit_code == 2 and "no such file, folder or glob match" in result.stderr
+    result, _ = _run(runner, str(logs), "-o", str(tmp_path / "o"), "--jobs", "2", "--scheduler", "tcp://x:1")
+    assert result.exit_code == 2
+    monkeypatch.setitem(sys.modules, "distributed", None)      # import distributed raises ImportError
+    result, _ = _run(runner, str(logs), "-o", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:1")
+    assert result.exit_code == 1 and "pip install 'magcal-cli[fleet]'" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+
+
+def test_run_one_exit_codes(logs: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A worker reports what magcal fit would exit with: 3 for a failed --fail-on gate (outputs written), 123
+    with the traceback for a bug."""
+    from magcal_cli import gates
+    from magcal_cli.firmware.metrics import METRICS
+
+    opts = FitOptions(effects=(), outputs=("json",), fail_on=gates.parse("field_norm_rms_pct>0.001", METRICS))
+    job = Job((logs / "alpha.bin").resolve(), "alpha", tmp_path / "alpha", ("json",), None, opts)
+    report = batch_run.run_one(job)
+    assert (report.status, report.exit_code) == ("gate_failed", 3)
+    assert report.error.startswith("fit --fail-on: MAG[0]: field_norm_rms_pct>0.001")
+    assert batch.up_to_date(job) is not None                  # complete: a rerun skips it, still exit 3
+    assert batch.exit_code([report]) == 3
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler     # the caller's Ctrl-C as it was
+
+    def broken(*_a: object, **_k: object) -> None:
+        raise ZeroDivisionError("boom")
+
+    monkeypatch.setattr("magcal_cli.pipeline.calibrate", broken)
+    report = batch_run.run_one(Job(job.log, "b", tmp_path / "b", ("json",), None, opts))
+    assert (report.status, report.exit_code) == ("failed", 123)
+    assert "internal error (ZeroDivisionError: boom)" in report.error and "ZeroDivisionError" in report.traceback
+    assert batch.up_to_date(Job(job.log, "b", tmp_path / "b", ("json",), None, opts)) is None
+
+
+@pytest.mark.parametrize("when", ["starting", "fitting"])
+def test_ctrl_c_exits_130_and_leaves_nothing_half_written(logs: Path, tmp_path: Path, when: str) -> None:
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the workers start or while logs are
+    being fitted: exit 130 with one line; every log folder left is complete (its batch.json written last), and
+    no staging file remains."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "magcal_cli", "batch", str(logs), "-o", str(out), "--jobs", "2",
+                             "--effects", "none", "--outputs", "json,yaml,report"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    assert proc.stderr is not None
+    assert "fitting on" in proc.stderr.readline()             # the workers are starting
+    if when == "fitting":
+        assert proc.stderr.readline().startswith("magcal: [1/4]")   # one log done, the next one running
+    else:
+        time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Error: interrupted" in err and "Traceback" not in err
+    assert not [p for p in out.rglob("*") if p.name.startswith(".")], "staging files left behind"
+    for folder in (p for p in out.iterdir() if p.is_dir()) if out.exists() else ():
+        assert (folder / "batch.json").is_file(), f"{folder.name}: outputs without their status file"
+
+
+def test_dask_cluster_on_loopback(runner, logs: Path, tmp_path: Path) -> None:
+    """A real scheduler and two worker processes on 127.0.0.1: the batch runs through --scheduler tcp://..."""
+    distributed = pytest.importorskip("distributed", reason="magcal batch --scheduler needs the fleet extra: "
+                                                            "pip install 'magcal-cli[fleet]'")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://127.0.0.1:")
+        result, doc = _run(runner, str(logs / "alpha.bin"), str(logs / "sub"), str(logs / "corrupt.bin"),
+                           "-o", str(tmp_path / "out"), "--scheduler", address, "--json", *FAST)
+    assert result.exit_code == 1, result.stderr
+    assert doc["runner"] == {"kind": "dask", "workers": 2, "scheduler": address}
+    entries = _by_name(doc)
+    assert (entries["alpha"]["status"], entries["bravo"]["status"]) == ("ok", "ok")
+    assert entries["corrupt"]["exit_code"] == 1 and CORRUPT_MESSAGE in entries["corrupt"]["error"]
+    assert (tmp_path / "out" / "bravo" / "calibration.json").is_file()
