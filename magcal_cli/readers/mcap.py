@@ -103,17 +103,17 @@ def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[
         with path.open("rb") as fh:
             size = fh.seek(0, 2)
             for schemas, channels, batch in iter_batches(fh, size, damage):
-                ids = np.unique(batch.channel)
-                for cid in ids.tolist():
+                topics: dict[tuple[str, str], list[tuple[Any, Any]]] = {}
+                for cid in np.unique(batch.channel).tolist():
                     channel = channels[cid]
                     schema = schemas.get(channel.schema_id)
                     if cid not in decoders:
                         decoders[cid], why = decoder(schema, channel)
                         skipped += [why] if why else []
-                    decode = decoders[cid]
-                    if decode is not None and schema is not None:
-                        part = batch if ids.size == 1 else batch.select(batch.channel == cid)
-                        bad += _add(path, collector, schema.name, channel, part, decode)
+                    if decoders[cid] is not None and schema is not None:
+                        topics.setdefault((channel.topic, normalise_type(schema.name)), []).append((channel, schema))
+                for chans in topics.values():
+                    bad += _add_topic(path, collector, batch, chans, decoders)
     except OSError as exc:
         msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
         raise LogReadError(msg) from None
@@ -129,6 +129,36 @@ def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[
     if skipped and note_ignored:
         notes.append(ignored_note(sorted(set(skipped))))
     return cut
+
+
+def _add_topic(path: Path, collector: Collector, batch: Batch, chans: list[tuple[Any, Any]],
+               decoders: dict[int, Decode | BatchDecoder | None]) -> int:
+    """Decode the messages of one topic in a batch; how many are corrupt.
+
+    Several ROS channels on one topic (two publishers) are merged back into file order, as one stream."""
+    decs = [decoders[c.id] for c, _ in chans]
+    vec = [d for d in decs if isinstance(d, BatchDecoder)]
+    if len(chans) == 1 or len(vec) < len(decs):
+        bad = 0
+        for (channel, schema), dec in zip(chans, decs, strict=True):
+            mask = batch.channel == channel.id
+            if dec is not None:
+                bad += _add(path, collector, schema.name, channel, batch if mask.all() else batch.select(mask), dec)
+        return bad
+    pos, stamps, values, bad = [], [], [], 0
+    for (channel, _), vdec in zip(chans, vec, strict=True):
+        idx = np.flatnonzero(batch.channel == channel.id)
+        ok, st, va = vdec(batch.data, batch.start[idx], batch.length[idx])
+        pos.append(idx[ok])
+        stamps.append(st[ok])
+        values.append(va[ok])
+        bad += int(ok.size - ok.sum())
+    order = np.argsort(np.concatenate(pos), kind="stable")
+    at = np.concatenate(pos)[order]
+    channel, schema = chans[0]
+    collector.add_batch(channel.topic, schema.name, batch.log_time[at], np.concatenate(stamps)[order],
+                        np.concatenate(values)[order])
+    return bad
 
 
 def _add(path: Path, collector: Collector, msgtype: str, channel: Any, batch: Batch,

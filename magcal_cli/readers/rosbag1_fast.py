@@ -57,9 +57,21 @@ def read_indexed_bag1(path: Path, reader: Any, conns: list[Any], collector: Coll
                         return None
     except Exception:  # noqa: BLE001 - any surprise (corrupt chunk, odd index): the per-message path decides
         return None
-    for w in wanted:
-        collector.add_batch(w.conn.topic, w.conn.msgtype, w.time[w.ok], w.stamps[w.ok], w.values[w.ok])
+    for topic in dict.fromkeys((w.conn.topic, w.conn.msgtype) for w in wanted):
+        _add_topic(collector, [w for w in wanted if (w.conn.topic, w.conn.msgtype) == topic])
     return sum(int((~w.ok).sum()) for w in wanted)
+
+
+def _add_topic(collector: Collector, conns: list[_Conn]) -> None:
+    """The messages of a topic's connections in rosbags' order: by time, ties in connection then index order."""
+    time = np.concatenate([w.time for w in conns])
+    rank = np.concatenate([np.full(w.time.size, i) for i, w in enumerate(conns)])
+    order = np.lexsort((np.concatenate([np.arange(w.time.size) for w in conns]), rank, time))
+    ok = np.concatenate([w.ok for w in conns])[order]
+    stamps = np.concatenate([w.stamps for w in conns])[order]
+    values = np.concatenate([w.values for w in conns])[order]
+    first = conns[0].conn
+    collector.add_batch(first.topic, first.msgtype, time[order][ok], stamps[ok], values[ok])
 
 
 def _chunk(data: U8, pos: int, w: _Conn) -> bool:

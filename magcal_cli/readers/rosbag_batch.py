@@ -56,7 +56,7 @@ class Batcher:
 
     def add(self, conn: Any, recv_ns: int, raw: bytes) -> None:
         """Queue one raw message; a full queue is decoded."""
-        key = id(conn)
+        key = hash((conn.topic, conn.msgtype))     # one queue per topic: its connections stay interleaved in time
         if key not in self.decoders:
             self.decoders[key] = batch_decoder(self.reader, conn.msgtype)
             self.topics[key] = conn.topic

@@ -316,3 +316,36 @@ def test_random_bytes_never_raise(ros1: bool) -> None:
             length = np.minimum(rng.integers(0, 400, n), size - start).astype(np.int64)
             ok, stamps, values = dec(buf, start, length)
             assert ok.shape == stamps.shape == (n,) and values.shape[0] == n
+
+
+def test_two_publishers_on_one_topic_stay_in_time_order(tmp_path: Path) -> None:
+    """Two MCAP channels / two ROS 1 connections on one topic, interleaved: one stream in the per-message order."""
+    from mcap.writer import CompressionType, Writer
+    from rosbags.rosbag1 import Writer as Writer1
+
+    store2, store1, rng = store_of(False), store_of(True), np.random.default_rng(2)
+    mt = "sensor_msgs/msg/MagneticField"
+    with (tmp_path / "two.mcap").open("wb") as fh:
+        writer = Writer(fh, compression=CompressionType.ZSTD, chunk_size=3000)
+        writer.start(profile="ros2", library="test")
+        sid = writer.register_schema(mt, "ros2msg", store2.generate_msgdef(mt, ros_version=2)[0].encode())
+        chans = [writer.register_channel("/imu/mag", "cdr", sid) for _ in range(2)]
+        bag = Writer1(tmp_path / "two.bag")
+        bag.set_compression(Writer1.CompressionFormat.LZ4)
+        bag.chunk_threshold = 3000
+        with bag:
+            conns = [bag.add_connection("/imu/mag", mt, typestore=store1, callerid=f"/pub{k}") for k in range(2)]
+            for i in range(400):
+                k = int(rng.integers(0, 2))
+                ns = 10**9 + i * 10_000_000
+                msg2, msg1 = make(store2, mt, FRAMES[k * 3], rng), make(store1, mt, FRAMES[k * 3], rng)
+                for m in (msg1, msg2):
+                    m.header.stamp.sec, m.header.stamp.nanosec = 1, i * 10_000_000
+                writer.add_message(chans[k], log_time=ns, publish_time=ns, data=bytes(store2.serialize_cdr(msg2, mt)))
+                bag.write(conns[k], ns, bytes(store1.serialize_ros1(msg1, mt)))
+        writer.finish()  # type: ignore[no-untyped-call]
+    for name in ("two.mcap", "two.bag"):
+        rec = open_recording(tmp_path / name)
+        assert len(rec.streams) == 1 and len(rec.streams[0]) == 400
+        assert not any("backwards" in n for n in rec.notes)
+        assert_same_recording(rec, per_message(tmp_path / name))
