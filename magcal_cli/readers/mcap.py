@@ -1,7 +1,8 @@
 """MCAP reader: ROS 2 (CDR), ROS 1 and JSON channels of the ROS sensor types; zstd or lz4 chunks.
 
 Decoding uses rosbags' typestore built from each channel's own schema, so ROS 1 and ROS 2 messages share
-one code path with the bag reader (rosmsg.py). JSON channels follow docs/readers-ros-csv.md: the schema
+one code path with the bag reader (rosmsg.py); a chunk's messages of one channel are decoded together by
+rosvec.BatchDecoder (numpy), rosbags only checking one message per layout or decoding the odd ones. JSON channels follow docs/readers-ros-csv.md: the schema
 name is the ROS type, the message object has the ROS field names.
 """
 

@@ -1,4 +1,7 @@
-"""ROS 1 `.bag` files and ROS 2 bag directories (sqlite3 or MCAP storage) through rosbags' AnyReader."""
+"""ROS 1 `.bag` files and ROS 2 bag directories (sqlite3 or MCAP storage), opened with rosbags' AnyReader.
+
+The messages are then read by the fast paths of rosbag1_fast / rosbag_batch (chunks or storage rows decoded
+together by rosvec); rosbags' own per-message iteration remains for damaged or rosbag2-compressed bags."""
 
 from __future__ import annotations
 
