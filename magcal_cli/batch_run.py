@@ -16,6 +16,7 @@ import warnings
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
@@ -26,11 +27,12 @@ from .fitrun import USER_ERRNOS
 #: logs a local worker fits before it is replaced (its memory returned); forked from a preloaded server, a new
 #: worker costs milliseconds, not the seconds of importing numpy and scipy again
 TASKS_PER_WORKER = 1
-#: imported once in the fork server, so that every worker starts with them
-PRELOAD = ["magcal_cli.batch_run", "magcal_cli.pipeline", "magcal_cli.fitrun", "magcal_cli.firmware.metrics",
-           "magcal_cli.models.map", "magcal_cli.models.kok2012", "magcal_cli.writers.calfile",
-           "magcal_cli.writers.report", "magcal_cli.readers.dataflash", "magcal_cli.readers.mcap",
-           "magcal_cli.readers.ulog", "magcal_cli.readers.csvfile"]
+#: imported once in the fork server, so that every worker starts with them: with a fresh worker per log, a
+#: module a fit imports lazily would otherwise be imported again for every log (1-2 s of a 3 s log)
+PRELOAD = ["magcal_cli.batch_run", "magcal_cli.pipeline", "magcal_cli.fitrun", "magcal_cli.gates", "pygeomag",
+           "scipy.signal"]
+#: the subpackages whose every module a fit may import (readers, estimators, effects, outputs)
+PRELOAD_PACKAGES = ("readers", "models", "effects", "diagnose", "firmware", "writers")
 WORKER_DIED = ("the worker process fitting this log died (killed, e.g. out of memory, or crashed). Fit it alone "
                "with magcal fit to see why")
 #: how often a Ctrl-C'd batch interrupts its workers again until they have stopped (s)
@@ -131,7 +133,10 @@ def run_one(job: Job) -> LogReport:
     except Exception as exc:  # noqa: BLE001 - one log's bug must not stop the others
         _internal(report, exc)
     report.seconds = time.perf_counter() - start
-    write_status(job, report)
+    try:
+        write_status(job, report)
+    except (MagcalError, OSError) as exc:           # the outputs are there, but not marked complete
+        report.status, report.exit_code, report.error = "failed", 1, str(exc)
     return report
 
 
@@ -156,7 +161,7 @@ def _context() -> Any:
     from multiprocessing import forkserver
 
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(PRELOAD)
+    ctx.set_forkserver_preload(preload_modules())
     # the server starts with Ctrl-C ignored (inherited through exec): it preloads for seconds before it
     # ignores SIGINT itself, and a Ctrl-C then would print its traceback. Blocked meanwhile, a Ctrl-C at
     # magcal stays pending (Linux keeps a blocked signal though ignored) and arrives at the unblocking; the
@@ -174,6 +179,13 @@ def _context() -> Any:
     ready.start()
     ready.join()
     return ctx
+
+
+def preload_modules() -> list[str]:
+    """PRELOAD and every module of PRELOAD_PACKAGES, found by file name (nothing imported here)."""
+    root = Path(__file__).parent
+    return PRELOAD + [f"magcal_cli.{pkg}" + ("" if f.stem == "__init__" else f".{f.stem}")
+                      for pkg in PRELOAD_PACKAGES for f in sorted((root / pkg).glob("*.py"))]
 
 
 def _ready() -> None:
@@ -237,6 +249,8 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
             except BrokenProcessPool:
                 broken.append(futures[fut])
                 continue
+            except Exception as exc:  # noqa: BLE001 - e.g. a job the worker could not unpickle: that log only
+                report = died(futures[fut], f"the worker could not run it ({type(exc).__name__}: {exc})")
             reports.append(report)
             done(report)
     except KeyboardInterrupt:
