@@ -654,6 +654,48 @@ def held_entries(est: MapEstimate) -> tuple[HeldEntry, ...]:
                            s) for n, c, s in zip(names, est.held.cols, est.held.sources, strict=True))
 
 
+def _with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, start: Noise | None,
+                        cache: dict[bytes, Preintegrated], effects: tuple[str, ...], declination: float
+                        ) -> tuple[MapEstimate, Problem]:
+    """The fit with the problem's base effects (a flight's GPS acceleration), unless the log then determines less
+    of the calibration than without them (a GPS that disagrees with the IMU: a lag, glitches, a wrong antenna
+    offset): then the fit without, with a finding that says so. Also the problem the fit used."""
+    def fit(p: Problem) -> MapEstimate:
+        return fit_map(p, mag, loss, dip_prior, imu_start=start, cache=cache, effects=effects,
+                       declination=declination)
+
+    if not problem.base_effects:
+        return fit(problem), problem
+
+    def partial(e: MapEstimate) -> bool:
+        return e.held is not None and e.held.cols.size > 0
+
+    est: MapEstimate | None = None
+    try:
+        est = fit(problem)
+    except InsufficientDataError as exc:
+        why = str(exc)
+    else:
+        if not partial(est):
+            return est, problem
+        assert est.held is not None
+        why = f"{', '.join(est.held.names())} had to be held at a prior"
+    plain = replace(problem, base_effects=())
+    try:
+        alt = fit(plain)
+    except InsufficientDataError:
+        if est is None:
+            raise
+        return est, problem
+    if est is not None and partial(alt):              # no better without: the known physics stays
+        return est, problem
+    note = Finding(Severity.WARNING, "known_physics_dropped",
+                   f"{problem.where}: {mag.id}: {', '.join(problem.base_effects)} was not modelled: with it {why}, "
+                   "without it the log determines the calibration (the log's GPS acceleration disagrees with the "
+                   "accelerometer: a lag, glitches or an antenna far from the IMU)", {"sensor": mag.id})
+    return replace(alt, findings=(*alt.findings, note)), plain
+
+
 def run(problem: Problem, cfg: Config) -> MethodResult:
     """Joint MAP for every magnetometer of the problem, each against the IMU (the paper's 30-magnetometer
     setup)."""
@@ -668,13 +710,12 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     diagnoses: list[dict[str, Any]] = []
     for m in problem.mags:        # later magnetometers start from the IMU noise levels the first one found
         start = ests[0].noise if ests else None
-        est = fit_map(problem, m, loss, dip_prior, imu_start=start, cache=cache, effects=cfg.effects,
-                      declination=declination)
+        est, mine = _with_known_physics(problem, m, loss, dip_prior, start, cache, cfg.effects, declination)
         if cfg.diagnose:
             from ..diagnose.engine import diagnose
 
             try:
-                found = diagnose(problem, m, est, declination, loss, dip_prior)
+                found = diagnose(mine, m, est, declination, loss, dip_prior)
             except (InsufficientDataError, np.linalg.LinAlgError) as exc:
                 # a refit the diagnosis needs (a fold, an extended model) failed on a weakly determined log: the
                 # calibration itself stands, without the diagnosis
