@@ -11,6 +11,7 @@ import pytest
 from magcal_cli.config import Config
 from magcal_cli.detect import unmeasured_windows
 from magcal_cli.effects.nongravity import acceleration_ned, flying
+from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models import map as map_model
 from magcal_cli.models.gyro import preintegrate
 from magcal_cli.pipeline import select_problem
@@ -101,3 +102,23 @@ def test_auto_models_a_flights_own_acceleration_in_every_fit() -> None:
     problem = select_problem(flight, Config(diagnose=True))
     est = map_model.fit_map(problem, problem.mags[0], effects=("time_offset",))
     assert [f.id for f in est.effects] == ["nongravity_acceleration", "time_offset"]
+
+
+def test_known_physics_is_dropped_when_the_log_then_determines_less(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A GPS acceleration that disagrees with the IMU (here: a fit that refuses with it) must not cost the user
+    the calibration the plain model determines: the plain fit is kept, and a warning says why."""
+    flight = simulate("multirotor", 1, duration=100.0).recording
+    problem = select_problem(flight, Config(diagnose=True))
+    real = map_model.fit_map
+
+    def refusing(p: object, *args: object, **kwargs: object) -> map_model.MapEstimate:
+        if getattr(p, "base_effects", ()):
+            msg = "GPS disagrees"
+            raise InsufficientDataError(msg)
+        return real(p, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(map_model, "fit_map", refusing)
+    est, used = map_model._with_known_physics(problem, problem.mags[0], "l2", None, None, {}, (), 0.0)
+    assert used.base_effects == () and not [f for f in est.effects if f.id == "nongravity_acceleration"]
+    (why,) = [f for f in est.findings if f.code == "known_physics_dropped"]
+    assert "nongravity_acceleration was not modelled: with it GPS disagrees" in why.message
