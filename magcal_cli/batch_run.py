@@ -1,5 +1,5 @@
 """Running batch jobs: one log's fit as `magcal fit` would run it (`run_one`, also the Dask task), and a pool of
-local worker processes that fit one log at a time each and are replaced after a few logs, so a huge log's
+local worker processes that fit one log at a time each and are replaced after every log, so a huge log's
 memory goes back to the system."""
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def _worker_init() -> None:
     """A local worker: Ctrl-C only while fitting (an idle worker would die printing a traceback); numpy's
     RuntimeWarnings on degenerate data kept off stderr, as `magcal fit` keeps them."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if hasattr(signal, "pthread_sigmask"):                             # blocked since the fork server's start
+    if hasattr(signal, "pthread_sigmask"):          # should a platform's exec keep the mask _context blocked
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     warnings.filterwarnings("ignore", category=RuntimeWarning)
 
@@ -222,16 +222,22 @@ def _stop(pool: ProcessPoolExecutor) -> None:
 
 
 def run_local(jobs: list[Job], workers: int, done: Done) -> list[LogReport]:
-    """Fit `jobs` in `workers` local processes, calling `done` as each finishes; a log whose worker dies is
-    fitted once more alone, then reported failed. KeyboardInterrupt propagates after the workers stopped."""
+    """Fit `jobs` in `workers` local processes, calling `done` as each finishes; a log whose worker dies
+    (killed out of memory, a crash) is reported failed and the others go on. KeyboardInterrupt propagates after
+    the workers stopped."""
     _single_threaded_blas()
     reports: list[LogReport] = []
-    retry = _run_pool(jobs, workers, done, reports)
-    for job in retry:                               # which of the pool's logs killed it is unknown: each alone
-        again = _run_pool([job], 1, done, reports)
-        for j in again:
-            reports.append(died(j))
+    order = {id(j): i for i, j in enumerate(jobs)}
+    broken = _run_pool(jobs, workers, done, reports)
+    while broken:
+        # a dying worker breaks the whole pool and fails every unfinished log with it, the queued ones too.
+        # The earliest submitted was running, so the likeliest culprit: it is retried alone (and reported
+        # if its worker dies again), the rest go back to a full pool
+        suspect, *rest = sorted(broken, key=lambda j: order[id(j)])
+        if _run_pool([suspect], 1, done, reports):
+            reports.append(died(suspect))
             done(reports[-1])
+        broken = _run_pool(rest, workers, done, reports)
     return reports
 
 

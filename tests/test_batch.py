@@ -155,6 +155,26 @@ def test_run_one_exit_codes(logs: Path, tmp_path: Path, monkeypatch: pytest.Monk
 
 
 @pytest.mark.parametrize("when", ["starting", "fitting"])
+class _KillerPath(type(Path())):
+    """A log path that kills the worker process unpickling it (as the OOM killer would)."""
+
+    def __reduce__(self):
+        return (os._exit, (70,))
+
+
+def test_worker_death_fails_that_log_only(logs: Path, tmp_path: Path) -> None:
+    """A worker killed under a log breaks the process pool: that log is reported (exit 123), the others are
+    fitted all the same."""
+    opts = FitOptions(effects=(), outputs=("json",))
+    names = ["alpha", "killer", "charlie", "bravo"]
+    paths = [logs / "alpha.bin", _KillerPath(logs / "alpha.bin"), logs / "charlie.csv", logs / "sub" / "bravo.mcap"]
+    jobs = [Job(p, n, tmp_path / n, ("json",), None, opts) for p, n in zip(paths, names, strict=True)]
+    reports = batch_run.run_local(jobs, 2, lambda r: None)
+    got = {r.name: (r.status, r.exit_code) for r in reports}
+    assert got == {"alpha": ("ok", 0), "killer": ("failed", 123), "charlie": ("ok", 0), "bravo": ("ok", 0)}
+    assert "worker process fitting this log died" in next(r.error for r in reports if r.name == "killer")
+
+
 def test_ctrl_c_exits_130_and_leaves_nothing_half_written(logs: Path, tmp_path: Path, when: str) -> None:
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the workers start or while logs are
     being fitted: exit 130 with one line; every log folder left is complete (its batch.json written last), and
