@@ -133,7 +133,10 @@ succeeds (batch exit 1: a log could not be fitted):
 
 The machine has {res['cores']} cores shared with other sessions: the load average column says how busy it was, and
 two workers cannot reach 2× when other processes take a core. Per-log fit times ("median fit s") grow with the
-load for the same reason.
+load for the same reason. The local Dask cluster also runs its scheduler, two nannies and the client on the
+same two cores, and each Dask worker imports magcal's modules on its first logs (a local worker is forked from
+a server that imported them once); on a real cluster the scheduler and client sit elsewhere and the imports
+are paid once per worker for the whole batch.
 """
 
 
