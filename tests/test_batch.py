@@ -154,7 +154,6 @@ def test_run_one_exit_codes(logs: Path, tmp_path: Path, monkeypatch: pytest.Monk
     assert batch.up_to_date(Job(job.log, "b", tmp_path / "b", ("json",), None, opts)) is None
 
 
-@pytest.mark.parametrize("when", ["starting", "fitting"])
 class _KillerPath(type(Path())):
     """A log path that kills the worker process unpickling it (as the OOM killer would)."""
 
@@ -175,6 +174,7 @@ def test_worker_death_fails_that_log_only(logs: Path, tmp_path: Path) -> None:
     assert "worker process fitting this log died" in next(r.error for r in reports if r.name == "killer")
 
 
+@pytest.mark.parametrize("when", ["starting", "fitting"])
 def test_ctrl_c_exits_130_and_leaves_nothing_half_written(logs: Path, tmp_path: Path, when: str) -> None:
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the workers start or while logs are
     being fitted: exit 130 with one line; every log folder left is complete (its batch.json written last), and
