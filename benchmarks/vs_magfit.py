@@ -139,12 +139,14 @@ def run_magfit(log: str, mag: int, reduce: int, timeout: float, more: tuple[str,
 
 
 def run_magcal(log: str, effects: str) -> dict[str, Any]:
-    """magcal's fit of every compass (Python API, as `magcal fit LOG --effects auto|none`), timed."""
+    """magcal's fit of every compass (Python API, as `magcal fit LOG --effects auto|none` or, for "attitude",
+    `--method attitude`: the same reference as magfit_WMM), timed."""
     from magcal_cli.config import Config
     from magcal_cli.errors import MagcalError
     from magcal_cli.pipeline import calibrate
 
-    cfg = Config(allow_truncated=True, diagnose=effects == "auto")
+    cfg = Config(allow_truncated=True, diagnose=effects == "auto",
+                 method="attitude" if effects == "attitude" else "auto")
     t0 = time.perf_counter()
     try:
         res = calibrate(Path(log), cfg)
@@ -307,8 +309,8 @@ def evaluate(spec: dict[str, Any], runs: list[dict[str, Any]]) -> list[dict[str,
     if truth is not None:
         spec["truth_summary"] = {k: truth[k] for k in ("field_mG", "dip_deg", "misalignment_deg",
                                                       "no_rotation_deg")}
-    # the simulator's field points to true north (m_n = [cos dip, 0, sin dip]), whatever its GPS position
-    decl = 0.0 if truth is not None else ref.declination
+    # the simulator's field is the WMM's at its GPS position and date, declination included (synth.at_home)
+    decl = ref.declination
     spec["yaw_declination_deg"] = float(np.degrees(decl))
     rows = []
     for i, mag_id in enumerate(rec.ids(Kind.MAGNETOMETER)):
@@ -383,8 +385,9 @@ def tables(specs: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
                      f"{fmt(r.get('heading_err_deg'))} | {fmt(r.get('o_err_mG'), '.1f')} | "
                      f"{fmt(r.get('A_err_pct'))} | {fmt(r.get('c_err_mG_per_A'), '.3f')} | "
                      f"{fmt(secs, '.1f')}{' (all mags)' if 'seconds_all_mags' in r else ''} | {note} |")
-    lines += ["", "| log | compasses | magcal auto s | magcal none s | magfit_WMM s (sum of per-compass runs) | "
-              "magfit / magcal auto | magfit / magcal none |", "|---|---|---|---|---|---|---|"]
+    lines += ["", "| log | compasses | magcal auto s | magcal attitude s | magcal none s | magfit_WMM s (sum of "
+              "per-compass runs) | magfit / magcal auto | magfit / magcal attitude | magfit / magcal none |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for spec in specs:
         rs = [r for r in rows if r["log"] == Path(spec["log"]).name]
         mags = sorted({r["mag"] for r in rs})
@@ -397,11 +400,13 @@ def tables(specs: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
             return t, "" if ok == len(mine) else f" ({ok} of {len(mine)} calibrated)"
 
         (auto, auto_note), (none, none_note) = secs("magcal auto"), secs("magcal none")
+        att, att_note = secs("magcal attitude")
         mf = [r["seconds"] for r in rs if r["tool"] == "magfit_WMM" and "error" not in r]
         total = float(sum(mf)) if len(mf) == len(mags) else None
         lines.append(f"| {Path(spec['log']).name} | {len(mags)} | {fmt(auto, '.1f')}{auto_note} | "
-                     f"{fmt(none, '.1f')}{none_note} | {fmt(total, '.1f')} | "
+                     f"{fmt(att, '.1f')}{att_note} | {fmt(none, '.1f')}{none_note} | {fmt(total, '.1f')} | "
                      f"{fmt(total / auto if total and auto else None, '.1f')}x | "
+                     f"{fmt(total / att if total and att else None, '.1f')}x | "
                      f"{fmt(total / none if total and none else None, '.1f')}x |")
     sim = [r for r in rows if r["log"].startswith("multirotor") and "heading_err_deg" in r]
     if sim:
@@ -462,7 +467,8 @@ def notes(specs: list[dict[str, Any]], rows: list[dict[str, Any]], meta: dict[st
            *([f"- Also on seed {meta['widened']['seed']}: magfit_WMM `{' '.join(meta['widened']['args'])}`, to "
               "see how much of its simulated error comes from its default scale bound (1.5)."]
              if meta["widened"]["seed"] in meta["seeds"] else []),
-           "- magcal: `calibrate(LOG, Config(...))` in-process, i.e. `magcal fit LOG --effects auto` and "
+           "- magcal: `calibrate(LOG, Config(...))` in-process, i.e. `magcal fit LOG --effects auto`, "
+           "`--method attitude` (the vehicle's attitude and the WMM, magfit_WMM's own reference) and "
            "`--effects none`; all compasses of a log in one fit.",
            f"- Simulated: `magcal simulate --scenario multirotor --seed N` for seeds {meta['seeds']}, with "
            f"`--effect current_interference` (default 0.2/-0.1/0.3 mG/A) on seeds {meta['current_seeds']}.",
@@ -488,8 +494,8 @@ def notes(specs: list[dict[str, Any]], rows: list[dict[str, Any]], meta: dict[st
            "- **norm spread**: std/mean of |calibrated field| over every reading, in %.",
            "- **yaw RMS / p95 / mean**: heading from the calibrated field, tilt-compensated with the ATT roll and "
            "pitch (AHRS_TRIM added back, as magfit_WMM does), plus the declination, minus ATT yaw, wrapped to "
-           "+-180 deg. Real logs: WMM declination at the median GPS position on the GPS date. Simulated logs: 0, "
-           "the simulator's field points to true north. On real logs ATT yaw is the autopilot's estimate, which "
+           "+-180 deg, with the WMM declination at the median GPS position on the GPS date (the simulator's "
+           "field has it too). On real logs ATT yaw is the autopilot's estimate, which "
            "used the compass with the calibration it flew with (the `flown` row), so it is a reference, not "
            "truth.",
            "- **flown**: the log's own COMPASS_* calibration applied to the same raw readings (the baseline).",
@@ -499,7 +505,7 @@ def notes(specs: list[dict[str, Any]], rows: list[dict[str, Any]], meta: dict[st
            "shared: absolute times moved by up to 2x between runs while this benchmark was written; compare the "
            "ratios within one run.", ""]
     out += ["## Against the target (magcal at least as accurate, >= 10x faster)", ""]
-    for tool in ("magcal auto", "magcal none"):
+    for tool in ("magcal auto", "magcal attitude", "magcal none"):
         pairs = [(r, m) for r in rows if r["tool"] == tool for m in rows
                  if m["tool"] == "magfit_WMM" and m["log"] == r["log"] and m["mag"] == r["mag"]]
         both = [(r, m) for r, m in pairs if "error" not in r and "error" not in m]
@@ -616,7 +622,8 @@ def main() -> None:
         tasks += [(run_magfit, spec["log"], k, reduce, args.timeout) for k in range(1, n + 1)]
         if spec.get("seed") == args.widened_seed:
             tasks.append((run_magfit, spec["log"], 1, reduce, args.timeout, WIDENED))
-        tasks += [(run_magcal, spec["log"], e) for e in ("auto", "none")[: 1 if args.no_effects_none else 2]]
+        tasks += [(run_magcal, spec["log"], e) for e in ("auto", "attitude", "none")[: 2 if args.no_effects_none
+                                                                                       else 3]]
     tasks.sort(key=lambda t: (t[0] is not run_magfit, "log171" not in t[1]))    # longest first
     print(f"{len(tasks)} fits, {args.jobs} at a time ...", file=sys.stderr)
     with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn"),
