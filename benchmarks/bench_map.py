@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 from magcal_cli import so3  # noqa: E402
 from magcal_cli.config import Config  # noqa: E402
 from magcal_cli.models import map as mapm  # noqa: E402
-from magcal_cli.models import map_init  # noqa: E402
+from magcal_cli.models import map_init, map_run  # noqa: E402
 from magcal_cli.models.solve import Factor, Options, solve  # noqa: E402
 from magcal_cli.pipeline import select_problem  # noqa: E402
 from magcal_cli.synth import paper_trajectory, simulate  # noqa: E402
@@ -125,7 +125,7 @@ def thirty_magnetometers(minutes: float = 5.0, n_mags: int = 30) -> tuple[float,
     rot = paper_trajectory(rng, RATE, minutes * 60.0)
     problem, _, _ = record(rot, RATE, 7, mag_step=DECIMATE, n_mags=n_mags)
     t0 = time.perf_counter()
-    result = mapm.run(problem, Config(method="map"))
+    result = map_run.run(problem, Config(method="map"))
     return time.perf_counter() - t0, len(result.mags)
 
 

@@ -38,7 +38,7 @@ MethodRun = Callable[[Problem, Config], MethodResult]
 #: method name -> "module:function(problem, config) -> MethodResult"
 METHODS: dict[str, str] = {
     "kok2012": "magcal_cli.models.kok2012:run",
-    "map": "magcal_cli.models.map:run",
+    "map": "magcal_cli.models.map_run:run",
     "ekf-ml": "magcal_cli.models.ekf_ml:run",
     "ekf-aug": "magcal_cli.models.ekf_aug:run",
     "attitude": "magcal_cli.models.attitude_ref:run",

@@ -12,22 +12,20 @@ Internally the magnetometer is expressed in units of its ellipsoid-fit scale (D 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from .. import so3, units
-from ..config import Config
+from .. import so3
 from ..effects.base import Point
 from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
 from ..streams import Stream
 from . import map_init, partial
 from .accel import G, accel_factor
-from .epochs import BIAS_SCALE, Epochs, Noise, epochs_for, initial_noise
+from .epochs import Epochs, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, gyro_factor, preintegrate
 from .mag import MagLayout, field_nav, mag_factor
 from .map_effects import (
@@ -42,10 +40,10 @@ from .map_effects import (
     with_terms,
 )
 from .observability import ROTATE_ADVICE, check_observability, check_useful
-from .params import BASE, MAG, Layout
+from .params import BASE, Layout
 from .partial import Held
 from .problem import Problem
-from .result import EffectFit, HeldEntry, ImuFit, MagFit, MethodResult
+from .result import EffectFit
 from .sandwich import factor_clusters, time_clusters, widening
 from .solve import Factor, Linearize, Options, Solution, information, marginal_covariance, solve
 
@@ -632,126 +630,3 @@ def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: 
     BASE.put(theta, "gyroscope_bias", 0.0)
     noise = Noise(noise_si.acc, noise_si.gyr, noise_si.mag / scale)
     return marginal_covariance(make_linearize(ep, pre, noise), states, theta) * np.outer(jac, jac)
-
-
-def to_fits(est: MapEstimate, stream: Stream) -> MagFit:
-    """The magnetometer part of an estimate as a MagFit (D, o in tesla; covariance of vec D, o, dip)."""
-    d, o, dip = mag_layout(est.layout).unpack(est.theta)
-    c = est.layout.cols(*MAG.names)
-    return MagFit(est.mag_id, d, o, dip, est.cov[np.ix_(c, c)], est.residual_rms, int(est.epochs.size),
-                  est.iterations, est.converged, est.log, held_entries(est))
-
-
-def held_entries(est: MapEstimate) -> tuple[HeldEntry, ...]:
-    """The estimate's held parameters with their priors in SI (the gyro bias as a total, like theta)."""
-    if est.held is None or est.context is None:
-        return ()
-    si = BASE.si_factors(est.context.ep.scale)
-    total = np.zeros(BASE.size)
-    total[BASE.slice("gyroscope_bias")] = est.context.pre.bias
-    names = est.held.names()
-    return tuple(HeldEntry(n, float(est.held.prior_mean[c] * si[c] + total[c]), float(est.held.prior_std[c] * si[c]),
-                           s) for n, c, s in zip(names, est.held.cols, est.held.sources, strict=True))
-
-
-def _with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, start: Noise | None,
-                        cache: dict[bytes, Preintegrated], effects: tuple[str, ...], declination: float
-                        ) -> tuple[MapEstimate, Problem]:
-    """The fit with the problem's base effects (a flight's GPS acceleration), unless the log then determines less
-    of the calibration than without them (a GPS that disagrees with the IMU: a lag, glitches, a wrong antenna
-    offset): then the fit without, with a finding that says so. Also the problem the fit used."""
-    def fit(p: Problem) -> MapEstimate:
-        return fit_map(p, mag, loss, dip_prior, imu_start=start, cache=cache, effects=effects,
-                       declination=declination)
-
-    if not problem.base_effects:
-        return fit(problem), problem
-
-    def partial(e: MapEstimate) -> bool:
-        return e.held is not None and e.held.cols.size > 0
-
-    est: MapEstimate | None = None
-    try:
-        est = fit(problem)
-    except InsufficientDataError as exc:
-        why = str(exc)
-    else:
-        if not partial(est):
-            return est, problem
-        assert est.held is not None
-        why = f"{', '.join(est.held.names())} had to be held at a prior"
-    plain = replace(problem, base_effects=())
-    try:
-        alt = fit(plain)
-    except InsufficientDataError:
-        if est is None:
-            raise
-        return est, problem
-    if est is not None and partial(alt):              # no better without: the known physics stays
-        return est, problem
-    note = Finding(Severity.WARNING, "known_physics_dropped",
-                   f"{problem.where}: {mag.id}: {', '.join(problem.base_effects)} was not modelled: with it {why}, "
-                   "without it the log determines the calibration (the log's GPS acceleration disagrees with the "
-                   "accelerometer: a lag, glitches or an antenna far from the IMU)", {"sensor": mag.id})
-    return replace(alt, findings=(*alt.findings, note)), plain
-
-
-def run(problem: Problem, cfg: Config) -> MethodResult:
-    """Joint MAP for every magnetometer of the problem, each against the IMU (the paper's 30-magnetometer
-    setup)."""
-    from ..wmm import reference_for
-
-    ref = reference_for(cfg)
-    dip_prior = None if ref is None else ref.dip
-    loss = getattr(cfg, "robust_loss", "l2")
-    ests: list[MapEstimate] = []
-    cache: dict[bytes, Preintegrated] = {}
-    declination = 0.0 if ref is None else ref.declination
-    diagnoses: list[dict[str, Any]] = []
-    for m in problem.mags:        # later magnetometers start from the IMU noise levels the first one found
-        start = ests[0].noise if ests else None
-        est, mine = _with_known_physics(problem, m, loss, dip_prior, start, cache, cfg.effects, declination)
-        if cfg.diagnose:
-            from ..diagnose.engine import diagnose
-
-            try:
-                found = diagnose(mine, m, est, declination, loss, dip_prior)
-            except (InsufficientDataError, np.linalg.LinAlgError) as exc:
-                # a refit the diagnosis needs (a fold, an extended model) failed on a weakly determined log: the
-                # calibration itself stands, without the diagnosis
-                est = replace(est, findings=(*est.findings, Finding(
-                    Severity.WARNING, "diagnosis_failed",
-                    f"{problem.where}: {m.id}: the mismatch diagnosis could not run ({exc}); the base calibration "
-                    "is reported without it", {"sensor": m.id})))
-            else:
-                est = found.estimate
-                diagnoses.append(found.block)
-        ests.append(est)
-
-    def bias_std(e: MapEstimate) -> float:
-        return float(np.sum(np.concatenate([e.std_of("accelerometer_bias"), e.std_of("gyroscope_bias")])
-                            / BIAS_SCALE))
-
-    best = min(ests, key=bias_std)
-    imu = ImuFit(problem.imu_id, best.value("accelerometer_bias"), best.value("gyroscope_bias"),
-                 best.std_of("accelerometer_bias"), best.std_of("gyroscope_bias"))
-    notes: list[str] = []
-    findings: list[Finding] = []
-    noise: dict[str, list[float]] = {"accelerometer_std": best.noise.acc.tolist(),
-                                     "gyroscope_std": best.noise.gyr.tolist()}
-    for est, stream in zip(ests, problem.mags, strict=True):
-        notes.extend(est.notes)
-        findings.extend(est.findings)
-        factor = units.from_si(stream.native_unit)
-        noise[f"magnetometer_std[{est.mag_id}]"] = (est.noise.mag * factor).tolist()
-    if ref is not None:
-        notes.append(f"dip initialised from the {ref.model} at the log's position ({ref.dip_deg:.2f} deg); "
-                     f"field strength {ref.intensity * 1e6:.2f} uT")
-    if len(ests) > 1:
-        notes.append(f"IMU biases from the fit against {best.mag_id} (smallest bias uncertainty of "
-                     f"{len(ests)} magnetometers)")
-    fits = tuple(to_fits(e, s) for e, s in zip(ests, problem.mags, strict=True))
-    # magnetometer effects from each magnetometer's fit; IMU effects from the fit that gave the IMU biases
-    effects = tuple(f for e in ests for f in e.effects if f.sensor == e.mag_id) + \
-        tuple(f for f in best.effects if f.sensor == problem.imu_id)
-    return MethodResult("map", fits, imu, noise, tuple(notes), tuple(findings), effects, tuple(diagnoses))

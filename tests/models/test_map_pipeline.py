@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from magcal_cli.cli import cli
 from magcal_cli.config import Config
-from magcal_cli.models import map as mapm
+from magcal_cli.models import map_run
 from magcal_cli.pipeline import calibrate
 from magcal_cli.synth import paper_trajectory
 from magcal_cli.wmm import reference_field
@@ -75,7 +75,7 @@ def test_several_magnetometers_on_one_imu() -> None:
     rng = np.random.default_rng(21)
     rot = paper_trajectory(rng, 50.0, 60.0)
     problem, truths, _ = record(rot, 50.0, 21, mag_step=2, n_mags=3)
-    result = mapm.run(problem, Config(method="map"))
+    result = map_run.run(problem, Config(method="map"))
     assert [f.id for f in result.mags] == ["mag0", "mag1", "mag2"]
     for fit, truth in zip(result.mags, truths, strict=True):
         e = np.concatenate([(fit.D - truth.D).ravel(order="F"), fit.o - truth.o, [fit.dip - truth.dip]])

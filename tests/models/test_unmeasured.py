@@ -13,6 +13,7 @@ from magcal_cli.detect import unmeasured_windows
 from magcal_cli.effects.nongravity import acceleration_ned, flying
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models import map as map_model
+from magcal_cli.models import map_run
 from magcal_cli.models.gyro import preintegrate
 from magcal_cli.pipeline import select_problem
 from magcal_cli.streams import Kind, Recording, Stream
@@ -117,8 +118,8 @@ def test_known_physics_is_dropped_when_the_log_then_determines_less(monkeypatch:
             raise InsufficientDataError(msg)
         return real(p, *args, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(map_model, "fit_map", refusing)
-    est, used = map_model._with_known_physics(problem, problem.mags[0], "l2", None, None, {}, (), 0.0)
+    monkeypatch.setattr(map_run, "fit_map", refusing)
+    est, used = map_run.with_known_physics(problem, problem.mags[0], "l2", None, None, {}, (), 0.0)
     assert used.base_effects == () and not [f for f in est.effects if f.id == "nongravity_acceleration"]
     (why,) = [f for f in est.findings if f.code == "known_physics_dropped"]
     assert "nongravity_acceleration was not modelled: with it GPS disagrees" in why.message
