@@ -402,7 +402,8 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     path = Path(path)
     progress = progress or current()
     progress(f"reading {path.name}")
-    rec = open_recording(path, fmt, ReadOptions(allow_truncated=cfg.allow_truncated))
+    with active(progress):                  # the chunked readers report their fraction through current()
+        rec = open_recording(path, fmt, ReadOptions(allow_truncated=cfg.allow_truncated))
     return calibrate_recording(rec, cfg, progress)
 
 

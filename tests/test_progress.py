@@ -170,3 +170,35 @@ def test_warnings_grouped_one_line_per_kind_and_in_full_with_v() -> None:
         "MAG[2]: accelerometer bias poorly determined by the motion in this log (docs/recording-guide.md says which "
         "motion determines it)"]
     assert _warning_lines(found, mags, verbose=True) == [f.message for f in found[:5]]
+
+
+def test_reading_and_the_map_fit_report_their_fractions(tmp_path: Path) -> None:
+    """Issue 13 item 2: reading a chunked log (MCAP, ROS 1) and the joint MAP's noise rounds report done/total
+    through the active hook, not only their stage."""
+    from magcal_cli.config import Config
+    from magcal_cli.logwriters import write_log
+    from magcal_cli.models.map import fit_map
+    from magcal_cli.pipeline import select_problem
+    from magcal_cli.progress import active
+    from magcal_cli.readers import open_recording
+    from magcal_cli.synth import simulate
+
+    calls: list[tuple[str, float | None, float | None]] = []
+
+    def record(stage: str, done: float | None = None, total: float | None = None) -> None:
+        calls.append((stage, done, total))
+
+    sim = simulate("handheld", 1, duration=60.0)
+    for name in ("r.mcap", "r.bag"):
+        write_log(sim, tmp_path / name)
+        calls.clear()
+        with active(record):
+            rec = open_recording(tmp_path / name)
+        reading = [c for c in calls if c[0] == "reading"]
+        assert reading and all(c[1] is not None and c[2] and 0 <= c[1] <= c[2] for c in reading), name
+    calls.clear()
+    problem = select_problem(rec, Config())
+    with active(record):
+        fit_map(problem, problem.mags[0])
+    rounds = [c for c in calls if "joint MAP, noise round" in c[0]]
+    assert rounds and rounds[0][1] == 0 and all(c[2] == rounds[0][2] for c in rounds)

@@ -22,6 +22,7 @@ from .. import so3
 from ..effects.base import Point
 from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
+from ..progress import current
 from ..streams import Stream
 from . import map_init, partial
 from .accel import G, accel_factor
@@ -455,7 +456,9 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     history: list[tuple[float, float]] = []      # (gyro log-variance applied so far, log factor found there)
     applied = 0.0
     last_step = None
+    hook = current()
     for rnd in range(noise_rounds + 1):
+        hook(f"{mag.id}: joint MAP, noise round", rnd, noise_rounds + 1)
         opts = (start if noise_rounds else first) if rnd == 0 else later
         sol = solve(make_linearize(ep, pre, noise, layout, bound, hold, held), states, theta, opts)
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations

@@ -16,6 +16,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from ..progress import current
 from .cut import a_record
 from .mcap_chunk import Batch, ChunkError, decompress, from_messages, parse_records
 from .partial import MCAP_RECORDS, decompress_prefix
@@ -143,6 +144,7 @@ def iter_batches(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Def
     from mcap.records import Chunk, Footer, Message
 
     schemas, channels = summary_definitions(fh, size)      # so a lost chunk does not orphan later messages
+    hook = current()
     base, skip_magic = 0, False
     loose: list[Any] = []                                   # messages outside chunks, batched
     while True:
@@ -182,6 +184,7 @@ def iter_batches(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Def
             yield from _flush(loose, schemas, channels, damage)
             parsed: Parsed = ([rec], None)
             if isinstance(rec, Chunk):
+                hook("reading", at, size)
                 try:
                     if rec.uncompressed_size > MAX_CHUNK_BYTES:
                         raise ChunkError(rec.uncompressed_size)

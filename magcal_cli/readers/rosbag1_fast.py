@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ..progress import current
 from .rosbag1_scan import _fields
 from .rosbag_batch import batch_decoder
 from .rosmsg import Collector
@@ -46,8 +47,11 @@ def read_indexed_bag1(path: Path, reader: Any, conns: list[Any], collector: Coll
     bag = readers[0]
     try:
         wanted = [_Conn(c, bag.indexes[c.id], batch_decoder(reader, c.msgtype)) for c in conns]
+        hook = current()
         with path.open("rb") as fh:
-            for pos in sorted({int(p) for w in wanted for p in np.unique(w.chunk)}):
+            todo = sorted({int(p) for w in wanted for p in np.unique(w.chunk)})
+            for k, pos in enumerate(todo):
+                hook("reading", k, len(todo))
                 chunk = bag.chunks[pos]
                 fh.seek(chunk.datapos)
                 raw = fh.read(chunk.datasize)
