@@ -78,7 +78,7 @@ def with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: floa
         return est, problem
     note = Finding(Severity.WARNING, "known_physics_dropped",
                    f"{problem.where}: {mag.id}: {', '.join(problem.base_effects)} was not modelled: with it {why}, "
-                   "without it the log determines the calibration (the log's GPS acceleration disagrees with the "
+                   "without it the log determines more of the calibration (the log's GPS acceleration disagrees with the "
                    "accelerometer: a lag, glitches or an antenna far from the IMU)", {"sensor": mag.id})
     return replace(alt, findings=(*alt.findings, note)), plain
 
