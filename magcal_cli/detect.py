@@ -238,21 +238,32 @@ SATURATION_SHARE, GYRO_FAST = 0.97, np.deg2rad(1000.0)
 UNMEASURED_MARGIN_S = 0.25
 
 
+def padded_runs(t: FloatArray, flagged: npt.NDArray[np.bool_], pad_s: float, min_run_s: float = 0.0
+                ) -> list[list[float]]:
+    """[[t0, t1], ...] of the runs of flagged samples at least `min_run_s` long, padded by `pad_s` on each side
+    and merged where the padding overlaps."""
+    out: list[list[float]] = []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], flagged.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if t[b - 1] - t[a] >= min_run_s:
+            lo, hi = float(t[a] - pad_s), float(t[b - 1] + pad_s)
+            if out and lo <= out[-1][1]:
+                out[-1][1] = hi
+            else:
+                out.append([lo, hi])
+    return out
+
+
 def unmeasured_windows(acc: Stream, gyr: Stream) -> tuple[tuple[float, float], ...]:
     """Time windows (s) whose motion the IMU did not measure: impacts and a gyro at the top of its range.
 
     A crash spins the vehicle beyond the gyro's range and shakes the accelerometer beyond gravity; the
     integrated rotation across it is wrong by tens of degrees, so a trajectory must not be carried through.
+    The accelerometer and gyro share their time stamps (detect_still checks it).
     """
     w = np.abs(gyr.xyz).max(axis=1)
     top = float(w.max()) if w.size else 0.0
-    bad_g = w >= SATURATION_SHARE * top if top >= GYRO_FAST else np.zeros(w.size, dtype=bool)
-    bad_a = np.linalg.norm(acc.xyz, axis=1) > IMPACT
-    times = np.sort(np.concatenate([gyr.t[bad_g], acc.t[bad_a]]))
-    out: list[list[float]] = []
-    for t in times:
-        if out and t - UNMEASURED_MARGIN_S <= out[-1][1]:
-            out[-1][1] = float(t + UNMEASURED_MARGIN_S)
-        else:
-            out.append([float(t - UNMEASURED_MARGIN_S), float(t + UNMEASURED_MARGIN_S)])
-    return tuple((a, b) for a, b in out)
+    bad = np.linalg.norm(acc.xyz, axis=1) > IMPACT
+    if top >= GYRO_FAST:
+        bad |= w >= SATURATION_SHARE * top
+    return tuple((a, b) for a, b in padded_runs(acc.t, bad, UNMEASURED_MARGIN_S))

@@ -14,6 +14,16 @@ from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Ta
 MIN_SPREAD_A = 0.5
 
 
+def varying_current(s: Stream, t: FloatArray, min_std: float = MIN_SPREAD_A) -> FloatArray:
+    """The current channel `s` (A) at times t; NotTestable when its std there is below `min_std`."""
+    i = resample(s, t)[:, 0]
+    if float(np.std(i)) < min_std:
+        msg = (f"the current ({s.id}) never changes by more than {min_std} A (std {np.std(i):.2f} A): "
+               "a constant current is indistinguishable from hard iron")
+        raise NotTestable(msg)
+    return i
+
+
 class Current(Effect):
     """y += c I(t); I positive while discharging in every reader (ROS BatteryState is negated on read)."""
 
@@ -35,12 +45,7 @@ class Current(Effect):
                declination: float = 0.0) -> Inputs:
         """The current at the epochs; not testable when it hardly changes."""
         s = pick(aux, Kind.BATTERY_CURRENT)
-        i = resample(s, kin.t)[:, 0]
-        if float(np.std(i)) < MIN_SPREAD_A:
-            msg = (f"the current ({s.id}) never changes by more than {MIN_SPREAD_A} A (std {np.std(i):.2f} A): "
-                   "a constant current is indistinguishable from hard iron")
-            raise NotTestable(msg)
-        return Inputs(kin.t, kin.omega, kin.omega_dot, {"current": i}, (s.id,))
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"current": varying_current(s, kin.t)}, (s.id,))
 
     def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
         """c I and d/dc = I I3."""

@@ -59,22 +59,29 @@ def acceleration_ned(pos: Stream, t: FloatArray) -> FloatArray:
     return out
 
 
+def fixes(aux: tuple[Stream, ...]) -> Stream:
+    """The log's position channel, its valid fixes only (NotTestable with fewer than 10)."""
+    s = pick(aux, Kind.POSITION)
+    finite = np.all(np.isfinite(s.values), axis=1)
+    if finite.sum() < 10:
+        msg = f"the position ({s.id}) has fewer than 10 valid fixes"
+        raise NotTestable(msg)
+    return Stream(s.kind, s.id, s.t[finite], s.values[finite], s.source, s.native_unit)
+
+
+def rms(a_n: FloatArray) -> float:
+    """RMS magnitude (m/s^2) of accelerations (K, 3)."""
+    return float(np.sqrt(np.mean(np.sum(a_n**2, axis=1))))
+
+
 def flying(aux: tuple[Stream, ...]) -> bool:
     """True when the log's position shows the vehicle accelerating (RMS >= MIN_RMS): a flight or a drive whose
     accelerometer is not a plumb line, and whose acceleration the log measured."""
     try:
-        s = pick(aux, Kind.POSITION)
+        s = fixes(aux)
+        return rms(acceleration_ned(s, s.t)) >= MIN_RMS
     except NotTestable:
         return False
-    finite = np.all(np.isfinite(s.values), axis=1)
-    if finite.sum() < 10:
-        return False
-    s = Stream(s.kind, s.id, s.t[finite], s.values[finite], s.source, s.native_unit)
-    try:
-        a_n = acceleration_ned(s, s.t)
-    except NotTestable:
-        return False
-    return bool(np.sqrt(np.mean(np.sum(a_n**2, axis=1))) >= MIN_RMS)
 
 
 class NonGravity(Effect):
@@ -93,19 +100,14 @@ class NonGravity(Effect):
     def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
                declination: float = 0.0) -> Inputs:
         """a_n at the epochs from the position channel."""
-        s = pick(aux, Kind.POSITION)
-        finite = np.all(np.isfinite(s.values), axis=1)
-        if finite.sum() < 10:
-            msg = f"the position ({s.id}) has fewer than 10 valid fixes"
-            raise NotTestable(msg)
-        s = Stream(s.kind, s.id, s.t[finite], s.values[finite], s.source, s.native_unit)
+        s = fixes(aux)
         a_n = acceleration_ned(s, kin.t) @ so3.exp([0.0, 0.0, declination])     # true NED -> magnetic NED
-        rms = float(np.sqrt(np.mean(np.sum(a_n**2, axis=1))))
-        if rms < MIN_RMS:
-            msg = f"the vehicle hardly accelerates (RMS {rms:.2f} m/s^2 from {s.id})"
+        sigma = rms(a_n)
+        if sigma < MIN_RMS:
+            msg = f"the vehicle hardly accelerates (RMS {sigma:.2f} m/s^2 from {s.id})"
             raise NotTestable(msg)
         return Inputs(kin.t, kin.omega, kin.omega_dot, {"a_n": a_n}, (s.id,),
-                      {"source": f"position ({s.id}), differentiated twice", "sigma_a": rms})
+                      {"source": f"position ({s.id}), differentiated twice", "sigma_a": sigma})
 
     def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
         """kappa R^T a_n; d/dkappa = R^T a_n; d/dphi = kappa [R^T a_n]x."""

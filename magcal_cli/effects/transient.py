@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.ndimage import median_filter
 
+from ..detect import padded_runs
 from ..errors import MagcalError
 from ..streams import Stream
 from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
@@ -39,16 +40,7 @@ def _rho(y: FloatArray, keep: np.ndarray) -> FloatArray:
 
 def windows(t: FloatArray, flagged: np.ndarray) -> list[list[float]]:
     """[[t0, t1], ...] of runs of flagged epochs at least MIN_RUN_S long, padded by PAD_S."""
-    out: list[list[float]] = []
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], flagged.astype(np.int8), [0]])))
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
-        if t[b - 1] - t[a] >= MIN_RUN_S:
-            lo, hi = float(t[a] - PAD_S), float(t[b - 1] + PAD_S)
-            if out and lo <= out[-1][1]:
-                out[-1][1] = hi
-            else:
-                out.append([lo, hi])
-    return out
+    return padded_runs(t, flagged, PAD_S, MIN_RUN_S)
 
 
 def detect(t: FloatArray, y: FloatArray) -> list[list[float]]:

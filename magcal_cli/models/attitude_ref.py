@@ -16,10 +16,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
-from .. import so3
+from .. import align, so3
 from ..config import Config
-from ..effects.base import NotTestable, resample
-from ..effects.current import Current
+from ..effects.base import NotTestable
+from ..effects.current import Current, varying_current
 from ..errors import InsufficientDataError
 from ..streams import Kind, Stream
 from ..wmm import ReferenceField, reference_for
@@ -51,11 +51,9 @@ def current_at(problem: Problem, t: FloatArray) -> tuple[FloatArray, str] | None
     --cmot), with its channel id; else None."""
     for s in problem.channels(Kind.BATTERY_CURRENT):
         try:
-            i = resample(s, t)[:, 0]
+            return varying_current(s, t, MIN_CURRENT_STD), s.id
         except NotTestable:
             continue
-        if float(np.std(i)) >= MIN_CURRENT_STD:
-            return i, s.id
     return None
 
 
@@ -69,17 +67,6 @@ def attitude_stream(problem: Problem) -> Stream:
     msg = (f"{problem.where}: --method attitude needs the autopilot's attitude estimate (ArduPilot ATT, PX4 "
            f"vehicle_attitude){have}; use --method auto")
     raise InsufficientDataError(msg)
-
-
-def rotations_at(att: Stream, t: FloatArray) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
-    """Body -> nav rotations (N, 3, 3) at times t, by normalised linear interpolation of sign-aligned
-    quaternions (the log's attitude rate is far above the rotation's bandwidth), and where t is covered."""
-    q = att.values / np.linalg.norm(att.values, axis=1, keepdims=True)
-    flip = np.concatenate([[1.0], np.sign(np.sum(q[1:] * q[:-1], axis=1))])
-    q = q * np.cumprod(np.where(flip == 0, 1.0, flip))[:, None]
-    inside = (t >= att.t[0]) & (t <= att.t[-1])
-    qi = np.stack([np.interp(t, att.t, q[:, i]) for i in range(4)], axis=1)
-    return so3.from_quat(qi), inside & np.all(np.isfinite(qi), axis=1)
 
 
 def _solve_axis(x: FloatArray, y: FloatArray, prior_mean: FloatArray, prior_var: FloatArray,
@@ -112,7 +99,9 @@ def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField
     """D and o of one magnetometer against the vehicle's attitude and the WMM field (SI), with the current
     interference c (y += c I) where the log's current varies."""
     where = f"{problem.where}: {mag.id}"
-    rot, ok = rotations_at(att, mag.t)
+    ok, q = align.onto(att, mag.t)                    # slerped, inside the attitude's span, no gap bridged
+    rot = np.full((mag.t.size, 3, 3), np.nan)
+    rot[ok] = so3.from_quat(q)
     for a, b in problem.unmeasured:
         ok &= ~((mag.t >= a) & (mag.t <= b))
     ok &= np.all(np.isfinite(mag.xyz), axis=1)
