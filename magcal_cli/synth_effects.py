@@ -77,8 +77,9 @@ EFFECTS: dict[str, EffectDef] = {
         "f += w' x r + w x (w x r)"),
     "nongravity_acceleration": EffectDef(
         "imu", (Key("sigma_a", "sigma_a", "number", 1.0, 1.0, "m/s^2, RMS of each NED component of a_n"),
-                Key("source", "source", "choice", 1.0, "gps", "log the position or not", ("gps", "none"))),
-        ("position",), {"sigma_a": "m/s^2"}, "f = R^T (a_n - g_n)"),
+                Key("source", "source", "choice", 1.0, "gps", "log the position or not", ("gps", "none")),
+                Key("delay_s", "delay_s", "number", 1.0, 0.0, "s, the logged position lags the motion")),
+        ("position",), {"sigma_a": "m/s^2", "delay_s": "s"}, "f = R^T (a_n - g_n)"),
     "transient_disturbance": EffectDef(
         "magnetometer", (Key("windows_s", "windows_s", "windows", 1.0, None, "s"),
                          _vec("b_rel", "b_rel", 1.0, (0.12, -0.14, 0.06), "NED, fraction of the Earth field")),
@@ -173,6 +174,9 @@ def _check_range(eid: str, params: Mapping[str, Any]) -> None:
         raise EffectSpecError(msg)
     if eid == "throttle_interference" and "p" in params and params["p"] <= 0:
         msg = f"effect {eid}: the exponent p must be > 0, got {params['p']}"
+        raise EffectSpecError(msg)
+    if "delay_s" in params and abs(params["delay_s"]) > MAX_TAU_S:
+        msg = f"effect {eid}: |delay_s| must be at most {MAX_TAU_S} s, got {params['delay_s']}"
         raise EffectSpecError(msg)
     if "sigma_a" in params and params["sigma_a"] < 0:
         msg = f"effect {eid}: sigma_a must be >= 0 m/s^2, got {params['sigma_a']}"

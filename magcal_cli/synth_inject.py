@@ -103,19 +103,21 @@ def _translation(q: dict[str, Any] | None, base: Base, t: FloatArray, force: Flo
     if not moves:
         return force
     source = "gps" if q is None else str(q["source"])
+    delay = 0.0 if q is None else float(q.get("delay_s", 0.0))      # the fix stamped t was taken at t - delay
     t_pos = np.arange(0.0, t[-1] + 1e-9, 1.0 / POSITION_RATE_HZ)
     a_n, p_n, p_pos = np.zeros((len(t), 3)), np.zeros((len(t), 3)), np.zeros((len(t_pos), 3))
     for move in moves:
         a_n += move.acceleration(t)
         p_n += move.position(t)
-        p_pos += move.position(t_pos)
+        p_pos += move.position(t_pos - delay)
     channels: tuple[Kind, ...] = ()
     if source == "gps":
         lla = phys.geodetic(p_pos)
         streams.append(Stream(Kind.POSITION, POSITION_ID, t_pos, lla, f"{base.source}#{POSITION_ID}", "deg"))
         channels = (Kind.POSITION,)
     effects.append(InjectedEffect("nongravity_acceleration",
-                                  {"sigma_a": float(np.sqrt(np.mean(a_n**2))), "source": source},
+                                  {"sigma_a": float(np.sqrt(np.mean(a_n**2))), "source": source,
+                                   "delay_s": delay},
                                   channels, {"a_n": a_n, "p_n": p_n}))
     return force + _body(base.knots[:-1], a_n)                # f = R^T (a_n - g_n)
 

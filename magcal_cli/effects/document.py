@@ -41,6 +41,8 @@ def entry(fit: EffectFit, mag_unit: str | None) -> dict[str, Any]:
             [[float(a - Z95 * e), float(a + Z95 * e)] for a, e in zip(v, s, strict=True)]
         unit_of[b.name] = eff.units[b.name].replace("{field}", unit)
     for k, v in fit.constants.items():
+        if k.startswith("_"):                    # a term's private tables (e.g. a grid), not a result
+            continue
         params[k] = v
         if k in eff.units:
             unit_of[k] = eff.units[k].replace("{field}", unit)

@@ -34,6 +34,17 @@ def test_effect_estimate_within_its_uncertainty(effect: str, key: str, truth: ob
     assert np.linalg.norm(d - sim.truth.D) / np.linalg.norm(sim.truth.D) < 5e-4
 
 
+def test_position_latency_recovered() -> None:
+    """A GNSS position logged 0.2 s late (the simulator's delay line): kappa 1 and the delay within Z_MAX std."""
+    sim = simulate("handheld", 5, effects=(EffectSpec("nongravity_acceleration", {"delay_s": 0.2}),))
+    res = calibrate_recording(sim.recording, Config(method="map", effects=("nongravity_acceleration",)))
+    entry = next(e for e in res.calibration.effects if e["id"] == "nongravity_acceleration")
+    assert entry["status"] == "accepted"
+    for key, true in (("kappa", 1.0), ("delay_s", 0.2)):
+        assert abs(entry["params"][key] - true) < Z_MAX * entry["std"][key], (key, entry["params"], entry["std"])
+    assert not any(k.startswith("_") for k in entry["params"])          # the term's tables are not results
+
+
 def test_absent_effect_is_rejected_and_harmless() -> None:
     """Negative control: a log with a current channel but no interference: c ~ 0 within its std, D unchanged."""
     sim = simulate("handheld", 6, effects=(EffectSpec("current_interference", {"c": [0.0, 0.0, 0.0]}),))
