@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from .map_init import despike
 from .params import BASE, Layout
 from .solve import Factor, gaussian_factor
 
@@ -42,6 +43,14 @@ IMPLAUSIBLE_SIGMAS = 5.0
 PIN = 1e-3
 #: which block gives way first when the data cannot separate two entries
 PREFERENCE = {"dip": 0, "D": 1, "accelerometer_bias": 2, "gyroscope_bias": 3, "o": 4}
+#: how far the modelled field directions may be off (rad, or relative to the field) whatever the log's length: the
+#: attitude a vehicle IMU gives in motion (half a degree) and the sensor's own nonlinearity. Averaging does not
+#: shrink it, so it decides what a narrow cap of directions can determine (`cap_needs`)
+DIRECTION_ERROR = 0.01
+#: the std (relative to the field) beyond which an estimated offset is not determined (observability's fatal limit)
+OFFSET_FATAL = 0.1
+#: the weakest field strength at the Earth's surface (tesla; the WMM's minimum is 22 uT, South Atlantic)
+EARTH_FIELD_MIN = 20e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,6 +61,9 @@ class MagPrior:
     o: FloatArray
     source: str
     rel_std: float
+    #: RMS angles (rad, largest first) the field directions spread about their mean along their principal axes
+    #: (`direction_spread`); None when not measured
+    spread: FloatArray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,9 +152,62 @@ def flown_prior(raw: FloatArray, field: FloatArray, to_si: float, slot: str) -> 
                     f"the calibration the vehicle flew with ({slot})", ONBOARD_REL_STD)
 
 
+def direction_spread(y: FloatArray, d: FloatArray) -> FloatArray:
+    """RMS angles (rad, largest first) of the field directions about their mean along their principal axes, from
+    readings y (N, 3) and a prior D (tesla): centred, the offset drops out, and D^-1 turns field into directions
+    (a D off by 10 % misjudges the angles by 10 %). A D weaker than the weakest Earth field (a sphere fit through a
+    narrow cap, whose curvature the readings hardly show) counts as that field. Isolated spikes are smoothed first
+    (`map_init.despike`)."""
+    ok = np.all(np.isfinite(y), axis=1)
+    if ok.sum() < 3:
+        return np.zeros(3)
+    clean, _ = despike(y[ok])
+    scale = float(np.cbrt(abs(np.linalg.det(d))))
+    x = (clean - clean.mean(axis=0)) @ np.linalg.inv(d).T * min(1.0, scale / EARTH_FIELD_MIN)
+    out: FloatArray = np.sqrt(np.clip(np.linalg.eigvalsh(x.T @ x / len(x)), 0.0, None))[::-1]
+    return out
+
+
+def cap_needs(rel_std: float) -> tuple[float, float]:
+    """The RMS spreads (rad) of the field directions below which a cap cannot determine a plane of D better than a
+    prior of this doubt, and the offsets at all (with D held).
+
+    Over a cap, y = (D u0 + o) + D (u - u0): D's action on the directions the cap spreads along is measured with a
+    lever of the spread s, so a direction error e that no averaging removes (DIRECTION_ERROR) becomes an error e / s
+    of D there: a plane of D needs s2 >= e / rel_std. With D held, the offsets follow from where in the body the
+    field points (its dip and heading at the cap), which the gyro-measured turning fixes to e / s1 of the field:
+    they need s1 >= e / OFFSET_FATAL."""
+    return DIRECTION_ERROR / rel_std, DIRECTION_ERROR / OFFSET_FATAL
+
+
+def cap_pins(prior: MagPrior) -> tuple[IntArray, str]:
+    """The base columns a narrow cap of field directions cannot determine (`cap_needs`): every entry of D when no
+    plane of it is determined (an offsets-only fit), D and o when not even the offsets are; and why."""
+    if prior.spread is None:
+        return np.zeros(0, np.int64), ""
+    plane, offsets = cap_needs(prior.rel_std)
+    s1, s2 = np.degrees(prior.spread[:2])
+    arc = float(np.sqrt(12.0))           # a uniform sweep through an arc of angle a spreads a / sqrt(12) RMS
+    if prior.spread[0] < offsets:
+        return BASE.cols("D", "o"), (
+            f"the field directions moved through an arc of only {arc * s1:.0f} deg ({s1:.1f} deg RMS about their "
+            f"mean); the offsets need {arc * np.degrees(offsets):.0f} deg: turn the vehicle through at least that "
+            "about an axis away from the field, e.g. a full turn about the vertical")
+    if prior.spread[1] < plane and prior.rel_std >= SPHERE_REL_STD:
+        return BASE.cols("D", "o"), (
+            f"the field directions stayed in a narrow cap ({s1:.1f} x {s2:.1f} deg RMS): the offsets alone would need D "
+            f"from the calibration the vehicle flew with, and a sphere through such a cap is none (a plane of D needs "
+            f"{np.degrees(plane):.0f} deg RMS across two directions)")
+    if prior.spread[1] < plane:
+        return BASE.cols("D"), (
+            f"the field directions stayed in a narrow cap ({s1:.1f} x {s2:.1f} deg RMS), which cannot determine D "
+            f"(that needs {np.degrees(plane):.0f} deg RMS across two directions)")
+    return np.zeros(0, np.int64), ""
+
+
 def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, dip_ref: float | None) -> Held:
     """Prior mean, std and source of every base entry in internal units (D and o divided by `scale`, tesla),
-    holding nothing yet."""
+    holding nothing yet but pinning what the cap of field directions cannot determine (`cap_pins`)."""
     mean = BASE.zeros()
     std = BASE.zeros()
     src = [""] * BASE.size
@@ -153,11 +218,20 @@ def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, d
             ("o", prior.o / scale, prior.rel_std, prior.source),
             ("dip", np.atleast_1d(layout.get(theta, "dip")[0] if dip_ref is None else dip_ref),
              DIP_DATA_STD if dip_ref is None else DIP_REF_STD,
-             "the data's start value" if dip_ref is None else "the World Magnetic Model")):
+             "the data's start value (no position for the World Magnetic Model)" if dip_ref is None else
+             "the World Magnetic Model")):
         sl = BASE.slice(name)
         mean[sl], std[sl] = value, sd
         src[sl] = [why] * (sl.stop - sl.start)
-    return Held(np.zeros(0, np.int64), mean, std, tuple(src))
+    pins, why = cap_pins(prior)
+    for c in pins:
+        src[c] = f"{src[c]} ({why})"
+    o = BASE.slice("o")
+    if pins.size and not np.isin(BASE.cols("o"), pins).any():
+        # an offsets-only fit: what goes stale in a flown calibration is the offsets (a new payload, wiring), so they
+        # are estimated unless the data know them worse than an undetermined offset, D's doubt included
+        std[o] = np.maximum(std[o], OFFSET_FATAL)
+    return Held(np.zeros(0, np.int64), mean, std, tuple(src), pins)
 
 
 def implausible(theta: FloatArray, held: Held) -> IntArray:
@@ -215,5 +289,7 @@ def choose(info: FloatArray, prior_std: FloatArray, already: IntArray | None = N
 
 
 def priors_by_id(priors: Mapping[str, MagPrior], mag_id: str, y: FloatArray) -> MagPrior:
-    """The vehicle's own calibration of this magnetometer where the log has it, else a sphere fit."""
-    return priors.get(mag_id) or sphere_prior(y)
+    """The vehicle's own calibration of this magnetometer where the log has one, else a sphere fit; with the spread
+    of the readings' field directions measured through it."""
+    prior = priors.get(mag_id) or sphere_prior(y)
+    return replace(prior, spread=direction_spread(y, prior.D))
