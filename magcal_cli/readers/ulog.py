@@ -34,6 +34,8 @@ TOPICS = ["sensor_mag", "sensor_combined", "sensor_accel", "sensor_gyro", "vehic
 RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
 #: a `timestamp_sample` further than this before the publication `timestamp` is not trusted (us)
 MAX_SAMPLE_LAG_US = 1_000_000
+#: a GPS UTC time (us since 1970) before this (2001-09) is a receiver that has no time yet, not a date
+MIN_UTC_US = 1_000_000_000_000_000
 #: bus types of PX4's DeviceStructure (src/lib/drivers/device/Device.hpp, DeviceBusType)
 BUS_TYPES = {0: "unknown bus", 1: "I2C", 2: "SPI", 3: "UAVCAN", 4: "simulation", 5: "serial", 6: "MAVLink"}
 #: the parameter holding the device id of calibration slot n (src/lib/sensor_calibration/Utilities.cpp)
@@ -305,6 +307,22 @@ def _gps_piece(tp: _Topics) -> Piece | None:
     return None
 
 
+def _utc_of_boot(tp: _Topics) -> float | None:
+    """The Unix time (s) of the vehicle clock's zero, from the receiver's UTC time (`time_utc_usec`) in
+    vehicle_gps_position, else sensor_gps: the median of UTC minus the message stamp over the messages that carry a
+    time; None without one (the WMM is then evaluated at today's date)."""
+    for topic in ("vehicle_gps_position", "sensor_gps"):
+        for i in tp.instances(topic):
+            ds = tp.get(topic, i)
+            if "time_utc_usec" not in ds.data:
+                continue
+            utc = np.asarray(ds.data["time_utc_usec"], dtype=np.int64)
+            ok = utc > MIN_UTC_US
+            if ok.any():
+                return float(np.median(utc[ok] - np.asarray(ds.data["timestamp"], dtype=np.int64)[ok])) * 1e-6
+    return None
+
+
 def _number(value: Any) -> float | None:
     """A parameter value as a float, or None when it is not a number."""
     try:
@@ -371,8 +389,10 @@ class UlogReader:
             times = "once" if len(ulog.dropouts) == 1 else f"{len(ulog.dropouts)} times"
             tp.notes.append(f"the logger dropped data {times} ({lost} ms in total); samples are missing "
                             "there")
+        boot = _utc_of_boot(tp)
         return mark_cut(Recording(path, "ulog", tuple(streams), t0=t0_us * 1e-6, params=params,
-                                  notes=tuple(tp.notes)), _cut(loaded))
+                                  notes=tuple(tp.notes), utc0=None if boot is None else boot + t0_us * 1e-6),
+                        _cut(loaded))
 
     @staticmethod
     def _check_damage(path: Path, loaded: Loaded, options: ReadOptions, notes: list[str]) -> None:
