@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import units
+from .. import consistency, units
 from ..config import Config
 from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
@@ -16,6 +16,7 @@ from ..streams import Stream
 from .epochs import BIAS_SCALE, Noise
 from .gyro import Preintegrated
 from .map import MapEstimate, fit_map, mag_layout
+from .map_joint import fit_joint_or_note
 from .params import BASE, MAG
 from .problem import Problem
 from .result import HeldEntry, ImuFit, MagFit, MethodResult
@@ -95,7 +96,9 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     cache: dict[bytes, Preintegrated] = {}
     declination = 0.0 if ref is None else ref.declination
     diagnoses: list[dict[str, Any]] = []
-    for m in problem.mags:        # later magnetometers start from the IMU noise levels the first one found
+    joint, joint_note = fit_joint_or_note(problem, cfg, loss, dip_prior)
+    done = {} if joint is None else {e.mag_id: e for e in joint.estimates}
+    for m in (m for m in problem.mags if m.id not in done):   # later ones start from the first's IMU levels
         start = ests[0].noise if ests else None
         est, mine = with_known_physics(problem, m, loss, dip_prior, start, cache, cfg.effects, declination)
         if cfg.diagnose:
@@ -114,12 +117,14 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
                 est = found.estimate
                 diagnoses.append(found.block)
         ests.append(est)
+    rest = iter(ests)
+    ests = [done[m.id] if m.id in done else next(rest) for m in problem.mags]
 
     def bias_std(e: MapEstimate) -> float:
         return float(np.sum(np.concatenate([e.std_of("accelerometer_bias"), e.std_of("gyroscope_bias")])
                             / BIAS_SCALE))
 
-    best = min(ests, key=bias_std)
+    best = min(ests, key=bias_std) if joint is None else joint.estimates[0]     # the joint fit's IMU biases
     imu = ImuFit(problem.imu_id, best.value("accelerometer_bias"), best.value("gyroscope_bias"),
                  best.std_of("accelerometer_bias"), best.std_of("gyroscope_bias"))
     notes: list[str] = []
@@ -134,10 +139,12 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     if ref is not None:
         notes.append(f"dip initialised from the {ref.model} at the log's position ({ref.dip_deg:.2f} deg); "
                      f"field strength {ref.intensity * 1e6:.2f} uT")
-    if len(ests) > 1:
+    notes.extend([*([] if joint is None else joint.notes), *([joint_note] if joint_note else [])])
+    if joint is None and len(ests) > 1:
         notes.append(f"IMU biases from the fit against {best.mag_id} (smallest bias uncertainty of "
                      f"{len(ests)} magnetometers)")
     fits = tuple(to_fits(e, s) for e, s in zip(ests, problem.mags, strict=True))
+    findings.extend(consistency.findings(consistency.measure(fits, problem.mags), problem.where))
     # magnetometer effects from each magnetometer's fit; IMU effects from the fit that gave the IMU biases
     effects = tuple(f for e in ests for f in e.effects if f.sensor == e.mag_id) + \
         tuple(f for f in best.effects if f.sensor == problem.imu_id)

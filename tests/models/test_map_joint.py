@@ -1,0 +1,138 @@
+"""The joint fit of many magnetometers on one IMU (models/map_joint*.py, issue 14 item 3) and the consistency check."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from magcal_cli import consistency, so3
+from magcal_cli.config import Config
+from magcal_cli.models import map_init, map_joint, map_run, solve
+from magcal_cli.models import map_joint_solve as mjs
+from magcal_cli.models.map_joint_cov import factors
+from magcal_cli.pipeline import select_problem
+from magcal_cli.synth_array import simulate_array
+
+
+@pytest.fixture(scope="module")
+def small() -> tuple:
+    """3 magnetometers, 30 s of the paper protocol at 62.5 Hz / 3, and a perturbed point of the joint model."""
+    sim = simulate_array("paper", 1, 3, 62.5, 62.5 / 3, 30.0)
+    prob = select_problem(sim.recording, Config())
+    intr = [map_init.intrinsic_fit(m.xyz, "test") for m in prob.mags]
+    je = map_joint.joint_epochs(prob, prob.mags, [s.scale for s in intr])
+    noise = map_joint.JointNoise(np.array([0.1, 0.2, 0.3]), np.full(3, 1e-3), np.array([[1e-3, 2e-3, 3e-3]] * 3))
+    layout = map_joint.joint_layout(3)
+    states, theta, pre, _ = map_joint._start(prob, je, intr, noise, None, layout)
+    rng = np.random.default_rng(0)
+    states = states @ so3.exp(0.01 * rng.standard_normal((states.shape[0], 3)))
+    theta = theta + 1e-3 * rng.standard_normal(theta.size)
+    weights = rng.uniform(0.5, 1.0, je.t.size)
+    return map_joint.joint_data(je, pre, noise, layout, weights), states, theta
+
+
+def test_structured_normal_equations_match_the_reference_factors(small: tuple) -> None:
+    """Every block of the structured normal equations (H_xtheta through the 42-vector basis) equals the generic
+    assembly of accel_factor, gyro_factor and mag_factor (solve._assemble), row weights included."""
+    data, states, theta = small
+    fs = factors(data, states, theta)
+    ref = solve._assemble(fs, [np.ones(f.r.shape[0]) for f in fs], states.shape[0], theta.size)
+    cost, ne = mjs.normal(data, states, theta)
+    assert cost == pytest.approx(0.5 * sum(float(np.sum(f.r**2)) for f in fs), rel=1e-12)
+    for mine, theirs in ((ne.diag, ref.diag), (ne.off, ref.off), (ne.basis @ ne.coef, ref.hxt), (ne.htt, ref.htt),
+                         (ne.gx, ref.gx), (ne.gt, ref.gt)):
+        assert np.allclose(mine, theirs, rtol=1e-10, atol=1e-10 * np.abs(theirs).max())
+
+
+def test_gradient_matches_finite_differences(small: tuple) -> None:
+    """J^T r of the structured equations is the derivative of the cost (states by right perturbation)."""
+    data, states, theta = small
+    _, ne = mjs.normal(data, states, theta)
+    h = 1e-7
+    for col in (*data.mag_cols(2), *data.layout.cols("accelerometer_bias", "gyroscope_bias")):
+        step = np.zeros(theta.size)
+        step[col] = h
+        fd = (mjs.cost(data, states, theta + step) - mjs.cost(data, states, theta - step)) / (2 * h)
+        assert fd == pytest.approx(ne.gt[col], rel=2e-4, abs=1e-4 * np.abs(ne.gt).max())
+    for k in (0, 7, states.shape[0] - 1):
+        for a in range(3):
+            phi = np.zeros((states.shape[0], 3))
+            phi[k, a] = h
+            fd = (mjs.cost(data, states @ so3.exp(phi), theta) - mjs.cost(data, states @ so3.exp(-phi), theta)) / (2 * h)
+            assert fd == pytest.approx(ne.gx[k, a], rel=2e-4, abs=1e-4 * np.abs(ne.gx).max())
+
+
+def test_basis_coefficients_reproduce_each_magnetometer_coupling(small: tuple) -> None:
+    """basis @ C_i is J_x^T J_theta of magnetometer i alone (mag.mag_factor's Jacobians)."""
+    data, states, theta = small
+    f = factors(data, states, theta)[2 + 1]
+    d, _, dip = data.mag_at(1).unpack(theta)
+    w2 = data.mag_rows**2
+    mine = mjs.basis(states) * w2[:, None, None] @ mjs.coefficients(d, np.diag(data.mag_std[1] ** -2.0),
+                                                                    np.cos(dip), np.sin(dip))
+    assert np.allclose(mine, f.J_x.transpose(0, 2, 1) @ f.J_theta, rtol=1e-10, atol=1e-6)
+
+
+def test_joint_fit_is_within_its_uncertainty_of_the_truth() -> None:
+    """4 magnetometers x 60 s on one IMU through `map_run.run`: one joint fit; every magnetometer's (D, o, dip) and
+    the IMU biases are within their reported covariance of the truth, and they agree (no inconsistency)."""
+    sim = simulate_array("paper", 3, 4, 62.5, 62.5 / 3, 60.0)
+    prob = select_problem(sim.recording, Config())
+    result = map_run.run(prob, Config(method="map"))
+    assert any("joint fit of 4 magnetometers" in n for n in result.notes)
+    for fit, truth in zip(result.mags, sim.truths, strict=True):
+        e = np.concatenate([(fit.D - truth.D).ravel(order="F"), fit.o - truth.o, [fit.dip - truth.dip]])
+        assert float(e @ np.linalg.solve(fit.cov, e)) < 39.0          # chi2_13 at 99.99 %
+    imu, truth = result.imu, sim.truths[0]
+    assert imu.gyro_bias is not None and imu.gyro_bias_std is not None and imu.accel_bias_std is not None
+    assert np.all(np.abs(imu.gyro_bias - truth.gyro_bias) < 4.5 * imu.gyro_bias_std)
+    assert np.all(np.abs(imu.accel_bias - truth.accel_bias) < 4.5 * imu.accel_bias_std)
+    codes = [f.code for f in result.findings]
+    assert "magnetometer_consistency" in codes and "magnetometer_inconsistent" not in codes
+
+
+def test_noisy_magnetometer_is_flagged_and_fitted_on_its_own() -> None:
+    """A magnetometer with 200x the noise disagrees with the others: a WARNING names it, the other three share the
+    joint fit and it is fitted separately."""
+    sim = simulate_array("paper", 4, 4, 62.5, 62.5 / 3, 60.0, noise_factors=(1, 1, 200, 1))
+    prob = select_problem(sim.recording, Config())
+    result = map_run.run(prob, Config(method="map"))
+    bad = [f for f in result.findings if f.code == "magnetometer_inconsistent"]
+    assert [f.evidence["sensor"] for f in bad] == ["/mag/2"]
+    assert any("joint fit of 3 magnetometers" in n for n in result.notes)
+    assert any("/mag/2 disagreed" in n for n in result.notes)
+    assert [f.id for f in result.mags] == [f"/mag/{i}" for i in range(4)]
+
+
+def test_wrong_calibration_is_the_outlier() -> None:
+    """Consistency of the true calibrations: none flagged; one D turned by 8 deg: that one is flagged."""
+    sim = simulate_array("paper", 5, 4, 62.5, 62.5 / 3, 30.0)
+    prob = select_problem(sim.recording, Config())
+
+    class Fit:
+        def __init__(self, i: int, d: np.ndarray) -> None:
+            self.id, self.D, self.o = f"/mag/{i}", d, sim.truths[i].o
+
+    good = [Fit(i, t.D) for i, t in enumerate(sim.truths)]
+    c = consistency.measure(good, prob.mags)
+    assert c is not None and c.outliers == ()
+    assert float(c.closest()[0].max()) < 0.1                 # the paper's lab magnetometers: hundredths of a degree
+    wrong = [*good[:1], Fit(1, sim.truths[1].D @ so3.exp([0.0, np.deg2rad(8.0), 0.0])), *good[2:]]
+    c = consistency.measure(wrong, prob.mags)
+    assert c is not None and c.outliers == (1,)
+    assert 4.0 < float(c.closest()[0][1]) < 8.0          # 8 deg about y: less for directions near y
+    warn = [f for f in consistency.findings(c, "log") if f.code == "magnetometer_inconsistent"]
+    assert len(warn) == 1 and "/mag/1" in warn[0].message
+
+
+def test_joint_path_is_not_taken_with_effects_or_a_robust_loss() -> None:
+    """Effects, the diagnosis and robust losses keep the separate fits (every existing behaviour)."""
+    sim = simulate_array("paper", 3, 2, 62.5, 62.5 / 3, 30.0)
+    prob = select_problem(sim.recording, Config())
+    assert map_joint.joint_eligible(prob, Config(method="map"), "l2")
+    assert not map_joint.joint_eligible(prob, Config(method="map", diagnose=True), "l2")
+    assert not map_joint.joint_eligible(prob, Config(method="map", effects=("time_offset",)), "l2")
+    assert not map_joint.joint_eligible(prob, Config(method="map"), "huber")
+    assert not map_joint.joint_eligible(replace(prob, mags=prob.mags[:1]), Config(method="map"), "l2")
