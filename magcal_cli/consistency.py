@@ -29,8 +29,10 @@ OUTLIER_MIN_DEG = 2.0
 OUTLIER_MIN_PCT = 2.0
 #: ... and by more than this factor times the typical closest-partner disagreement of the others
 OUTLIER_RATIO = 3.0
-#: at least this many common epochs to judge
+#: at least this many common epochs to judge; at most about MAX_EPOCHS of them, evenly spaced (RMS over 30 x 30
+#: pairs: a few thousand epochs pin it to a few per cent)
 MIN_EPOCHS = 20
+MAX_EPOCHS = 2000
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,6 +77,7 @@ def measure(fits: Sequence[MagFit], streams: Sequence[Stream]) -> Consistency | 
     t = ref.t[(ref.t >= start) & (ref.t <= end)]
     if t.size < MIN_EPOCHS:
         return None
+    t = t[:: max(1, t.size // MAX_EPOCHS)]
     m = np.stack([calibrated(f, s, t) for f, s in zip(fits, streams, strict=True)])     # (M, K, 3)
     norm = np.linalg.norm(m, axis=2)
     u = m / np.maximum(norm, 1e-300)[:, :, None]
@@ -123,7 +126,7 @@ def findings(c: Consistency | None, where: str) -> list[Finding]:
                    f"{where}: after calibration the {len(c.ids)} magnetometers' fields in the body frame differ in "
                    f"direction by {float(np.median(ang[ok])):.2f} deg RMS and in strength by "
                    f"{float(np.median(norm[ok])):.2f} % RMS (median over the magnetometers of the difference to the "
-                   f"closest other one, {c.epochs} common epochs)", c.evidence())]
+                   f"closest other one, over {c.epochs} epochs of their common span)", c.evidence())]
     for k in c.outliers:
         out.append(Finding(
             Severity.WARNING, "magnetometer_inconsistent",

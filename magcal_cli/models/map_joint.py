@@ -50,7 +50,7 @@ from .observability import check_observability
 from .params import ACCEL_BIAS, BASE, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Layout
 from .problem import Problem
 from .result import MagFit
-from .solve import Options
+from .solve import Factor, Options
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -224,6 +224,8 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
     history: list[tuple[float, float]] = []
     last_step = None
     sol: JointSolution | None = None
+    fs_at: JointSolution | None = None
+    fs: list[Factor] = []
     hook = current()
     for rnd in range(noise_rounds + 1):
         hook("joint MAP of every magnetometer, noise round", rnd, noise_rounds + 1)
@@ -240,6 +242,7 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
         if rnd == noise_rounds or not np.all(np.isfinite(sol.cov_theta)):
             break
         fs = factors(joint_data(je, pre, noise, layout, hold), sol.states, sol.theta)
+        fs_at = sol
         step = np.log(joint_variance_ratios(sol, fs, loss, opts.loss_scale))
         if floor is not None:
             step[3] = 0.0
@@ -260,7 +263,9 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
         sol = solve_joint(joint_data(je, pre, noise, layout, hold), states, theta, first)
         iters += sol.iterations
         log.extend(f"final: {line}" for line in sol.log)
-    widen = joint_widening(sol, factors(joint_data(je, pre, noise, layout, hold), sol.states, sol.theta), je.t)
+    if fs_at is not sol:              # the factors at the optimum (the last noise round's, unless it moved)
+        fs = factors(joint_data(je, pre, noise, layout, hold), sol.states, sol.theta)
+    widen = joint_widening(sol, fs, je.t)
     cov = sol.cov_theta
     if last_step is not None:
         # as map.fit_map: the covariance with the final levels at the same point (one assembly, no iterations)

@@ -19,7 +19,7 @@ and the gradient against finite differences.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -57,6 +57,15 @@ class JointData:
     layout: Layout
     #: each magnetometer's 13 columns (D#i, o#i, dip#i)
     cols: tuple[IntArray, ...]
+    _km: FloatArray | None = field(default=None, repr=False)
+
+    @property
+    def mag_km(self) -> FloatArray:
+        """The readings as (K, M, 3), made once."""
+        if self._km is None:
+            object.__setattr__(self, "_km", np.ascontiguousarray(self.mag.transpose(1, 0, 2)))
+        assert self._km is not None
+        return self._km
 
     @property
     def mags(self) -> int:
@@ -96,11 +105,11 @@ def _mags(data: JointData, states: FloatArray, theta: FloatArray
     th = theta[np.array(data.cols)]                                       # (M, 13): vec D, o, dip
     d = th[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)
     c, s = np.cos(th[:, 12]), np.sin(th[:, 12])
-    dt_cat = d.transpose(2, 0, 1).reshape(3, -1)                          # [a, 3 i + b] = D_i[b, a]
+    dt_cat = d.transpose(2, 0, 1)                                         # [a, i, b] = D_i[b, a]
     k, n_m = states.shape[0], th.shape[0]
-    pn = (states[:, 0, :] @ dt_cat).reshape(k, n_m, 3)
-    pd = (states[:, 2, :] @ dt_cat).reshape(k, n_m, 3)
-    e = data.mag.transpose(1, 0, 2) - c[None, :, None] * pn - s[None, :, None] * pd - th[None, :, 9:12]
+    pred = states[:, 0, :] @ (dt_cat * c[None, :, None]).reshape(3, -1) + \
+        states[:, 2, :] @ (dt_cat * s[None, :, None]).reshape(3, -1)
+    e = data.mag_km - pred.reshape(k, n_m, 3) - th[None, :, 9:12]
     return e, d, c, s
 
 
