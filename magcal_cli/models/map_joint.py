@@ -359,7 +359,8 @@ def fit_joint_or_note(problem: Problem, cfg: Config, loss: str, dip_prior: float
             fit = fit_joint(replace(problem, mags=keep), loss, dip_prior)
             found = consistency.measure([_as_fit(e) for e in fit.estimates], keep)
             note = (f"{', '.join(mags[k].id for k in bad)} disagreed with the other magnetometers after the joint fit "
-                    "and were fitted on their own; the others share one trajectory")
+                    f"and {'was' if len(bad) == 1 else 'were'} fitted on {'its' if len(bad) == 1 else 'their'} own; the "
+                    "others share one trajectory")
         elif bad:
             return None, "the magnetometers disagree with each other after a joint fit: each was fitted on its own"
         if not all(e.converged for e in fit.estimates):

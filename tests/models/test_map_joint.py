@@ -136,3 +136,14 @@ def test_joint_path_is_not_taken_with_effects_or_a_robust_loss() -> None:
     assert not map_joint.joint_eligible(prob, Config(method="map", effects=("time_offset",)), "l2")
     assert not map_joint.joint_eligible(prob, Config(method="map"), "huber")
     assert not map_joint.joint_eligible(replace(prob, mags=prob.mags[:1]), Config(method="map"), "l2")
+
+
+def test_magnetometers_without_common_epochs_are_fitted_separately() -> None:
+    """Readings one IMU period apart share no state: a method note says why, and each is fitted on its own."""
+    sim = simulate_array("paper", 6, 2, 62.5, 62.5 / 3, 30.0)
+    prob = select_problem(sim.recording, Config())
+    late = replace(prob.mags[1], t=prob.mags[1].t + 1.0 / 62.5)
+    result = map_run.run(replace(prob, mags=(prob.mags[0], late)), Config(method="map"))
+    assert any("no joint fit of the 2 magnetometers" in n and "common epochs" in n for n in result.notes)
+    assert any("IMU biases from the fit against" in n for n in result.notes)
+    assert [f.id for f in result.mags] == ["/mag/0", "/mag/1"]
