@@ -30,12 +30,14 @@ from .. import so3
 from .accel import accel_factor
 from .gyro import Preintegrated, gyro_factor
 from .mag import MagLayout
-from .params import Layout
+from .params import MAG, Layout
 from .solve import Factor, Options, _band, selected_inverse
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
+#: where D, o and dip sit in a magnetometer's 13 columns (params.MAG: vec D column-major, o, dip)
+D_AT, O_AT, DIP_AT = MAG.slice("D"), MAG.slice("o"), MAG.slice("dip")
 #: the shared basis: 6 vectors n x e_a, d x e_a, then 36 (n x e_a) n_l, (n x e_a) d_l, (d x e_a) n_l, (d x e_a) d_l
 R_MAG = 42
 
@@ -75,7 +77,7 @@ class JointData:
     def mag_at(self, i: int) -> MagLayout:
         """Where magnetometer i's D, o and dip sit in theta."""
         c = self.mag_cols(i)
-        return MagLayout(int(c[0]), int(c[9]), int(c[12]))
+        return MagLayout(int(c[D_AT.start]), int(c[O_AT.start]), int(c[DIP_AT.start]))
 
     def mag_cols(self, i: int) -> IntArray:
         """Magnetometer i's 13 theta columns (D, o, dip)."""
@@ -103,13 +105,13 @@ def _mags(data: JointData, states: FloatArray, theta: FloatArray
     """Every magnetometer at the states: unwhitened residuals e (K, M, 3), D (M, 3, 3), cos and sin of the dips
     (M,); magnetometer i predicts D_i (c_i n_k + s_i d_k) + o_i (one (K, 3) x (3, 3M) product per direction)."""
     th = theta[np.array(data.cols)]                                       # (M, 13): vec D, o, dip
-    d = th[:, :9].reshape(-1, 3, 3).transpose(0, 2, 1)
-    c, s = np.cos(th[:, 12]), np.sin(th[:, 12])
+    d = th[:, D_AT].reshape(-1, 3, 3).transpose(0, 2, 1)
+    c, s = np.cos(th[:, DIP_AT.start]), np.sin(th[:, DIP_AT.start])
     dt_cat = d.transpose(2, 0, 1)                                         # [a, i, b] = D_i[b, a]
     k, n_m = states.shape[0], th.shape[0]
     pred = states[:, 0, :] @ (dt_cat * c[None, :, None]).reshape(3, -1) + \
         states[:, 2, :] @ (dt_cat * s[None, :, None]).reshape(3, -1)
-    e = data.mag_km - pred.reshape(k, n_m, 3) - th[None, :, 9:12]
+    e = data.mag_km - pred.reshape(k, n_m, 3) - th[None, :, O_AT]
     return e, d, c, s
 
 
@@ -156,13 +158,13 @@ def coefficients(d: FloatArray, sinv: FloatArray, c: float, s: float) -> FloatAr
     """C_i (42, 13): J_x^T J_theta of magnetometer i = basis @ C_i (columns vec D, o, dip); sinv = L^T L (3, 3)."""
     p = d.T @ sinv
     mm = p @ d
-    out = np.zeros((R_MAG, 13))
-    out[0:3, 9:12], out[3:6, 9:12] = -c * p, -s * p
+    out = np.zeros((R_MAG, MAG.size))
+    out[0:3, O_AT], out[3:6, O_AT] = -c * p, -s * p
     for q, (wd, wdip) in enumerate((((-c * c), c * s), ((-c * s), -c * c), ((-s * c), s * s), ((-s * s), -s * c))):
         at = 6 + 9 * q + 3 * np.arange(3)                        # rows (a, l) = at[a] + l
         for lcol in range(3):                                    # D column j + 3 l: w_q P[a, j]
-            out[at + lcol, 3 * lcol:3 * lcol + 3] = wd * p
-        out[6 + 9 * q:15 + 9 * q, 12] = wdip * mm.reshape(9)     # dip: w_q M_[a, b] at row (a, b)
+            out[at + lcol, D_AT.start + 3 * lcol:D_AT.start + 3 * lcol + 3] = wd * p
+        out[6 + 9 * q:15 + 9 * q, DIP_AT.start] = wdip * mm.reshape(9)     # dip: w_q M_[a, b] at row (a, b)
     return out
 
 
@@ -219,13 +221,14 @@ def normal(data: JointData, states: FloatArray, theta: FloatArray) -> tuple[floa
         dmm = -s * c * mom["n", "n"] - s * s * mom["n", "d"] + c * c * mom["d", "n"] + c * s * mom["d", "d"]
         dmdm = s * s * mom["n", "n"] - s * c * (mom["n", "d"] + mom["d", "n"]) + c * c * mom["d", "d"]
         m1, dm1 = c * first["n"] + s * first["d"], -s * first["n"] + c * first["d"]
-        h = np.zeros((13, 13))
-        h[0:9, 0:9] = np.kron(mm, sinv)
-        h[0:9, 9:12] = np.kron(m1[:, None], sinv)
-        h[0:9, 12] = (sinv @ d @ dmm).ravel(order="F")
-        h[9:12, 9:12] = float(w2.sum()) * sinv
-        h[9:12, 12] = sinv @ d @ dm1
-        h[12, 12] = float(np.trace(g @ dmdm))
+        h = np.zeros((MAG.size, MAG.size))
+        dip = DIP_AT.start
+        h[D_AT, D_AT] = np.kron(mm, sinv)
+        h[D_AT, O_AT] = np.kron(m1[:, None], sinv)
+        h[D_AT, dip] = (sinv @ d @ dmm).ravel(order="F")
+        h[O_AT, O_AT] = float(w2.sum()) * sinv
+        h[O_AT, dip] = sinv @ d @ dm1
+        h[dip, dip] = float(np.trace(g @ dmdm))
         h = np.triu(h) + np.triu(h, 1).T
         htt[np.ix_(mc, mc)] += h
         we_m, we_dm = c * we_n[i] + s * we_d[i], -s * we_n[i] + c * we_d[i]
