@@ -62,7 +62,9 @@ def with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: floa
     try:
         est = fit(problem)
     except InsufficientDataError as exc:
-        why = str(exc)
+        # the reason alone: its "where" prefix and its advice belong to a refusal, not to this note
+        reason = str(exc).removeprefix(f"{problem.where}: {mag.id}: ").split(" To fix:")[0].rstrip(".")
+        why = f"the fit was refused ({reason})"
     else:
         if not partial(est):
             return est, problem
@@ -78,9 +80,10 @@ def with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: floa
     if est is not None and partial(alt):              # no better without: the known physics stays
         return est, problem
     note = Finding(Severity.WARNING, "known_physics_dropped",
-                   f"{problem.where}: {mag.id}: {', '.join(problem.base_effects)} was not modelled: with it {why}, "
+                   f"{problem.where}: {mag.id}: {', '.join(problem.base_effects)} was not modelled: with it {why}; "
                    "without it the log determines more of the calibration (the log's GPS acceleration disagrees with the "
-                   "accelerometer: a lag, glitches or an antenna far from the IMU)", {"sensor": mag.id})
+                   "accelerometer: glitches, a lag beyond the modelled one, or an antenna far from the IMU)",
+                   {"sensor": mag.id})
     return replace(alt, findings=(*alt.findings, note)), plain
 
 

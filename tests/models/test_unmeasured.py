@@ -122,4 +122,4 @@ def test_known_physics_is_dropped_when_the_log_then_determines_less(monkeypatch:
     est, used = map_run.with_known_physics(problem, problem.mags[0], "l2", None, None, {}, (), 0.0)
     assert used.base_effects == () and not [f for f in est.effects if f.id == "nongravity_acceleration"]
     (why,) = [f for f in est.findings if f.code == "known_physics_dropped"]
-    assert "nongravity_acceleration was not modelled: with it GPS disagrees" in why.message
+    assert "nongravity_acceleration was not modelled: with it the fit was refused (GPS disagrees);" in why.message
