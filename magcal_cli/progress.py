@@ -68,6 +68,18 @@ def every(hook: Hook, stage: str, total: int, step: int) -> Callable[[int], None
     return report
 
 
+def within(hook: Hook, lo: float, hi: float) -> Hook:
+    """`hook` with each fraction mapped into lo..hi of one: the steps of one stage (parse the bytes, then build
+    the streams) rise as one fraction from 0 to 1. Messages and reports without a total pass unchanged."""
+
+    def part(stage: str, done: float | None = None, total: float | None = None) -> None:
+        if done is None or not total:
+            hook(stage, done, total)
+        else:
+            hook(stage, lo + (hi - lo) * min(done / total, 1.0), 1.0)
+    return part
+
+
 def duration(seconds: float) -> str:
     """'8 s', '2 min 05 s', '1 h 03 min'."""
     s = int(round(seconds))

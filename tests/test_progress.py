@@ -6,13 +6,17 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from magcal_cli import progress as progress_mod
 from magcal_cli.cli import cli
 from magcal_cli.diagnose.parallel import pmap
-from magcal_cli.progress import Progress, active, current, duration, noop
+from magcal_cli.logwriters import write_log
+from magcal_cli.progress import Progress, active, current, duration, noop, within
+from magcal_cli.readers import open_recording
+from magcal_cli.synth import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_logs" / "handheld.csv"
@@ -118,6 +122,23 @@ def test_duration_and_current_hook() -> None:
     assert seen == [("replicates", 1, 3), ("replicates", 2, 3), ("replicates", 3, 3)]
 
 
+def test_within_maps_a_steps_fractions_into_its_part_of_the_stage() -> None:
+    """Parsing 0..0.3 then building 0.3..1 of one "reading" stage; messages and unknown sizes pass unchanged."""
+    seen: list[tuple[str, float | None, float | None]] = []
+
+    def hook(stage: str, done: float | None = None, total: float | None = None) -> None:
+        seen.append((stage, done, total))
+
+    parse, build = within(hook, 0.0, 0.3), within(hook, 0.3, 1.0)
+    parse("reading", 50, 100)
+    build("reading", 1, 4)
+    build("reading", 3, 2)                 # past the end: held at the part's end
+    build("reading x.bin")
+    build("reading", 7, None)
+    assert seen == [("reading", 0.15, 1.0), ("reading", 0.475, 1.0), ("reading", 1.0, 1.0), ("reading x.bin", None, None),
+                    ("reading", 7, None)]
+
+
 def _as_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
     """Make the CLI's stderr renderer believe stderr is a terminal."""
     real = Progress.for_stderr.__func__  # type: ignore[attr-defined]
@@ -142,6 +163,7 @@ def test_cli_progress_only_on_a_terminal_without_q(runner: CliRunner, tmp_path: 
     assert result.exit_code == 0, result.output
     shown = "\r" in result.stderr and "ekf-aug filter pass" in result.stderr
     assert shown is (terminal and not quiet)
+    assert ("magcal: reading: 100 %" in result.stderr) is (terminal and not quiet)
     if quiet:
         assert result.stderr == ""
     else:
@@ -172,32 +194,61 @@ def test_warnings_grouped_one_line_per_kind_and_in_full_with_v() -> None:
     assert _warning_lines(found, mags, verbose=True) == [f.message for f in found[:5]]
 
 
-def test_reading_and_the_map_fit_report_their_fractions(tmp_path: Path) -> None:
-    """Issue 13 item 2: reading a chunked log (MCAP, ROS 1) and the joint MAP's noise rounds report done/total
-    through the active hook, not only their stage."""
+@pytest.fixture(scope="module")
+def sim60() -> Simulation:
+    """A minute of hand-held motion."""
+    return simulate("handheld", 1, duration=60.0)
+
+
+def _reading(path: Path) -> list[float]:
+    """The fractions the reader of `path` reports as the "reading" stage through the active hook."""
+    calls: list[tuple[str, float | None, float | None]] = []
+
+    def record(stage: str, done: float | None = None, total: float | None = None) -> None:
+        calls.append((stage, done, total))
+
+    with active(record):
+        open_recording(path)
+    assert all(total and done is not None for stage, done, total in calls if stage == "reading"), calls
+    return [done / total for stage, done, total in calls if stage == "reading" and done is not None and total]
+
+
+@pytest.mark.parametrize("name", ["r.mcap", "r.bag", "r.bin", "r.log", "r.ulg", "r.csv"])
+def test_reading_reports_fractions_that_rise_to_one(sim60: Simulation, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                    name: str) -> None:
+    """Issue 13 item 2: every reader reports the fraction read (bytes, chunks, then building the streams) through
+    the active hook, from 0 up to 1 and never back; ULog and CSV per REPORT_BYTES / CSV_BLOCK (made small here so a
+    1 MB log reports several times)."""
+    from magcal_cli.readers import csvfile, ulog_load
+    from tests.readers.test_dataflash import text_log
+
+    monkeypatch.setattr(ulog_load, "REPORT_BYTES", 1 << 16)
+    monkeypatch.setattr(csvfile, "CSV_BLOCK", 1 << 16)
+    path = tmp_path / name
+    if name == "r.log":                     # a Copter 3.x text DataFlash log: no writer, the reader test's builder
+        u = np.random.default_rng(2).standard_normal((400, 3))
+        path.write_text(text_log(450.0 * u / np.linalg.norm(u, axis=1, keepdims=True))[0])
+    else:
+        write_log(sim60, path)
+    f = _reading(path)
+    assert f[0] < 0.01 and f[-1] == 1.0, f
+    assert all(b >= a for a, b in zip(f, f[1:], strict=False)), f
+    assert len(set(f)) >= 4, f
+
+
+def test_the_map_fit_reports_its_noise_rounds(sim60: Simulation, tmp_path: Path) -> None:
+    """Issue 13 item 2: the joint MAP's noise rounds report done/total through the active hook."""
     from magcal_cli.config import Config
-    from magcal_cli.logwriters import write_log
     from magcal_cli.models.map import fit_map
     from magcal_cli.pipeline import select_problem
-    from magcal_cli.progress import active
-    from magcal_cli.readers import open_recording
-    from magcal_cli.synth import simulate
 
     calls: list[tuple[str, float | None, float | None]] = []
 
     def record(stage: str, done: float | None = None, total: float | None = None) -> None:
         calls.append((stage, done, total))
 
-    sim = simulate("handheld", 1, duration=60.0)
-    for name in ("r.mcap", "r.bag"):
-        write_log(sim, tmp_path / name)
-        calls.clear()
-        with active(record):
-            rec = open_recording(tmp_path / name)
-        reading = [c for c in calls if c[0] == "reading"]
-        assert reading and all(c[1] is not None and c[2] and 0 <= c[1] <= c[2] for c in reading), name
-    calls.clear()
-    problem = select_problem(rec, Config())
+    write_log(sim60, tmp_path / "r.mcap")
+    problem = select_problem(open_recording(tmp_path / "r.mcap"), Config())
     with active(record):
         fit_map(problem, problem.mags[0])
     rounds = [c for c in calls if "joint MAP, noise round" in c[0]]

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import ClassVar, Protocol
 
 from ..errors import LogReadError, UnsupportedFormatError
+from ..progress import current
 from ..registry import resolve
 from ..streams import Recording
 
@@ -96,10 +97,13 @@ def get_reader(name: str) -> Reader:
 
 
 def open_recording(path: Path, fmt: str | None = None, options: ReadOptions | None = None) -> Recording:
-    """Read `path` with the reader for `fmt` (sniffed when None)."""
+    """Read `path` with the reader for `fmt` (sniffed when None); readers report the fraction read as the "reading"
+    stage of `progress.current()`, which ends at 1 here."""
     path = Path(path)
     if not path.exists():
         msg = f"{path}: no such file or directory. Check the path"
         raise LogReadError(msg)
     name = fmt or sniff(path)
-    return get_reader(name).read(path, options or ReadOptions())
+    rec = get_reader(name).read(path, options or ReadOptions())
+    current()("reading", 1, 1)
+    return rec

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from ..progress import current
 from .cut import a_record
 from .dataflash_format import (
     FMT_ID,
@@ -297,13 +298,16 @@ def parse_buffer(buf: np.ndarray, wanted: Collection[str] | None = None) -> RawL
 
 
 def parse_binary(path: Path, wanted: Collection[str] | None = None, window: int = WINDOW) -> RawLog:
-    """Parse a binary DataFlash file window by window (bounded memory); decode the types in `wanted`."""
+    """Parse a binary DataFlash file window by window (bounded memory); decode the types in `wanted`. The bytes
+    parsed are reported per window as the "reading" fraction of `progress.current()`."""
     parser = _ChainParser(wanted)
+    hook = current()
     with path.open("rb") as fh:
         size = fh.seek(0, 2)
         buf = np.empty(min(size, window + OVERLAP), dtype=np.uint8)
         pos = 0
         while pos < size or size == 0:
+            hook("reading", pos, size)
             fh.seek(pos)
             n = fh.readinto(buf.data)
             at_end = pos + n >= size
@@ -311,4 +315,5 @@ def parse_binary(path: Path, wanted: Collection[str] | None = None, window: int 
             if at_end:
                 break
             pos = max(nxt, pos + 1)
+    hook("reading", size, size)
     return parser.result(size)

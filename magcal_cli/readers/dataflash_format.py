@@ -151,6 +151,7 @@ class RawLog:
     truncated_bytes: int = 0
     notes: list[str] = field(default_factory=list)
     cut_lost: str = ""          # what the bytes after the last complete record held (a cut log)
+    text: bool = False          # parsed from a text log (its parse, not the streams, takes the time)
 
     def table(self, name: str) -> Table | None:
         """The decoded messages of `name`, or None when the log has none."""

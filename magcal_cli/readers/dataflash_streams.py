@@ -9,6 +9,7 @@ import numpy as np
 
 from .. import so3
 from ..align import clean_time
+from ..progress import current
 from ..streams import Kind, Recording, Stream
 from .checks import drop_held, sensor_checks
 from .dataflash_format import FloatArray, IntArray, RawLog, Table
@@ -136,14 +137,18 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
            notes: list[str]) -> Recording:
     """Recording with times relative to the first IMU or magnetometer sample, cleaned and noted.
 
-    `pending` is emptied as its streams are built, so each one's arrays are freed once copied (memory)."""
+    `pending` is emptied as its streams are built, so each one's arrays are freed once copied (memory); the
+    samples done are reported per stream as the "reading" fraction of `progress.current()`."""
     anchor = [p.t for p in pending if Kind.MAGNETOMETER in p.kinds or Kind.ACCELEROMETER in p.kinds]
     t0 = min((float(np.nanmin(t)) for t in (anchor or [p.t for p in pending]) if np.isfinite(t).any()), default=0.0)
     del anchor
     streams: list[Stream] = []
+    hook, done, total = current(), 0, sum(len(p.t) for p in pending)
     pending.reverse()
     while pending:
+        hook("reading", done, total)
         p = pending.pop()
+        done += len(p.t)
         where = p.id if len(p.kinds) > 1 else f"{p.id} {p.kinds[0].value}"
         if not len(p.t):                # every record dropped before (unhealthy, no time): nothing to clean
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")

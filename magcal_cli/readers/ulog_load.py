@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from ..errors import LogReadError
+from ..progress import Hook, current, noop
 
 #: message-header reads that may start at or before the furthest header read so far before the parser counts
 #: as stuck; a healthy parse never re-reads a header (resynchronising steps forward one byte per header)
@@ -27,6 +28,8 @@ HEADER_SIZE = 3
 MAX_MESSAGE = 0xFFFF
 #: the message types of the ULog spec (B F I M P Q A R D L C S O)
 MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")
+#: bytes between two reports of the fraction read (pyulog parses about 8 MB/s: a few reports a second)
+REPORT_BYTES = 1 << 20
 
 
 class _StuckError(Exception):
@@ -34,11 +37,14 @@ class _StuckError(Exception):
 
 
 class GuardFile:
-    """The log file as pyulog reads it: records where a message was cut off, stops an endless re-read loop."""
+    """The log file as pyulog reads it: records where a message was cut off, stops an endless re-read loop, and
+    reports the bytes read to `hook` every REPORT_BYTES (one comparison per message header)."""
 
-    def __init__(self, fh: IO[bytes], size: int) -> None:
+    def __init__(self, fh: IO[bytes], size: int, hook: Hook | None = None) -> None:
         self._fh = fh
         self.size = size
+        self._hook = hook or noop
+        self._report_at = 0
         self.cut_at: int | None = None
         self._furthest_start = -1
         self._idle = 0
@@ -51,6 +57,9 @@ class GuardFile:
         if n == HEADER_SIZE:                 # message headers only: sync searches read ahead, then seek back
             if pos > self._furthest_start:   # resynchronising byte by byte starts each header further on
                 self._furthest_start, self._idle = pos, 0
+                if pos >= self._report_at:
+                    self._report_at = pos + REPORT_BYTES
+                    self._hook("reading", pos, self.size)
             else:
                 self._idle += 1
                 if self._idle > STUCK_READS:
@@ -133,7 +142,8 @@ def load_ulog(path: Path, wanted: list[str]) -> Loaded:
     except OSError as exc:
         msg = f"{path}: cannot read the file ({exc.strerror or exc}). Check the path and its permissions"
         raise LogReadError(msg) from None
-    guard = GuardFile(raw, size)
+    hook = current()
+    guard = GuardFile(raw, size, hook)
     try:
         with raw, contextlib.redirect_stdout(out):
             ulog = ULog(guard, topics, disable_str_exceptions=True)
@@ -167,6 +177,7 @@ def load_ulog(path: Path, wanted: list[str]) -> Loaded:
         raise LogReadError(msg) from None
     finally:
         ULog._disable_str_exceptions = switch
+    hook("reading", size, size)
     printed = tuple(dict.fromkeys(line.strip() for line in out.getvalue().splitlines() if line.strip()))
     return Loaded(ulog, tuple(sorted(topics.seen)), size, guard.cut_at, printed)
 
