@@ -31,7 +31,7 @@ from .accel import accel_factor
 from .gyro import Preintegrated, gyro_factor
 from .mag import MagLayout
 from .params import MAG, Layout
-from .solve import Factor, Options, _band, selected_inverse
+from .solve import Factor, Options, _band, iterate, selected_inverse
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -297,40 +297,13 @@ def step(ne: Normal, lam: float, lam_theta: float | None = None
 
 
 def solve_joint(data: JointData, states0: FloatArray, theta0: FloatArray, opts: Options) -> JointSolution:
-    """Levenberg-Marquardt as `solve.solve` runs it (same damping, acceptance and stopping rules), on the
-    structured normal equations."""
-    states, theta = np.array(states0, dtype=np.float64), np.array(theta0, dtype=np.float64)
-    cur, ne = normal(data, states, theta)
-    lam, log, converged, it = opts.lambda0, [f"start: cost {cur:.6g}"], False, 0
-    for it in range(1, opts.max_iterations + 1):
-        try:
-            dx, dt, *_ = step(ne, lam)
-        except (np.linalg.LinAlgError, linalg.LinAlgError):
-            lam *= 10.0
-            log.append(f"iter {it}: singular system, lambda -> {lam:.1e}")
-            if lam > 1e12:
-                break
-            continue
-        new_states, new_theta = states @ so3.exp(dx), theta + dt
-        new_cost, new_ne = normal(data, new_states, new_theta)
-        size = float(np.sqrt(np.sum(dx * dx) + dt @ dt))
-        if np.isfinite(new_cost) and new_cost <= cur:
-            drop, rel = cur - new_cost, (cur - new_cost) / max(cur, 1e-300)
-            states, theta, cur, ne = new_states, new_theta, new_cost, new_ne
-            lam = max(lam / 3.0, 1e-12)
-            log.append(f"iter {it}: cost {cur:.6g}, step {size:.2e}, lambda {lam:.1e}")
-            if size < opts.step_tol or rel < opts.cost_tol or drop < opts.abs_cost_tol:
-                converged = True
-                break
-        else:
-            lam *= 10.0
-            log.append(f"iter {it}: rejected (cost {new_cost:.6g}), lambda -> {lam:.1e}")
-            if size < opts.step_tol:
-                converged = True
-                break
-            if lam > 1e12:
-                break
-    return at_optimum(ne, states, theta, cur, it, converged, log)
+    """`solve.iterate` (the one Levenberg-Marquardt loop) on the structured normal equations."""
+    def advance(ne: Normal, lam: float) -> tuple[FloatArray, FloatArray]:
+        dx, dt, *_ = step(ne, lam)
+        return dx, dt
+
+    out = iterate(lambda states, theta: normal(data, states, theta), advance, states0, theta0, opts)
+    return at_optimum(out.system, out.states, out.theta, out.cost, out.iterations, out.converged, out.log)
 
 
 def at_optimum(ne: Normal, states: FloatArray, theta: FloatArray, cur: float, iterations: int, converged: bool,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +23,8 @@ from .. import so3
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
+#: the system a Levenberg-Marquardt step solves (`iterate`)
+S = TypeVar("S")
 
 
 @dataclass(frozen=True, eq=False)
@@ -350,18 +353,31 @@ def solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray,
         return _solve(linearize, states0, theta0, opts or Options())
 
 
-def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: Options) -> Solution:
-    """The Levenberg-Marquardt loop of `solve`."""
+@dataclass(frozen=True, eq=False)
+class Iterated(Generic[S]):
+    """Where the Levenberg-Marquardt loop stopped: the point, its cost, the system built there (`S`, e.g. factors
+    and robust weights), the iterations, whether it converged, and one log line per iteration."""
+
+    states: FloatArray
+    theta: FloatArray
+    cost: float
+    system: S
+    iterations: int
+    converged: bool
+    log: tuple[str, ...]
+
+
+def iterate(evaluate: Callable[[FloatArray, FloatArray], tuple[float, S]],
+            step: Callable[[S, float], tuple[FloatArray, FloatArray]],
+            states0: FloatArray, theta0: FloatArray, opts: Options) -> Iterated[S]:
+    """The Levenberg-Marquardt rules, whatever builds the system: `evaluate` linearises at a point (its cost and
+    system), `step` solves the damped system there for (dx, dtheta). States move by right perturbation."""
     states, theta = np.array(states0, dtype=np.float64), np.array(theta0, dtype=np.float64)
-    n, p = states.shape[0], theta.size
-    factors = linearize(states, theta, True)
-    u = 5 if any(f.J_next is not None for f in factors) else 2
-    cost, weights = _robust_weights(factors, opts)
+    cost, system = evaluate(states, theta)
     lam, log, converged, it = opts.lambda0, [f"start: cost {cost:.6g}"], False, 0
     for it in range(1, opts.max_iterations + 1):
-        ne = _assemble(factors, weights, n, p)
         try:
-            dx, dt, *_ = _step(ne, lam, u)
+            dx, dt = step(system, lam)
         except (np.linalg.LinAlgError, linalg.LinAlgError):
             lam *= 10.0
             log.append(f"iter {it}: singular system, lambda -> {lam:.1e}")
@@ -371,27 +387,47 @@ def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: 
         new_states, new_theta = states @ so3.exp(dx), theta + dt
         # linearise at the trial point straight away: steps are nearly always accepted, so this saves the
         # separate residual-only evaluation per iteration
-        trial = linearize(new_states, new_theta, True)
-        new_cost, new_weights = _robust_weights(trial, opts)
-        step = float(np.sqrt(np.sum(dx * dx) + dt @ dt))
+        new_cost, trial = evaluate(new_states, new_theta)
+        size = float(np.sqrt(np.sum(dx * dx) + dt @ dt))
         if np.isfinite(new_cost) and new_cost <= cost:
             drop = cost - new_cost
             rel = drop / max(cost, 1e-300)
-            states, theta, cost = new_states, new_theta, new_cost
+            states, theta, cost, system = new_states, new_theta, new_cost, trial
             lam = max(lam / 3.0, 1e-12)
-            log.append(f"iter {it}: cost {cost:.6g}, step {step:.2e}, lambda {lam:.1e}")
-            factors, weights = trial, new_weights
-            if step < opts.step_tol or rel < opts.cost_tol or drop < opts.abs_cost_tol:
+            log.append(f"iter {it}: cost {cost:.6g}, step {size:.2e}, lambda {lam:.1e}")
+            if size < opts.step_tol or rel < opts.cost_tol or drop < opts.abs_cost_tol:
                 converged = True
                 break
         else:
             lam *= 10.0
             log.append(f"iter {it}: rejected (cost {new_cost:.6g}), lambda -> {lam:.1e}")
-            if step < opts.step_tol:
+            if size < opts.step_tol:
                 converged = True
                 break
             if lam > 1e12:
                 break
+    return Iterated(states, theta, cost, system, it, converged, tuple(log))
+
+
+def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: Options) -> Solution:
+    """`iterate` on the factors' block-banded normal equations, then the covariance at the optimum."""
+    n, p = np.shape(states0)[0], np.size(theta0)
+    u = 2
+
+    def evaluate(states: FloatArray, theta: FloatArray) -> tuple[float, tuple[Sequence[Factor], list[FloatArray]]]:
+        nonlocal u
+        factors = linearize(states, theta, True)
+        u = 5 if any(f.J_next is not None for f in factors) else 2
+        cost, weights = _robust_weights(factors, opts)
+        return cost, (factors, weights)
+
+    def step(system: tuple[Sequence[Factor], list[FloatArray]], lam: float) -> tuple[FloatArray, FloatArray]:
+        dx, dt, *_ = _step(_assemble(*system, n, p), lam, u)
+        return dx, dt
+
+    out = iterate(evaluate, step, states0, theta0, opts)
+    factors, weights = out.system
+    log = list(out.log)
     ne = _assemble(factors, weights, n, p)
     try:
         _, _, s_inv, hdiag, w = _undamped(ne, u, log)
@@ -399,8 +435,8 @@ def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: 
         log.append("the information is singular at the optimum: the data do not determine all unknowns")
         s_inv, hdiag, w = np.full((p, p), np.nan), ne.diag, np.full((n, 3, p), np.nan)
     assert w is not None
-    return Solution(states, theta, cost, it, converged, s_inv, tuple(log), tuple(factors), hdiag, w, u,
-                    ne.off, tuple(weights))
+    return Solution(out.states, out.theta, out.cost, out.iterations, out.converged, s_inv, tuple(log),
+                    tuple(factors), hdiag, w, u, ne.off, tuple(weights))
 
 
 def _undamped(ne: _Normal, u: int, log: list[str] | None = None
