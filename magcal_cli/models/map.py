@@ -208,25 +208,29 @@ def variance_ratios(sol: Solution, loss: str = "l2", c: float = 3.0) -> FloatArr
     model (E min(chi2_m, c^2) / m), one factor per group: outliers then cannot inflate the levels.
     """
     marg = sol.marginals()
-    out = {}
-    for f in sol.factors:
-        h = sol.leverage(f, marg)
-        m = f.r.shape[1]
-        # rows weighted to zero (excluded readings) carry no information and no residual: do not count them
-        rows = f.r.shape[0] if f.J_theta is None else int(np.count_nonzero(np.any(f.J_theta != 0.0, axis=(1, 2))))
-        if loss != "l2":
-            s2 = np.minimum(np.sum(f.r**2, axis=1), c * c)
-            # E[min(X, c^2)] for X ~ chi2_m: m F_(m+2)(c^2) + c^2 (1 - F_m(c^2))
-            kappa = (m * stats.chi2.cdf(c * c, m + 2) + c * c * stats.chi2.sf(c * c, m)) / m
-            width = 1 if f.name == "gyro" else m
-            ss = np.full(width, s2.sum() / kappa / m)
-            dof = np.full(width, (rows * m - h.sum()) / m)
-        else:
-            ss, dof = np.sum(f.r**2, axis=0), rows - h.sum(axis=0)
-            if f.name == "gyro":
-                ss, dof = ss.sum(keepdims=True), dof.sum(keepdims=True)
-        out[f.name] = np.where(dof > 10.0, ss / np.maximum(dof, 1e-300), 1.0)
+    out = {f.name: group_ratio(f, sol.leverage(f, marg).sum(axis=0), loss, c) for f in sol.factors}
     return np.concatenate([out["accel"], out["gyro"], out["mag"]])
+
+
+def group_ratio(f: Factor, leverage: FloatArray, loss: str = "l2", c: float = 3.0) -> FloatArray:
+    """One factor group's variance factor per axis (one for the gyro), sum(r^2) / (rows - leverage), from its
+    leverage summed over rows per axis (`variance_ratios`)."""
+    m = f.r.shape[1]
+    # rows weighted to zero (excluded readings) carry no information and no residual: do not count them
+    rows = f.r.shape[0] if f.J_theta is None else int(np.count_nonzero(np.any(f.J_theta != 0.0, axis=(1, 2))))
+    if loss != "l2":
+        s2 = np.minimum(np.sum(f.r**2, axis=1), c * c)
+        # E[min(X, c^2)] for X ~ chi2_m: m F_(m+2)(c^2) + c^2 (1 - F_m(c^2))
+        kappa = (m * stats.chi2.cdf(c * c, m + 2) + c * c * stats.chi2.sf(c * c, m)) / m
+        width = 1 if f.name == "gyro" else m
+        ss = np.full(width, s2.sum() / kappa / m)
+        dof = np.full(width, (rows * m - leverage.sum()) / m)
+    else:
+        ss, dof = np.sum(f.r**2, axis=0), rows - leverage
+        if f.name == "gyro":
+            ss, dof = ss.sum(keepdims=True), dof.sum(keepdims=True)
+    out: FloatArray = np.where(dof > 10.0, ss / np.maximum(dof, 1e-300), 1.0)
+    return out
 
 
 def _levels(noise: Noise) -> FloatArray:

@@ -13,6 +13,7 @@ import numpy.typing as npt
 from scipy import stats
 
 from .mag import mag_factor
+from .map import group_ratio
 from .map_joint_solve import JointData, JointSolution, _scale_rows, imu_factors
 from .sandwich import bartlett_dof, newey_west, time_clusters
 from .solve import Factor, _scatter
@@ -86,21 +87,7 @@ def leverages(sol: JointSolution, fs: list[Factor]) -> list[FloatArray]:
 def joint_variance_ratios(sol: JointSolution, fs: list[Factor], loss: str = "l2", c: float = 3.0) -> FloatArray:
     """Variance factors sum(r^2) / (rows - leverage) as `map.variance_ratios` computes them: accelerometer (3
     axes), gyro (1), then each magnetometer (3 axes), from `factors`."""
-    out: dict[str, FloatArray] = {}
-    for f, h in zip(fs, leverages(sol, fs), strict=True):
-        m = f.r.shape[1]
-        rows = f.r.shape[0] if f.J_theta is None else int(np.count_nonzero(np.any(f.J_theta != 0.0, axis=(1, 2))))
-        if loss != "l2":
-            s2 = np.minimum(np.sum(f.r**2, axis=1), c * c)
-            kappa = (m * stats.chi2.cdf(c * c, m + 2) + c * c * stats.chi2.sf(c * c, m)) / m
-            width = 1 if f.name == "gyro" else m
-            ss = np.full(width, s2.sum() / kappa / m)
-            dof = np.full(width, (rows * m - h.sum()) / m)
-        else:
-            ss, dof = np.sum(f.r**2, axis=0), rows - h
-            if f.name == "gyro":
-                ss, dof = ss.sum(keepdims=True), dof.sum(keepdims=True)
-        out[f.name] = np.where(dof > 10.0, ss / np.maximum(dof, 1e-300), 1.0)
+    out = {f.name: group_ratio(f, h, loss, c) for f, h in zip(fs, leverages(sol, fs), strict=True)}
     return np.concatenate([out["accel"], out["gyro"], *(out[f"mag#{i}"] for i in range(len(fs) - 2))])
 
 
