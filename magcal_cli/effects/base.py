@@ -58,6 +58,11 @@ class Inputs:
     channel_ids: tuple[str, ...] = ()
     constants: dict[str, Any] = field(default_factory=dict)
 
+    def rows(self, sel: slice) -> Inputs:
+        """The inputs at a run of epochs (a filter evaluates a term one epoch at a time)."""
+        return Inputs(self.t[sel], self.omega[sel], self.omega_dot[sel],
+                      {k: v[sel] for k, v in self.channels.items()}, self.channel_ids, self.constants)
+
 
 @dataclass(frozen=True, eq=False)
 class Point:
@@ -71,6 +76,13 @@ class Point:
     g_b: FloatArray
     D: FloatArray
     pre: Any = None
+
+    @classmethod
+    def unknown(cls, k: int) -> Point:
+        """K epochs whose model quantities are not known (NaN): an additive term (`Effect.additive`) reads none of
+        them, so a filter evaluates it once over all epochs before the orientations exist (models/ekf_effects.py)."""
+        vec = np.full((k, 3), np.nan)
+        return cls(np.full((k, 3, 3), np.nan), vec, vec, vec, np.full((3, 3), np.nan))
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,6 +118,10 @@ class Effect:
     #: the signal the firmware's interference compensation multiplies ("current" or "throttle"), if any:
     #: `export` writes COMPASS_MOT* / CAL_MAGn_*COMP from the accepted effect (firmware/effects.py)
     compensates: ClassVar[str | None] = None
+    #: the term is an offset added to the magnetometer reading that depends only on the effect's own channels and
+    #: parameters -- not on the orientation, the base parameters or row weights (Term.d_state None, no d_base):
+    #: the EKF baselines carry such a term as extra parameters or states (models/ekf_effects.py)
+    additive: ClassVar[bool] = False
 
     def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
                declination: float = 0.0) -> Inputs:

@@ -29,6 +29,7 @@ class Current(Effect):
 
     id = "current_interference"
     target = Target.MAG
+    additive = True
     params = (ParamBlock("c", 3, "field", "current interference", XYZ),)
     units: ClassVar[dict[str, str]] = {"c": "{field}/ampere"}
     channels = (Kind.BATTERY_CURRENT,)

@@ -19,6 +19,7 @@ class Temperature(Effect):
 
     id = "temperature_drift"
     target = Target.MAG
+    additive = True
     params = (ParamBlock("k", 3, "field", "temperature drift", XYZ),)
     units: ClassVar[dict[str, str]] = {"k": "{field}/degC", "T0": "degC"}
     channels = (Kind.TEMPERATURE,)
