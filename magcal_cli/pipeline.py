@@ -407,6 +407,18 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     return calibrate_recording(rec, cfg, progress)
 
 
+def _not_carried(method: str, effects: tuple[str, ...]) -> tuple[str, ...]:
+    """The requested effects `method` cannot model: the joint MAP models every effect, the EKFs the additive
+    magnetometer terms (models/ekf_effects.py), the other methods none."""
+    if method == "map" or not effects:
+        return ()
+    if method not in ("ekf-ml", "ekf-aug"):
+        return effects
+    from .models.ekf_effects import not_carried
+
+    return not_carried(effects, method)
+
+
 def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None = None) -> RunResult:
     """Calibrate every selected magnetometer of a recording already read (or built in code) against its IMU."""
     path = rec.path
@@ -419,9 +431,13 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None =
                               f"the mismatch diagnosis (--effects auto) runs with the joint MAP method only; "
                               f"the {method} method fitted the base model"))
         cfg = replace(cfg, diagnose=False)
-    if cfg.effects and method != "map":
-        msg = (f"{path.name}: --effects {','.join(cfg.effects)} is modelled by the joint MAP method only in magcal "
-               f"{__version__} (the {method} method has no effect terms); use --method map, or --effects none")
+    refused = _not_carried(method, cfg.effects)
+    if refused:
+        from .models.ekf_effects import carried
+
+        what = f"carries only {', '.join(carried(method))}" if method.startswith("ekf") else "has no effect terms"
+        msg = (f"{path.name}: --effects {','.join(refused)} is modelled by the joint MAP method only in magcal "
+               f"{__version__} (the {method} method {what}); use --method map, or --effects none")
         raise MagcalError(msg)
     target = METHODS.get(method)
     if target is None:

@@ -16,7 +16,7 @@ of its ellipsoid-fit scale (field ~ 1), as in the joint MAP; results are convert
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -26,12 +26,14 @@ from ..findings import Finding
 from ..streams import Stream
 from . import map_init
 from .accel import G
+from .ekf_effects import Terms, fitted, layout_of
 from .epochs import BIAS_SCALE, GYRO_START_DIVISOR, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, preintegrate
+from .map_effects import Bound
 from .observability import check_observability
 from .params import BASE, MAG
 from .problem import Problem
-from .result import ImuFit, MagFit, MethodResult
+from .result import EffectFit, ImuFit, MagFit, MethodResult
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -55,7 +57,8 @@ REPREINTEGRATE_RAD = 0.01
 class Prepared:
     """One magnetometer's filter inputs: epochs t (K,) s, measurements y (K, 6) = [acc m/s^2, mag / scale],
     the accelerometer's interpolation std factor (K,), gyro preintegration between epochs, the gyro samples (for
-    re-preintegration), start noise levels, start theta (BASE) and orientation (3, 3)."""
+    re-preintegration), start noise levels, start theta (BASE) and orientation (3, 3); the additive effects bound to
+    its epochs and those the log cannot test (`ekf_effects.bind_prepared`)."""
 
     where: str
     mag_id: str
@@ -71,12 +74,18 @@ class Prepared:
     rot0: FloatArray
     notes: tuple[str, ...] = ()
     breaks: tuple[tuple[float, float], ...] = ()      # Problem.unmeasured
+    effects: tuple[Bound, ...] = ()
+    untestable: tuple[EffectFit, ...] = ()
 
     def repreintegrated(self, bias: FloatArray) -> Prepared:
         """The same inputs with the gyro preintegrated at `bias` (rad/s)."""
         pre = preintegrate(self.gyr_t, self.gyr, self.t, bias, self.noise.gyr, self.where, breaks=self.breaks)
-        return Prepared(self.where, self.mag_id, self.t, self.y, self.acc_factor, pre, self.gyr_t, self.gyr,
-                        self.noise, self.scale, self.theta0, self.rot0, self.notes, self.breaks)
+        return replace(self, pre=pre)
+
+    @property
+    def effect_ids(self) -> tuple[str, ...]:
+        """The ids of the effects it carries (filters batch together only with the same ones)."""
+        return tuple(e.effect.id for e in self.effects)
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,7 +94,7 @@ class Batch:
 
     y (B, K, 6); var (B, K, 6): per-epoch measurement variances at the start noise levels; delta, d_bias, cov
     (B, K-1, 3, 3): preintegrated rotation, its bias Jacobian and noise covariance; dt (B, K-1) s; bias (B, 3)
-    the gyro bias the preintegration used; rot0 (B, 3, 3).
+    the gyro bias the preintegration used; rot0 (B, 3, 3); the filters' additive effect terms (None: base model).
     """
 
     y: FloatArray
@@ -97,6 +106,7 @@ class Batch:
     dt: FloatArray
     bias: FloatArray
     rot0: FloatArray
+    terms: Terms | None = None
 
     @property
     def size(self) -> tuple[int, int]:
@@ -147,6 +157,19 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
     y = np.concatenate([ep.acc, ep.mag], axis=1)
     return Prepared(where, mag.id, ep.t, y, ep.acc_factor, pre, gyr.t, gyr.xyz, noise, intr.scale, theta, rot0,
                     tuple(notes))
+
+
+def prepare_all(problem: Problem, cfg: object, method: str) -> list[Prepared]:
+    """Every magnetometer prepared for `method`, with the effects of cfg.effects bound to its epochs. The dip starts
+    from the data (docs/method-ekf.md); the WMM declination (where the log's position is known) turns true-north
+    effect inputs into the model's frame."""
+    from ..wmm import reference_for
+    from .ekf_effects import bind_prepared
+
+    ids = tuple(getattr(cfg, "effects", ()))
+    ref = reference_for(cfg) if ids else None
+    declination = 0.0 if ref is None else ref.declination
+    return [bind_prepared(problem, prepare(problem, m), ids, method, declination) for m in problem.mags]
 
 
 #: share of the smallest squared residuals kept by `kinematic_noise`, and E[z^2 | |z| < q] for the Gaussian
@@ -206,7 +229,15 @@ def stack(preps: Sequence[Prepared]) -> Batch:
         delta[i, :n - 1], d_bias[i, :n - 1], cov[i, :n - 1] = p.pre.delta, p.pre.d_bias, p.pre.cov
         dt[i, :n - 1] = p.pre.duration
     return Batch(y, var, valid, delta, d_bias, cov, dt, np.array([p.pre.bias for p in preps]),
-                 np.array([p.rot0 for p in preps]))
+                 np.array([p.rot0 for p in preps]), Terms.of([p.effects for p in preps], [p.scale for p in preps]))
+
+
+def groups(preps: Sequence[Prepared]) -> list[list[int]]:
+    """Indices of the filters that can share a batch: those carrying the same effects."""
+    out: dict[tuple[str, ...], list[int]] = {}
+    for i, p in enumerate(preps):
+        out.setdefault(p.effect_ids, []).append(i)
+    return list(out.values())
 
 
 #: hat(v) = v @ HAT_BASIS reshaped to (..., 3, 3): one matmul instead of six assignments per call in filter loops
@@ -306,7 +337,7 @@ def si_jacobian(scale: float) -> FloatArray:
 @dataclass(frozen=True, eq=False)
 class Estimate:
     """One filter's outcome in SI: theta and its covariance in BASE order, noise levels used, magnetometer innovation
-    RMS (T), the optimiser's record and remarks."""
+    RMS (T), the optimiser's record and remarks, and the effects fitted (or not testable)."""
 
     prep: Prepared
     theta: FloatArray
@@ -318,6 +349,7 @@ class Estimate:
     log: tuple[str, ...]
     notes: tuple[str, ...] = ()
     findings: tuple[Finding, ...] = ()
+    effects: tuple[EffectFit, ...] = ()
 
     @property
     def std(self) -> FloatArray:
@@ -327,13 +359,17 @@ class Estimate:
 
 def estimate(prep: Prepared, theta: FloatArray, cov: FloatArray, noise: Noise, mag_rms: float, iterations: int,
              converged: bool, log: Sequence[str], notes: Sequence[str] = ()) -> Estimate:
-    """Convert a scaled-unit theta and covariance to SI and check what the log determines (observability)."""
-    jac = si_jacobian(prep.scale)
-    cov_si = cov * np.outer(jac, jac)
-    _, findings = check_observability(cov_si, prep.scale, prep.y[:, :3], prep.where)
+    """Convert a scaled-unit theta and covariance (BASE, then the effect blocks of `prep.effects`) to SI, check what
+    the log determines (observability) and test the effects."""
+    jac = BASE.extended(layout_of(prep.effects).blocks).si_factors(prep.scale)
+    theta_si, cov_si = theta * jac, cov * np.outer(jac, jac)
+    base = slice(0, BASE.size)
+    _, findings = check_observability(cov_si[base, base], prep.scale, prep.y[:, :3], prep.where)
     noise_si = Noise(noise.acc, noise.gyr, noise.mag * prep.scale)
-    return Estimate(prep, theta * jac, cov_si, noise_si, mag_rms * prep.scale, iterations, converged, tuple(log),
-                    tuple(prep.notes) + tuple(notes), tuple(findings))
+    effects = fitted(prep.effects, theta_si, cov_si, prep.mag_id, "") if prep.effects else []
+    return Estimate(prep, theta_si[base], cov_si[base, base], noise_si, mag_rms * prep.scale, iterations, converged,
+                    tuple(log), tuple(prep.notes) + tuple(notes), tuple(findings),
+                    (*effects, *prep.untestable))
 
 
 def method_result(method: str, problem: Problem, ests: Sequence[Estimate], notes: Sequence[str] = ()) -> MethodResult:
@@ -358,4 +394,5 @@ def method_result(method: str, problem: Problem, ests: Sequence[Estimate], notes
     if len(ests) > 1:
         all_notes.append(f"IMU biases from the fit against {best.prep.mag_id} (smallest bias uncertainty of "
                          f"{len(ests)} magnetometers)")
-    return MethodResult(method, tuple(fits), imu, noise, tuple(all_notes), tuple(findings))
+    effects = tuple(f for e in ests for f in e.effects)
+    return MethodResult(method, tuple(fits), imu, noise, tuple(all_notes), tuple(findings), effects)
