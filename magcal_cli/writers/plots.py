@@ -216,32 +216,55 @@ def quality(v: MagView, h: HeadingView) -> Plot:
 
 
 def effects(views: list[EffectView]) -> Plot | None:
-    """For each modelled effect, the residual against its channel, before and after the effect is removed."""
+    """For each modelled magnetometer effect, the residual against its channel, before and after its removal."""
+    return _effect_grid(views, 2, "Modelled effects", "Each modelled effect's residual against its channel, without "
+                        "the effect (red) and with it removed (blue); lines are binned medians. A slope that flattens "
+                        "is the effect the model now explains.")
+
+
+def imu_effects(views: list[EffectView]) -> Plot | None:
+    """For each modelled IMU effect, one row: per axis, the residual against its channel, before and after."""
+    return _effect_grid(views, 3, "Modelled IMU effects", "One row per modelled effect of the IMU, one panel per "
+                        "axis: the residual without that axis's term (red) and with it removed (blue); lines are "
+                        "binned medians. accel_scale: at each still pose, the specific force's magnitude less g "
+                        "against the force on the axis (a scale s bends it into s f²/g). lever_arm: the same at every "
+                        "sample against the rotation's term for that component of the arm, along the force (slope: "
+                        "the arm in m). gyro_scale: between consecutive still poses, the gyro's rotation less the one "
+                        "the accelerometer and the calibrated magnetometer see, against the rotation about the axis "
+                        "(slope: the scale). A trend that flattens is the effect the model now explains.")
+
+
+def _effect_grid(views: list[EffectView], max_cols: int, title: str, caption: str) -> Plot | None:
+    """Views in rows of up to `max_cols` panels: residual against channel before (red) and after (blue)."""
     if not views:
         return None
     plt = _pyplot()
-    cols = min(len(views), 2)
+    cols = min(len(views), max_cols)
     rows = -(-len(views) // cols)
     height = 2.9 * rows + 0.3
     fig, axes = plt.subplots(rows, cols, figsize=(WIDTH_IN, height), squeeze=False,
                              gridspec_kw=_margins(height, wspace=0.3, hspace=0.45, top_in=0.6))
-    for ax, e in zip(axes.ravel(), views, strict=False):
+    scale = 5.0
+    for k, (ax, e) in enumerate(zip(axes.ravel(), views, strict=False)):
         ok = np.isfinite(e.x) & np.isfinite(e.before) & np.isfinite(e.after)
         x, before, after = e.x[ok], e.before[ok], e.after[ok]
         s = thin(x.size, 2000)
-        ax.plot(x[s], before[s], ".", ms=1.5, color=RAW, alpha=0.35, label="without the effect")
-        ax.plot(x[s], after[s], ".", ms=1.5, color=CAL, alpha=0.35, label="with the effect removed")
+        ms, alpha = (1.5, 0.35) if x.size > 200 else (4.0, 0.7)       # a few points (still poses) must show
+        scale = scale if ax is not axes[0, 0] else 7.5 / ms
+        ax.plot(x[s], before[s], ".", ms=ms, color=RAW, alpha=alpha, label="without the effect")
+        ax.plot(x[s], after[s], ".", ms=ms, color=CAL, alpha=alpha, label="with the effect removed")
         if x.size > 40:
             edges = np.unique(np.percentile(x, np.linspace(0, 100, 21)))
             mid, idx = 0.5 * (edges[1:] + edges[:-1]), np.clip(np.digitize(x, edges) - 1, 0, edges.size - 2)
             for y, c in ((before, RAW), (after, CAL)):
                 med = np.array([np.median(y[idx == k]) if np.any(idx == k) else np.nan for k in range(mid.size)])
                 ax.plot(mid, med, "-", color=c, lw=1.6)
-        ax.set(xlabel=e.xlabel, ylabel=e.ylabel, title=f"{e.effect_id} ({e.status})")
+        left = views[k - k % cols]                  # a row's panels that plot the same residual label it once
+        ax.set(xlabel=e.xlabel, ylabel=e.ylabel if k % cols == 0 or e.ylabel != left.ylabel else "",
+               title=f"{e.effect_id}{', ' + e.part if e.part else ''} ({e.status})")
         _robust_ylim(ax, before, after)
     for ax in axes.ravel()[len(views):]:
         ax.set_axis_off()
-    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="upper center", ncols=2, markerscale=5, frameon=False)
-    return Plot("Modelled effects", "Each modelled effect's residual against its channel, without the effect "
-                "(red) and with it removed (blue); lines are binned medians. A slope that flattens is the effect "
-                "the model now explains.", _png(fig))
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="upper center", ncols=2, markerscale=scale,
+               frameon=False)
+    return Plot(title, caption, _png(fig))

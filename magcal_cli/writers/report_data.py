@@ -61,7 +61,8 @@ class HeadingView:
 
 @dataclass(frozen=True, eq=False)
 class EffectView:
-    """One modelled magnetometer effect: a residual against its channel, with and without the effect removed."""
+    """One modelled effect: a residual against its channel, with and without the effect removed; `part` names what
+    of the effect a view shows when it takes several (an IMU effect's axis)."""
 
     effect_id: str
     status: str
@@ -70,6 +71,7 @@ class EffectView:
     x: FloatArray
     before: FloatArray
     after: FloatArray
+    part: str = ""
 
 
 def thin(n: int, max_points: int = 4000) -> slice:

@@ -10,6 +10,7 @@ from ..atomic import write_text
 from . import plots, report_sections
 from .report import render
 from .report_data import effect_views, heading_view, mag_view
+from .report_imu import imu_effect_views
 from .report_summary import groups, verdicts
 
 if TYPE_CHECKING:
@@ -85,7 +86,9 @@ def render_html(result: RunResult) -> str:
     sections = [report_sections.summary(result, vs), report_sections.method(result)]
     sections += [report_sections.magnetometer(result, m, v, mag_plots(result, m), gs)
                  for m, v in zip(cal.magnetometers, vs, strict=True)]
-    sections += [report_sections.effects(result), report_sections.diagnosis(result),
+    imu = plots.imu_effects(imu_effect_views(result))
+    sections += [report_sections.effects(result, [imu] if imu is not None else []),
+                 report_sections.diagnosis(result),
                  report_sections.warnings(gs), report_sections.provenance(result, render(result))]
     links = [("summary", "Summary"), ("method", "Method")]
     links += [(f"mag-{report_sections.anchor(m)}", m) for m in mag_ids]

@@ -157,15 +157,21 @@ def magnetometer(result: RunResult, mag: MagCalibration, verdict: Verdict, plots
     mine = [m for g in groups if g.severity is Severity.WARNING for m in g.messages if mag.id in m]
     if mine:
         text.append("<h4>Warnings</h4><ul>" + "".join(f"<li>{escape(m)}</li>" for m in mine) + "</ul>")
-    figs = "".join(f"<figure><figcaption><b>{escape(p.title)}.</b> {escape(p.caption)}</figcaption>"
-                   f"<img src='{p.uri}' alt='{escape(mag.id)}: {escape(p.title)}'></figure>" for p in plots)
     return (f"<section id='mag-{anchor(mag.id)}' class='mag'><h2>Magnetometer {escape(mag.id)} "
             f"<small>(log unit: {escape(mag.unit)})</small></h2><div class='pair'><div class='text'>{''.join(text)}"
-            f"</div><div class='plots'>{figs}</div></div></section>")
+            f"</div>{_figures(plots, mag.id)}</div></section>")
 
 
-def effects(result: RunResult) -> str:
-    """Every effect the run considered: status, parameters with std and units, test and why."""
+def _figures(plots: list[Plot], who: str) -> str:
+    """The plots, each with its caption, in a `plots` block."""
+    figs = "".join(f"<figure><figcaption><b>{escape(p.title)}.</b> {escape(p.caption)}</figcaption>"
+                   f"<img src='{p.uri}' alt='{escape(who)}: {escape(p.title)}'></figure>" for p in plots)
+    return f"<div class='plots'>{figs}</div>"
+
+
+def effects(result: RunResult, plots: list[Plot]) -> str:
+    """Every effect the run considered: status, parameters with std and units, test and why; then `plots` (those of
+    the IMU's effects: the magnetometers' are beside each magnetometer)."""
     rows = []
     for e in result.calibration.effects:
         params, std, unit_of = e.get("params") or {}, e.get("std") or {}, e.get("units") or {}
@@ -183,7 +189,7 @@ def effects(result: RunResult) -> str:
                 "(<code>--effects none</code> or a method without effect terms).</p></section>")
     return ("<section id='effects'><h2>Effects beyond the base model</h2><table class='grid'><thead><tr><th>effect"
             "</th><th>sensor</th><th>status</th><th>estimate</th><th>p</th><th>test and physics</th></tr></thead>"
-            "<tbody>" + "".join(rows) + "</tbody></table></section>")
+            "<tbody>" + "".join(rows) + "</tbody></table>" + (_figures(plots, "IMU") if plots else "") + "</section>")
 
 
 def diagnosis(result: RunResult) -> str:
