@@ -99,9 +99,10 @@ def effect_walk(terms: Terms, k_all: int, s: Settings) -> FloatArray:
     A slow effect (a warm-up's temperature) is otherwise aliased with the calibration's own walk and with the
     linearisation errors of the first updates: without a walk `temperature_drift` covered its truth in 73 % of 60
     entries over 20 handheld seeds (z mean -1.8 and std 2.3 on one axis), with 3e-5 in 100 % (z std 0.55-0.76);
-    `current_interference` 90 % -> 95 % (docs/method-ekf.md)."""
+    `current_interference` 90 % -> 95 % (docs/method-ekf.md). A parameter without influence at the start (the
+    throttle exponent at c = 0, in `ekf-ml`'s warm start) does not walk."""
     rms = np.sqrt(np.mean(terms.table(terms.start(), k_all)[1] ** 2, axis=(1, 2)))
-    out: FloatArray = (s.effect_walk / np.maximum(rms, 1e-12)) ** 2
+    out: FloatArray = np.where(rms > 0.0, (s.effect_walk / np.where(rms > 0.0, rms, 1.0)) ** 2, 0.0)
     return out
 
 

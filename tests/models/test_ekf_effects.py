@@ -67,6 +67,16 @@ def test_ml_gradient_with_effects_matches_finite_differences(with_all: ekf.Prepa
     np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
 
 
+def test_ml_warm_start_passes_the_throttle_exponent_through(with_all: ekf.Prepared) -> None:
+    """ekf-ml's warm start runs the augmented filter with every effect ekf-ml carries, the throttle exponent
+    included: it has no influence at c = 0 and must not walk (regression: its walk, divided by a zero regressor,
+    made the filter's covariance singular). The effect parameters move to finite values."""
+    theta = ekf_ml.start_theta([with_all])
+    warm = ekf_ml.warm_start(ekf.stack([with_all]), theta)
+    assert np.all(np.isfinite(warm))
+    assert np.all(warm[0, ekf_ml.EFFECTS] != theta[0, ekf_ml.EFFECTS])
+
+
 def test_ml_fisher_information_of_the_effects_is_the_hessian_at_the_optimum() -> None:
     """At the likelihood's optimum the Fisher information's effect block approximates the Hessian (forward
     differences of the exact gradient): diagonal within 10 %. Current and temperature: linear terms."""
