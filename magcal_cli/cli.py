@@ -221,7 +221,9 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
               help="Joint MAP (--method map): down-weight outlying readings with a Huber or Cauchy loss.")
 @click.option("--effects", "effects", default="auto", show_default=True, metavar="auto|none|ID[,ID...]",
               callback=_effects,
-              help="Physics beyond the base model (joint MAP). auto: the mismatch diagnosis tests every effect the "
+              help="Physics beyond the base model (joint MAP; ekf-ml and ekf-aug carry current_interference and "
+                   "temperature_drift, ekf-ml also throttle_interference). auto: the mismatch diagnosis tests every "
+                   "effect the "
                    "log can test and adds what it proves on held-out data; none: the base model only; or a comma "
                    "list of effect ids to model exactly (current_interference, throttle_interference, "
                    "temperature_drift, time_offset, gyro_scale, accel_scale, lever_arm, nongravity_acceleration, "
