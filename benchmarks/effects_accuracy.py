@@ -57,16 +57,78 @@ def heading_error_deg(d_fit: np.ndarray, o_fit: np.ndarray, d_true: np.ndarray, 
     return float(np.degrees(np.max(np.abs(np.arctan2(h[:, 1], h[:, 0])))))
 
 
-def _errors(res: Any, sim: Any, o_shift: np.ndarray) -> dict[str, float]:
-    """D relative error (%), o error (% of the field), dip error (deg), heading error (deg)."""
-    m = res.calibration.magnetometers[0]
+def _errors_of(d: np.ndarray, o: np.ndarray, dip_deg: float, sim: Any, o_shift: np.ndarray) -> dict[str, float]:
+    """D relative error (%), o error (% of the field), dip error (deg), heading error (deg) of D, o (tesla)."""
     tr = sim.truth
     field = float(np.cbrt(np.linalg.det(tr.D)))
     o_true = tr.o + o_shift
-    return {"D_pct": float(100 * np.linalg.norm(m.D - tr.D) / np.linalg.norm(tr.D)),
-            "o_pct": float(100 * np.linalg.norm(m.o - o_true) / field),
-            "dip_deg": float(m.dip_deg - np.rad2deg(tr.dip)),
-            "heading_deg": heading_error_deg(np.asarray(m.D), np.asarray(m.o), tr.D, o_true, tr.dip)}
+    return {"D_pct": float(100 * np.linalg.norm(d - tr.D) / np.linalg.norm(tr.D)),
+            "o_pct": float(100 * np.linalg.norm(o - o_true) / field),
+            "dip_deg": float(dip_deg - np.rad2deg(tr.dip)),
+            "heading_deg": heading_error_deg(d, o, tr.D, o_true, tr.dip)}
+
+
+def _errors(res: Any, sim: Any, o_shift: np.ndarray) -> dict[str, float]:
+    """`_errors_of` the first magnetometer of a pipeline result (simulated logs are in tesla)."""
+    m = res.calibration.magnetometers[0]
+    return _errors_of(np.asarray(m.D), np.asarray(m.o), float(m.dip_deg), sim, o_shift)
+
+
+def _coverage(effect: str, injected: dict[str, Any], value: Any, std: Any) -> tuple[list[bool], list[float]]:
+    """Which truth entries lie within the 95 % interval, and the z-scores; value/std: param name -> estimate."""
+    cover, z = [], []
+    for name, truth in TRUTH[effect].items():
+        v, s = np.atleast_1d(value(name)), np.atleast_1d(std(name))
+        t = np.atleast_1d(np.asarray(truth(injected), dtype=float))
+        cover.extend((np.abs(v - t) <= 1.959963984540054 * s).tolist())
+        z.extend(((v - t) / s).tolist())
+    return cover, z
+
+
+NAN_ERRORS = {"D_pct": float("nan"), "o_pct": float("nan"), "dip_deg": float("nan"), "heading_deg": float("nan")}
+
+
+def ekf_batched(effect: str | None, method: str, seeds: list[int], none: bool) -> list[dict[str, Any]]:
+    """All seeds through one batched filter loop per model (as paper_study.py runs the EKFs; the method's own
+    `fit_batch` on `prepare_all`, what `magcal fit` runs per log): with the effect (or clean logs when effect is
+    None), and with --effects none unless not `none`."""
+    from magcal_cli.models import ekf, ekf_aug, ekf_ml
+    from magcal_cli.models.params import BASE
+    from magcal_cli.pipeline import select_problem
+
+    fit_batch = {"ekf-ml": ekf_ml.fit_batch, "ekf-aug": ekf_aug.fit_batch}[method]
+
+    def run(sims: list[Any], ids: tuple[str, ...]) -> tuple[list[Any], float]:
+        cfg = Config(method=method, effects=ids)
+        preps = [ekf.prepare_all(select_problem(s.recording, cfg), cfg, method)[0] for s in sims]
+        t0 = time.perf_counter()
+        return fit_batch(preps), (time.perf_counter() - t0) / len(sims)
+
+    def errors(est: Any, sim: Any, shift: np.ndarray) -> dict[str, float]:
+        return _errors_of(BASE.value(est.theta, "D"), BASE.get(est.theta, "o"),
+                          float(np.rad2deg(BASE.get(est.theta, "dip")[0])), sim, shift)
+
+    if effect is None:
+        sims = [simulate("handheld", s) for s in seeds]
+        ests, secs = run(sims, ())
+        return [{"seed": s, "clean": errors(e, sim, np.zeros(3)), "seconds": secs}
+                for s, e, sim in zip(seeds, ests, sims, strict=True)]
+    sims = [simulate("handheld", s, effects=(EffectSpec(effect),)) for s in seeds]
+    base, t_none = run(sims, ()) if none else ([None] * len(sims), float("nan"))
+    withs, t_with = run(sims, (effect,))
+    rows = []
+    for seed, sim, b, w in zip(seeds, sims, base, withs, strict=True):
+        injected = sim.effects[0].params
+        fit = next(f for f in w.effects if f.id == effect)
+        shift = np.zeros(3)
+        if effect == "temperature_drift" and "T0" in fit.constants:
+            shift = np.asarray(injected["k"]) * (float(fit.constants["T0"]) - float(injected["T0"]))
+        cover, z = ([], []) if fit.estimate is None else \
+            _coverage(effect, injected, lambda n, f=fit: f.estimate[n], lambda n, f=fit: f.estimate.std(n))
+        rows.append({"effect": effect, "seed": seed, "method": method, "status": fit.status, "covered": cover,
+                     "z": z, "none": NAN_ERRORS if b is None else errors(b, sim, np.zeros(3)),
+                     "with": errors(w, sim, shift), "seconds": {"none": t_none, "with": t_with}})
+    return rows
 
 
 def clean_fit(seed: int, method: str) -> dict[str, Any]:
@@ -91,17 +153,10 @@ def one(effect: str, seed: int, method: str = "map", none: bool = True) -> dict[
     if effect == "temperature_drift" and "T0" in entry["params"]:
         # the fit's o is the offset at the log's mean temperature; the truth's at its own T0
         shift = np.asarray(injected["k"]) * (float(entry["params"]["T0"]) - float(injected["T0"]))
-    cover, z = [], []
-    for name, truth in TRUTH[effect].items():
-        if entry["status"] == "not_testable":
-            break
-        v, s = np.atleast_1d(entry["params"][name]), np.atleast_1d(entry["std"][name])
-        t = np.atleast_1d(np.asarray(truth(injected), dtype=float))
-        cover.extend((np.abs(v - t) <= 1.959963984540054 * s).tolist())
-        z.extend(((v - t) / s).tolist())
-    nan = {"D_pct": float("nan"), "o_pct": float("nan"), "dip_deg": float("nan"), "heading_deg": float("nan")}
+    cover, z = ([], []) if entry["status"] == "not_testable" else \
+        _coverage(effect, injected, lambda n: entry["params"][n], lambda n: entry["std"][n])
     return {"effect": effect, "seed": seed, "method": method, "status": entry["status"], "covered": cover, "z": z,
-            "none": nan if base is None else _errors(base, sim, np.zeros(3)),
+            "none": NAN_ERRORS if base is None else _errors(base, sim, np.zeros(3)),
             "with": _errors(with_term, sim, shift),
             "seconds": {"none": t2 - t1 if none else float("nan"), "with": t3 - t2}}
 
@@ -114,6 +169,8 @@ def main() -> None:
     ap.add_argument("--effects", default=",".join(EFFECTS))
     ap.add_argument("--method", default="map", help="map (default), ekf-ml or ekf-aug")
     ap.add_argument("--skip-none", action="store_true", help="leave out the --effects none fits")
+    ap.add_argument("--batched", action="store_true",
+                    help="EKF methods: all seeds of an effect in one batched filter loop (fit s: per log)")
     ap.add_argument("--out", type=Path, default=None, help="write OUT.json and OUT.md")
     args = ap.parse_args()
     effects = args.effects.split(",")
@@ -121,14 +178,21 @@ def main() -> None:
     tasks = [(e, s, args.method, not args.skip_none) for e in effects for s in seeds]
     start = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as pool:
-        cleans = pool.map(clean_fit, seeds, [args.method] * len(seeds))
-        rows = list(pool.map(one, *zip(*tasks, strict=True)))
+        if args.batched:
+            jobs = [None, *effects]
+            parts = list(pool.map(ekf_batched, jobs, [args.method] * len(jobs), [seeds] * len(jobs),
+                                  [not args.skip_none] * len(jobs)))
+            cleans, rows = parts[0], [r for part in parts[1:] for r in part]
+        else:
+            cleans = list(pool.map(clean_fit, seeds, [args.method] * len(seeds)))
+            rows = list(pool.map(one, *zip(*tasks, strict=True)))
         clean_of = {c["seed"]: c for c in cleans}
     for r in rows:
         r["clean"] = clean_of[r["seed"]]["clean"]
         r["seconds"]["clean"] = clean_of[r["seed"]]["seconds"]
     lines = [f"`python benchmarks/effects_accuracy.py --method {args.method} --seeds {args.seeds} --effects "
-             f"{','.join(effects)}{' --skip-none' if args.skip_none else ''}`", "",
+             f"{','.join(effects)}{' --skip-none' if args.skip_none else ''}{' --batched' if args.batched else ''}`",
+             "",
              f"{len(tasks)} runs ({args.seeds} seeds x {len(effects)} effects, handheld, method {args.method}) and "
              f"{len(seeds)} clean fits, {time.perf_counter() - start:.0f} s on {args.jobs} processes", "",
              "| effect | accepted | coverage 95 % | median \\|z\\| | D err % clean / none / with | "
