@@ -180,3 +180,23 @@ def test_a_failing_diagnosis_keeps_the_calibration(monkeypatch: pytest.MonkeyPat
     res = calibrate_recording(simulate("handheld", 3, duration=60.0).recording, Config(diagnose=True))
     assert len(res.calibration.magnetometers) == 1 and res.calibration.diagnosis is None
     assert any(f.code == "diagnosis_failed" and "cannot determine D" in f.message for f in res.findings)
+
+
+def test_an_effect_whose_refit_fails_is_rejected_and_the_diagnosis_goes_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A weakly determined log may not carry an extra term (the 2015 offsets-only flights: the refit with
+    accel_scale explained nothing): that effect is rejected with the reason, the others are still decided."""
+    from magcal_cli.diagnose import select as select_module
+    from magcal_cli.errors import InsufficientDataError
+
+    _, problem, est = _fit("strong", 0)
+    real = select_module.fit_map
+
+    def failing(*args: object, **kwargs: object) -> MapEstimate:
+        if "current_interference" in kwargs.get("effects", ()):  # type: ignore[operator]
+            raise InsufficientDataError(f"{problem.where}: {problem.mags[0].id}: the refit explains nothing. To fix: x")
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(select_module, "fit_map", failing)
+    sel = select(problem, problem.mags[0], est, ("current_interference", "temperature_drift"))
+    verdict = {v.id: v for v in sel.verdicts}["current_interference"]
+    assert verdict.status == "rejected" and verdict.reason == "the fit with it failed (the refit explains nothing)"
