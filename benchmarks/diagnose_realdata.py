@@ -71,6 +71,7 @@ def one(rel: str) -> dict[str, Any]:
         out["error"] = err_auto or err_base
         return out
     diag = auto.calibration.diagnosis or {}
+    out["not_diagnosed"] = [f.message for f in auto.findings if f.code == "diagnosis_failed"]
     out["sensors"] = []
     for block in diag.get("sensors", []):
         sid = block["sensor"]
@@ -102,6 +103,9 @@ def write_md(path: Path, results: list[dict[str, Any]]) -> None:
             lines.append(f"| {r['log']} | - | refused: {r['error'][:160]} | | | | | {r['seconds_base']:.1f} / "
                          f"{r['seconds_diagnosed']:.1f} |")
             continue
+        for why in r.get("not_diagnosed", []):
+            lines.append(f"| {r['log']} | - | not diagnosed: {why[:200]} | | | | | {r['seconds_base']:.1f} / "
+                         f"{r['seconds_diagnosed']:.1f} |")
         for s in r["sensors"]:
             acc = ", ".join(k for k, v in s["effects"].items() if v["status"] == "accepted") or "none"
             amb = ", ".join(k for k, v in s["effects"].items() if v["status"] == "ambiguous") or "-"
