@@ -547,7 +547,7 @@ small to mean anything. It runs on the 2015 logs too, where magcal refuses to fi
     lines += ["## 3 `nongravity_acceleration` on log171", "",
               f"WMM dip at the median GPS position: {fmt(n.get('wmm_dip_log_date'))}° on the log's GPS date "
               f"({n.get('gps_date')}), {fmt(n.get('wmm_dip_today'))}° today ({n.get('wmm_model_today')}; magcal "
-              "uses today's date: the log's clock is time since boot, so the date is not known to it).", "",
+              "dates a boot-clock DataFlash log from its GPS week and time, so it uses the log's date).", "",
               "| fit | kappa | kappa 95 % CI | status | " + " | ".join(
                   f"{m} dip deg ± std (− WMM)" for m in ("MAG[0]", "MAG[1]", "MAG[2]")) + " | fit s |",
               "|---|---|---|---|---|---|---|---|"]
@@ -564,7 +564,8 @@ small to mean anything. It runs on the 2015 logs too, where magcal refuses to fi
         lines.append(f"| {name} | {fmt(kv, '.3f')} | {'-' if not kci else f'[{kci[0]:.3f}, {kci[1]:.3f}]'} | "
                      f"{k.get('status', '-')} | {dips} | {fmt(secs.get(name), '.1f')} |")
     lines += ["", "kappa scales the NED acceleration from the GPS position differentiated twice (Savitzky-Golay, "
-              "1 s window at 10 Hz); 1 = the GPS acceleration is right.", ""]
+              "order 7 over 2 s at 10 Hz, cubic-spline resampling), evaluated delay_s later (the position's latency, "
+              "fitted); 1 = the GPS acceleration is right.", ""]
     # ------------------------------------------------------------------------------------------ findings
     lines += ["## Findings", ""] + findings(res) + [""]
     lines += ["## Fits and timings", "", "| log | effects | ok | s | command |", "|---|---|---|---|---|"]
