@@ -253,6 +253,24 @@ def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
     return -f / float(np.clip(slope, -1.0, -0.1))
 
 
+def noise_step(step: FloatArray, floor: FloatArray | None, levels: FloatArray, history: list[tuple[float, float]],
+               applied: float) -> tuple[FloatArray, bool, float]:
+    """One noise round's log-variance step (gyro at index 3) from the measured factors `step`: whether it is small
+    enough to stop, and the gyro's measured factor (for the secant history)."""
+    if floor is not None:
+        # still data measured the sensors' white noise: levels never go below it, and the gyro keeps it
+        # (its residuals in motion mostly hold unmodelled scale and timing errors, see docs/method-map.md)
+        step[3] = 0.0
+        step = np.maximum(step, 2.0 * np.log(floor / levels))
+    small = float(np.max(np.abs(step))) < 2.0 * NOISE_TOL
+    measured = float(step[3])
+    step[3] = _secant(history, applied, measured) if floor is None else 0.0
+    # without still data the gyro level is weakly determined: when the other factors misfit (flight, too
+    # little rotation) its fixed point runs away toward zero and the trajectory becomes numerically rigid
+    step[3] = max(step[3], MIN_GYRO_LOG_VARIANCE - applied)
+    return step, small, measured
+
+
 def rescaled(noise: Noise, pre: Preintegrated, log_var: FloatArray) -> tuple[Noise, Preintegrated]:
     """Noise levels (and the preintegration whitening) with variances multiplied by exp(log_var) (7,)."""
     f = np.exp(0.5 * log_var)
@@ -478,17 +496,8 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
             break
         step = np.log(variance_ratios(sol, loss, opts_scale))
         log.append(f"round {rnd}: noise variance factors {np.array2string(np.exp(step), precision=3)}")
-        if floor is not None:
-            # still data measured the sensors' white noise: levels never go below it, and the gyro keeps it
-            # (its residuals in motion mostly hold unmodelled scale and timing errors, see docs/method-map.md)
-            step[3] = 0.0
-            step = np.maximum(step, 2.0 * np.log(_levels(floor) / _levels(noise)))
-        small = float(np.max(np.abs(step))) < 2.0 * NOISE_TOL
-        measured = float(step[3])
-        step[3] = _secant(history, applied, measured) if floor is None else 0.0
-        # without still data the gyro level is weakly determined: when the other factors misfit (flight, too
-        # little rotation) its fixed point runs away toward zero and the trajectory becomes numerically rigid
-        step[3] = max(step[3], MIN_GYRO_LOG_VARIANCE - applied)
+        step, small, measured = noise_step(step, None if floor is None else _levels(floor), _levels(noise),
+                                           history, applied)
         if small:
             last_step = step
             break

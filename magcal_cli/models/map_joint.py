@@ -35,14 +35,12 @@ from .epochs import MAX_EPOCHS, Epochs, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, preintegrate
 from .map import (
     DIP_BASIN_DEG,
-    MIN_GYRO_LOG_VARIANCE,
     MIN_STILL_S,
     NOISE_ROUNDS,
-    NOISE_TOL,
     REPREINTEGRATE_RAD,
     MapEstimate,
-    _secant,
     held_out,
+    noise_step,
 )
 from .map_joint_cov import factors, joint_variance_ratios, joint_widening
 from .map_joint_solve import JointData, JointSolution, at_optimum, cost, mag_residuals, normal, solve_joint
@@ -244,13 +242,8 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
         fs = factors(joint_data(je, pre, noise, layout, hold), sol.states, sol.theta)
         fs_at = sol
         step = np.log(joint_variance_ratios(sol, fs, loss, opts.loss_scale))
-        if floor is not None:
-            step[3] = 0.0
-            step = np.maximum(step, 2.0 * np.log(floor.levels() / noise.levels()))
-        small = float(np.max(np.abs(step))) < 2.0 * NOISE_TOL
-        measured = float(step[3])
-        step[3] = _secant(history, applied, measured) if floor is None else 0.0
-        step[3] = max(step[3], MIN_GYRO_LOG_VARIANCE - applied)
+        step, small, measured = noise_step(step, None if floor is None else floor.levels(), noise.levels(), history,
+                                           applied)
         if small:
             last_step = step
             break
