@@ -20,7 +20,7 @@ from .. import __version__, so3, units
 from ..align import interpolate
 from ..atomic import atomic_path
 from ..streams import Kind, Recording
-from ..synth import Simulation
+from ..synth import T0_ROS, Simulation
 from ..synth_physics import local
 
 #: pyulog's HEADER_BYTES ("ULog" + 0x01 0x12 0x35), then the file version
@@ -252,12 +252,14 @@ def _aux_topics(rec: Recording) -> list[Topic]:
             ("double", "latitude_deg"), ("double", "longitude_deg"), ("double", "altitude_msl_m"),
             ("float", "eph"), ("float", "epv"), ("float", "vel_m_s"), ("float", "vel_n_m_s"),
             ("float", "vel_e_m_s"), ("float", "vel_d_m_s"), ("bool", "vel_ned_valid"), ("uint8_t", "fix_type"),
-            ("uint8_t", "satellites_used")),
+            ("uint8_t", "satellites_used"), ("uint64_t", "time_utc_usec")),
             {"timestamp": _us(t) + 80_000, "timestamp_sample": _us(t), "device_id": np.full(n, SIM_GPS_DEVICE_ID),
              "latitude_deg": lla[:, 0], "longitude_deg": lla[:, 1], "altitude_msl_m": lla[:, 2],
              "eph": np.full(n, 0.8), "epv": np.full(n, 1.2), "vel_m_s": np.linalg.norm(vel[:, :2], axis=1),
              "vel_n_m_s": vel[:, 0], "vel_e_m_s": vel[:, 1], "vel_d_m_s": vel[:, 2], "vel_ned_valid": np.ones(n),
-             "fix_type": np.full(n, 3), "satellites_used": np.full(n, 14)}))
+             "fix_type": np.full(n, 3), "satellites_used": np.full(n, 14),
+             # the receiver's UTC at the fix (simulation time 0 is T0_ROS), which dates the log for the WMM
+             "time_utc_usec": np.round((T0_ROS + np.asarray(t, dtype=np.float64)) * 1e6).astype(np.int64)}))
     return out
 
 

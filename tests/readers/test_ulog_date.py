@@ -62,3 +62,15 @@ def test_real_ulogs_are_dated_by_their_gps(realdata: Path, name: str, day: str |
     assert _day(rec.utc0) == day
     if day is not None:
         assert _with_position(rec, Config()).date == day
+
+
+def test_simulated_flight_ulog_is_dated_by_its_gps(tmp_path: Path) -> None:
+    """`magcal simulate x.ulg` of a flight writes the receiver's UTC, so the log carries the date its truth's WMM
+    field was taken at (T0_ROS), not today's."""
+    from magcal_cli.logwriters.ulog import write_ulg
+    from magcal_cli.synth import T0_ROS, simulate
+
+    path = tmp_path / "flight.ulg"
+    write_ulg(simulate("multirotor", 0, duration=30.0), path)
+    utc0 = open_recording(path).utc0
+    assert utc0 is not None and abs(utc0 - T0_ROS) < 0.2
