@@ -71,6 +71,6 @@ def test_simulated_flight_ulog_is_dated_by_its_gps(tmp_path: Path) -> None:
     from magcal_cli.synth import T0_ROS, simulate
 
     path = tmp_path / "flight.ulg"
-    write_ulg(simulate("multirotor", 0, duration=30.0), path)
+    write_ulg(simulate("multirotor", 0, duration=90.0), path)
     utc0 = open_recording(path).utc0
     assert utc0 is not None and abs(utc0 - T0_ROS) < 0.2
