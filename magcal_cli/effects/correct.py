@@ -24,10 +24,12 @@ def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: Fl
     notes = []
     for e in effects:
         eid = str(e.get("id"))
-        if e.get("sensor") != mag_id or e.get("status") not in statuses or eid not in EFFECTS or not e.get("params"):
+        if e.get("sensor") != mag_id or e.get("status") not in statuses or eid not in EFFECTS:
             continue
         eff = get(eid)
-        if eff.target is not Target.MAG:
+        # an entry without an estimate (an ambiguous rival the fit did not model) may still carry constants such
+        # as a reference temperature: only a fitted one is removed
+        if eff.target is not Target.MAG or any(b.name not in (e.get("params") or {}) for b in eff.params):
             continue
         chans: dict[str, np.ndarray] = {}
         for kind in eff.channels:
