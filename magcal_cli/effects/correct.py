@@ -10,9 +10,22 @@ import numpy.typing as npt
 
 from ..streams import Recording
 from . import EFFECTS, get
-from .base import Target
+from .base import Effect, Target
 
 FloatArray = npt.NDArray[np.float64]
+
+
+def _fitted(eff: Effect, params: dict[str, Any]) -> bool:
+    """Whether an entry carries the estimate of every parameter that vanishes under the base model (an exponent
+    with a prior, like throttle's p, may be left out: `correct` then uses its default)."""
+    prior = eff.prior()
+    std = np.full(sum(b.size for b in eff.params), np.inf) if prior is None else prior[1]
+    start = 0
+    for b in eff.params:
+        if not np.all(np.isfinite(std[start:start + b.size])) and b.name not in params:
+            return False
+        start += b.size
+    return True
 
 
 def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: FloatArray, y: FloatArray,
@@ -29,7 +42,7 @@ def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: Fl
         eff = get(eid)
         # an entry without an estimate (an ambiguous rival the fit did not model) may still carry constants such
         # as a reference temperature: only a fitted one is removed
-        if eff.target is not Target.MAG or any(b.name not in (e.get("params") or {}) for b in eff.params):
+        if eff.target is not Target.MAG or not _fitted(eff, e.get("params") or {}):
             continue
         chans: dict[str, np.ndarray] = {}
         for kind in eff.channels:
