@@ -248,7 +248,13 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
     broken: list[Job] = []
     pool = _pool(max(1, min(workers, len(jobs))))
     try:
-        futures: dict[Future[LogReport], Job] = {pool.submit(run_one, j): j for j in jobs}
+        futures: dict[Future[LogReport], Job] = {}
+        for i, j in enumerate(jobs):
+            try:
+                futures[pool.submit(run_one, j)] = j
+            except BrokenProcessPool:     # a worker died while the rest were being queued: those go back too
+                broken.extend(jobs[i:])
+                break
         for fut in as_completed(futures):
             try:
                 report = fut.result()
