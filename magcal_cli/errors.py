@@ -45,3 +45,9 @@ class OutputError(MagcalError):
 
 class CalibrationFileError(MagcalError):
     """A calibration document is malformed or of an unknown schema."""
+
+
+def reason(exc: Exception, where: str) -> str:
+    """A refusal's `<what>` alone, for quoting inside another message: without its `where: ` prefix, its
+    `To fix:` advice and its final full stop."""
+    return str(exc).removeprefix(f"{where}: ").split(" To fix:")[0].rstrip(".")

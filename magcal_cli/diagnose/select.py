@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from .. import effects as registry
 from ..effects.base import Target
-from ..errors import InsufficientDataError
+from ..errors import InsufficientDataError, reason
 from ..models.map import MapEstimate, fit_map, point_at
 from ..models.map_effects import Bound
 from ..models.problem import Problem
@@ -179,7 +179,7 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         except (InsufficientDataError, np.linalg.LinAlgError) as exc:
             # a weakly determined log (an offsets-only flight) may not carry the extra term at all: the effect is
             # not established, and the diagnosis goes on without it
-            trial, bad = est, f"the fit with it failed ({_reason(exc, problem, mag)})"
+            trial, bad = est, f"the fit with it failed ({reason(exc, f'{problem.where}: {mag.id}')})"
         else:
             bad = beyond_limits(trial, best)
         if bad:                   # it stands in for other physics (e.g. an accelerometer scale of -90 % in flight)
@@ -191,11 +191,6 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         left = [e for e in left if e != best and e not in rivals]
         est = trial
     return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs), implausible)
-
-
-def _reason(exc: Exception, problem: Problem, mag: Stream) -> str:
-    """An estimator's refusal without its where-prefix and its advice."""
-    return str(exc).removeprefix(f"{problem.where}: {mag.id}: ").split(" To fix:")[0].rstrip(".")
 
 
 def beyond_limits(est: MapEstimate, eid: str) -> str:

@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import consistency, units
 from ..config import Config
-from ..errors import InsufficientDataError
+from ..errors import InsufficientDataError, reason
 from ..findings import Finding, Severity
 from ..streams import Stream
 from .epochs import BIAS_SCALE, Noise
@@ -63,8 +63,7 @@ def with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: floa
         est = fit(problem)
     except InsufficientDataError as exc:
         # the reason alone: its "where" prefix and its advice belong to a refusal, not to this note
-        reason = str(exc).removeprefix(f"{problem.where}: {mag.id}: ").split(" To fix:")[0].rstrip(".")
-        why = f"the fit was refused ({reason})"
+        why = f"the fit was refused ({reason(exc, f'{problem.where}: {mag.id}')})"
     else:
         if not partial(est):
             return est, problem
