@@ -79,7 +79,9 @@ def imu_data(result: RunResult) -> ImuData | None:
         return None
     b_a = cal.imu.accelerometer_bias if cal.imu.accelerometer_bias is not None else np.zeros(3)
     b_g = cal.imu.gyroscope_bias if cal.imu.gyroscope_bias is not None else np.zeros(3)
-    params = {str(e["id"]): {k: np.asarray(v, dtype=np.float64) for k, v in e["params"].items()}
+    # the fitted blocks only: an entry's params also carry its documented constants ("source": text)
+    params = {str(e["id"]): {b.name: np.asarray(e["params"][b.name], dtype=np.float64)
+                             for b in get(str(e["id"])).params if b.name in e["params"]}
               for e in _modelled(result)}
     return ImuData(result, acc, gyr, b_a, b_g, params)
 

@@ -99,3 +99,14 @@ def test_simulate_then_fit_gyro_scale_plots_it(runner: CliRunner, tmp_path: Path
     _chromium()
     probe = check_in_browser(html, tmp_path / "shot.png")
     assert probe["images"] >= 4
+
+
+def test_documented_constants_beside_the_params_are_not_plotted(result: RunResult) -> None:
+    """A modelled entry's params also carry its documented constants (nongravity's "source" is text, as on log171):
+    the views read only the fitted blocks, and the page still renders (the CI run of 2026-11-23 failed here)."""
+    ng = {"id": "nongravity_acceleration", "status": "accepted", "sensor": result.calibration.imu.id,
+          "params": {"kappa": 0.9, "delay_s": 0.12, "source": "position (GPS[0]), differentiated twice",
+                     "sigma_a": 0.4}}
+    with_ng = replace(result, calibration=replace(result.calibration, effects=(*result.calibration.effects, ng)))
+    assert [v.effect_id for v in imu_effect_views(with_ng)] == [v.effect_id for v in imu_effect_views(result)]
+    assert len(FIGURE.findall(render_html(with_ng))) == 1
