@@ -63,14 +63,18 @@ class Selection:
 
 
 def holm(scr: Screen, alpha: float = FAMILY_ALPHA) -> list[str]:
-    """Candidates significant under Holm's step-down correction, strongest first."""
+    """Candidates significant under Holm's step-down correction, the one whose step lowers the cost most first.
+
+    Significance is the robust test's; the order is the classical statistic's (the likelihood gain of adding the
+    candidate): the robust statistics of rivals differ by how each one's own step leaves the other's signal in
+    its variance, which ranked throttle above an injected current."""
     ranked = sorted(scr.scores, key=lambda s: s.p_value)
     out = []
     for i, s in enumerate(ranked):
         if not s.p_value <= alpha / (len(ranked) - i):
             break
         out.append(s)
-    return [s.id for s in sorted(out, key=lambda s: -s.robust)]
+    return [s.id for s in sorted(out, key=lambda s: -s.classical)]
 
 
 def n_eff(est: MapEstimate) -> float:
@@ -209,8 +213,19 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
     """Select forward against the base fit, check backward, validate on held-out data, decide."""
     hook = progress or current()
 
+    failed: dict[str, str] = {}
+
     def fit(ids: tuple[str, ...], warm: MapEstimate) -> MapEstimate:
-        return fit_map(problem, mag, loss, dip_prior, effects=ids, declination=declination, warm=warm.context)
+        # a weakly determined flight may carry an effect on the training part (the forward step's fit) and not on
+        # the whole log: the last added is then dropped, with its reason, until the fit stands
+        kept = list(ids)
+        while kept:
+            try:
+                return fit_map(problem, mag, loss, dip_prior, effects=tuple(kept), declination=declination,
+                               warm=warm.context)
+            except (InsufficientDataError, np.linalg.LinAlgError) as exc:
+                failed[kept.pop()] = f"the fit with it failed ({reason(exc, f'{problem.where}: {mag.id}')})"
+        return base
 
     def procedure(fold_base: MapEstimate, hold: tuple[tuple[float, float], ...]) -> tuple[str, ...]:
         # what the training data alone finds significant against the base model (the first forward step)
@@ -222,6 +237,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
     first = fw.picked
     ambiguous = list(fw.ambiguous)
     est = fit(tuple(picked), fw.estimate) if picked else base
+    picked = [p for p in picked if p not in failed]
     for _ in range(2):           # backward: keep what stays significant, with strong evidence, given the rest
         neff = n_eff(est) if picked else float("nan")
         weak = [f.id for f in est.effects if f.id in picked and not (
@@ -231,6 +247,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         picked = [p for p in picked if p not in weak]
         hook(f"{mag.id} diagnosis: refitting without {', '.join(weak)}", 0)
         est = fit(tuple(picked), base) if picked else base
+        picked = [p for p in picked if p not in failed]
     held = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior, hook) if picked else None
     neff = n_eff(est) if picked else float("nan")
     verdicts: dict[str, EffectFit] = {}
@@ -256,17 +273,20 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         est = fit(accepted, base) if accepted else base
         verdicts.update({f.id: replace(f, status="accepted", evidence=verdicts[f.id].evidence)
                          for f in est.effects if f.id in accepted})
+        verdicts = {k: v for k, v in verdicts.items() if k not in failed}
+        accepted = tuple(e for e in accepted if e not in failed)
+    implausible = {**fw.implausible, **failed}
     significant = {e for sc in fw.screens for e in holm(sc)}
     for s in fw.scores.values():
         if s.id in verdicts:
             continue
         rivals = [p for pair in fw.ambiguous if s.id in pair for p in pair if p != s.id]
-        if s.id in first:
+        if s.id in implausible:
+            note = implausible[s.id]
+        elif s.id in first:
             others = [p for p in picked if p != s.id]
             note = (f"the evidence is weak once {', '.join(others)} is modelled" if others else
                    "the evidence is weak in the refit") + " (Wald test or BIC)"
-        elif s.id in fw.implausible:
-            note = fw.implausible[s.id]
         elif s.id in significant and rivals:
             note = f"explains the same readings as {rivals[0]} ({verdicts[rivals[0]].reason or 'accepted'})" \
                 if rivals[0] in verdicts else f"explains the same readings as {rivals[0]}"

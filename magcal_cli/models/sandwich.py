@@ -9,7 +9,7 @@ complement (Liang & Zeger 1986; Cameron & Miller 2015 for the small-C correction
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -32,22 +32,42 @@ def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 
     return s_inv @ newey_west(scores, lags) @ s_inv
 
 
+def _eliminated(sol: Solution, f: Factor, p: int) -> FloatArray:
+    """A factor's Jacobian by theta with the trajectory eliminated, (M, k, p): J_theta - J_x W (rows whitened)."""
+    jt = f.full_theta(p)
+    out = np.zeros((*f.r.shape, p)) if jt is None else jt.copy()
+    for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
+        if jx is not None and idx is not None:
+            out -= np.einsum("mki,mip->mkp", jx, sol._w[idx])
+    return out
+
+
 def cluster_scores(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
     """Per-cluster gradient of the cost by theta after eliminating the trajectory, (C, p): E_c above."""
+    return _per_cluster(sol, clusters, lambda j, f: np.einsum("mkp,mk->mp", j, f.r))
+
+
+def cluster_information(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
+    """Per-cluster Gauss-Newton information of theta after eliminating the trajectory, (C, p, p): how each
+    cluster's score moves with a step d of theta (E_c + H_c d), to first order."""
+    return _per_cluster(sol, clusters, lambda j, _: np.einsum("mkp,mkq->mpq", j, j))
+
+
+def _per_cluster(sol: Solution, clusters: Sequence[IntArray],
+                 term: Callable[[FloatArray, Factor], FloatArray]) -> FloatArray:
+    """Sum of term(eliminated Jacobian, factor) over each cluster's row groups (negative ids left out)."""
     p = sol.cov_theta.shape[0]
     n_clusters = int(max(int(c.max()) for c in clusters if c.size) + 1)
-    scores = np.zeros((n_clusters, p))
+    out: FloatArray | None = None
     for f, c in zip(sol.factors, clusters, strict=True):
-        e = np.zeros((f.r.shape[0], p))
-        jt = f.full_theta(p)
-        if jt is not None:
-            e += np.einsum("mkp,mk->mp", jt, f.r)
-        for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
-            if jx is not None and idx is not None:
-                e -= np.einsum("mip,mi->mp", sol._w[idx], np.einsum("mki,mk->mi", jx, f.r))
         keep = c >= 0
-        np.add.at(scores, c[keep], e[keep])
-    return scores
+        if not np.any(keep):
+            continue
+        e = term(_eliminated(sol, f, p), f)
+        if out is None:
+            out = np.zeros((n_clusters, *e.shape[1:]))
+        np.add.at(out, c[keep], e[keep])
+    return out if out is not None else np.zeros((n_clusters, p))
 
 
 def newey_west(scores: FloatArray, lags: int) -> FloatArray:
