@@ -9,7 +9,7 @@ complement (Liang & Zeger 1986; Cameron & Miller 2015 for the small-C correction
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -44,30 +44,39 @@ def _eliminated(sol: Solution, f: Factor, p: int) -> FloatArray:
 
 def cluster_scores(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
     """Per-cluster gradient of the cost by theta after eliminating the trajectory, (C, p): E_c above."""
-    return _per_cluster(sol, clusters, lambda j, f: np.einsum("mkp,mk->mp", j, f.r))
+    p = sol.cov_theta.shape[0]
+    out = np.zeros((_count(clusters), p))
+    for f, c in zip(sol.factors, clusters, strict=True):
+        keep = c >= 0
+        if np.any(keep):
+            e = np.einsum("mkp,mk->mp", _eliminated(sol, f, p)[keep], f.r[keep])
+            np.add.at(out, c[keep], e)
+    return out
 
 
 def cluster_information(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
     """Per-cluster Gauss-Newton information of theta after eliminating the trajectory, (C, p, p): how each
     cluster's score moves with a step d of theta (E_c + H_c d), to first order."""
-    return _per_cluster(sol, clusters, lambda j, _: np.einsum("mkp,mkq->mpq", j, j))
-
-
-def _per_cluster(sol: Solution, clusters: Sequence[IntArray],
-                 term: Callable[[FloatArray, Factor], FloatArray]) -> FloatArray:
-    """Sum of term(eliminated Jacobian, factor) over each cluster's row groups (negative ids left out)."""
     p = sol.cov_theta.shape[0]
-    n_clusters = int(max(int(c.max()) for c in clusters if c.size) + 1)
-    out: FloatArray | None = None
+    out = np.zeros((_count(clusters), p, p))
     for f, c in zip(sol.factors, clusters, strict=True):
-        keep = c >= 0
-        if not np.any(keep):
+        keep = np.flatnonzero(c >= 0)
+        if not keep.size:
             continue
-        e = term(_eliminated(sol, f, p), f)
-        if out is None:
-            out = np.zeros((n_clusters, *e.shape[1:]))
-        np.add.at(out, c[keep], e[keep])
-    return out if out is not None else np.zeros((n_clusters, p))
+        # rows sorted by cluster, one (rows x p)^T (rows x p) product per cluster: per-row p x p outer products
+        # summed with np.add.at took seconds on a long log
+        order = keep[np.argsort(c[keep], kind="stable")]
+        ids, first = np.unique(c[order], return_index=True)
+        j = _eliminated(sol, f, p)[order]
+        for cid, lo, hi in zip(ids, first, [*first[1:], order.size], strict=True):
+            block = j[lo:hi].reshape(-1, p)
+            out[cid] += block.T @ block
+    return out
+
+
+def _count(clusters: Sequence[IntArray]) -> int:
+    """Number of clusters (ids run from 0)."""
+    return int(max(int(c.max()) for c in clusters if c.size) + 1)
 
 
 def newey_west(scores: FloatArray, lags: int) -> FloatArray:
