@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
+from ..errors import InsufficientDataError
 from ..models.map import FitContext, MapEstimate, fit_map
 from ..models.map_effects import row_weights
 from ..models.problem import Problem
@@ -124,7 +125,15 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Pr
     windows = blocks(ctx.ep.t)
     ids = tuple(f.id for f in model.effects if f.estimate is not None)
 
-    def fold(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]]:
+    def fold(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]] | None:
+        try:
+            return scored(hold)
+        except (InsufficientDataError, np.linalg.LinAlgError):
+            # a weakly determined flight (a partial calibration) may not be determined without a tenth of its
+            # readings: that fold is left out; the check stands on the others
+            return None
+
+    def scored(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]]:
         base = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, declination=declination, holdout=hold,
                        warm=ctx)
         picked = procedure(base, hold)
@@ -144,12 +153,21 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Pr
         return (nb - ne)[ok] / n[ok], float(sb.sum()), float(se.sum()), float(n.sum()), picked
 
     hook = progress or current()
-    parts = pmap(fold, folds(windows), done=lambda i, n: hook(f"{mag.id} diagnosis: held-out folds", i, n))
+    every = pmap(fold, folds(windows), done=lambda i, n: hook(f"{mag.id} diagnosis: held-out folds", i, n))
+    parts = [p for p in every if p is not None]
+    if not parts:
+        msg = (f"{problem.where}: {mag.id}: no training fold of the held-out check could be fitted (the log determines "
+               "the calibration only with all of its readings)")
+        raise InsufficientDataError(msg)
     gains = np.concatenate([p[0] for p in parts])
     before, after, count = sum(p[1] for p in parts), sum(p[2] for p in parts), sum(p[3] for p in parts)
     chosen = [p[4] for p in parts]
+    left_out = len(every) - len(parts)
     protocol = (f"interleaved blocked cross-validation: {len(windows)} blocks of {windows[0][1] - windows[0][0]:.0f} s, "
-                f"{min(FOLDS, len(windows))} folds; parameters fitted without the held-out block, whose readings are "
-                "scored with the parameters frozen; effects also chosen inside each training fold")
+                f"{min(FOLDS, len(windows))} folds"
+                + (f" ({left_out} could not be fitted and {'was' if left_out == 1 else 'were'} left out)"
+                   if left_out else "")
+                + "; parameters fitted without the held-out block, whose readings are scored with the parameters "
+                "frozen; effects also chosen inside each training fold")
     rms = (np.sqrt(before / max(count, 1.0)), np.sqrt(after / max(count, 1.0)))
     return Heldout(np.array(gains), float(rms[0]), float(rms[1]), tuple(chosen), protocol)

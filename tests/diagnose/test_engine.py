@@ -234,3 +234,33 @@ def test_the_step_zeroes_the_candidates_summed_score() -> None:
     g = scores[:, a].sum(axis=0)
     after = _after_step(info, scores, hc, a, rest).sum(axis=0)
     assert np.linalg.norm(g) > 1e3 * np.linalg.norm(after[a])
+
+
+def test_a_fold_that_cannot_be_fitted_is_left_out(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A weakly determined flight may not be determined without a tenth of its readings (2015-10-11_19-53-46
+    MAG[1]): that training fold is left out and said so; the held-out check stands on the others. With no fold
+    left, the check is refused with a reason (the diagnosis then reports the base calibration)."""
+    from magcal_cli.diagnose import validate
+    from magcal_cli.errors import InsufficientDataError
+
+    _, problem, est = _fit("current", 3)
+    mag = problem.mags[0]
+    model = fit_map(problem, mag, effects=("current_interference",))
+    real = validate.fit_map
+    first = validate.folds(validate.blocks(est.context.ep.t))[0] if est.context is not None else ()
+
+    def failing_first(*args: object, **kwargs: object) -> MapEstimate:
+        if kwargs.get("holdout") == first:
+            raise InsufficientDataError("weak")
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(validate, "fit_map", failing_first)
+    held = validate.crossvalidate(problem, mag, est, lambda b, h: (), model)
+    assert "(1 could not be fitted and was left out)" in held.protocol and held.gain.size > 0
+
+    def failing(*args: object, **kwargs: object) -> MapEstimate:
+        raise InsufficientDataError("weak")
+
+    monkeypatch.setattr(validate, "fit_map", failing)
+    with pytest.raises(InsufficientDataError, match="no training fold of the held-out check could be fitted"):
+        validate.crossvalidate(problem, mag, est, lambda b, h: (), model)
