@@ -504,7 +504,9 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         history.append((applied, measured))
         applied += float(step[3])
         noise, pre = rescaled(noise, pre, step)
-    if sol is not None and not sol.converged:
+    # round 0's loose relative tolerance is no convergence test when the noise levels then stay: a slow direction
+    # (throttle's exponent from its start at 1, where c = 0 gives it no gradient) had stopped 2 std short
+    if sol is not None and (not sol.converged or opts is start):
         sol = solve(make_linearize(ep, pre, noise, layout, bound, hold, held), states, theta, first)
         iters += sol.iterations
         log.extend(f"final: {line}" for line in sol.log)
