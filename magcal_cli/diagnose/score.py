@@ -28,8 +28,7 @@ from ..models.problem import Problem
 from ..models.result import EffectFit
 from ..models.sandwich import (
     bartlett_dof,
-    cluster_information,
-    cluster_scores,
+    cluster_scores_and_information,
     factor_clusters,
     newey_west,
     time_clusters,
@@ -133,8 +132,7 @@ def screen(problem: Problem, mag: Stream, est: MapEstimate, ids: Sequence[str],
     if not np.all(np.isfinite(s_inv)):
         return Screen((), tuple(untestable), {}, unscored)
     info = np.asarray(np.linalg.pinv(s_inv, hermitian=True), dtype=np.float64)
-    scores = cluster_scores(ext.sol, ext.clusters)
-    hessians = cluster_information(ext.sol, ext.clusters)
+    scores, hessians = cluster_scores_and_information(ext.sol, ext.clusters)
     lags = _lags(scores.shape[0])
     nu = bartlett_dof(scores.shape[0], lags)
     cand = set(np.concatenate([*ext.tested.values(), *ext.held.values()]).tolist())

@@ -54,11 +54,13 @@ def cluster_scores(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
     return out
 
 
-def cluster_information(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
-    """Per-cluster Gauss-Newton information of theta after eliminating the trajectory, (C, p, p): how each
-    cluster's score moves with a step d of theta (E_c + H_c d), to first order."""
+def cluster_scores_and_information(sol: Solution, clusters: Sequence[IntArray]) -> tuple[FloatArray, FloatArray]:
+    """Per-cluster scores E_c (C, p), as `cluster_scores`, and Gauss-Newton information H_c (C, p, p) of theta
+    after eliminating the trajectory, from one pass: how each cluster's score moves with a step d of theta
+    (E_c + H_c d), to first order."""
     p = sol.cov_theta.shape[0]
-    out = np.zeros((_count(clusters), p, p))
+    n = _count(clusters)
+    scores, info = np.zeros((n, p)), np.zeros((n, p, p))
     for f, c in zip(sol.factors, clusters, strict=True):
         keep = np.flatnonzero(c >= 0)
         if not keep.size:
@@ -67,11 +69,12 @@ def cluster_information(sol: Solution, clusters: Sequence[IntArray]) -> FloatArr
         # summed with np.add.at took seconds on a long log
         order = keep[np.argsort(c[keep], kind="stable")]
         ids, first = np.unique(c[order], return_index=True)
-        j = _eliminated(sol, f, p)[order]
+        j, r = _eliminated(sol, f, p)[order], f.r[order]
         for cid, lo, hi in zip(ids, first, [*first[1:], order.size], strict=True):
             block = j[lo:hi].reshape(-1, p)
-            out[cid] += block.T @ block
-    return out
+            scores[cid] += block.T @ r[lo:hi].reshape(-1)
+            info[cid] += block.T @ block
+    return scores, info
 
 
 def _count(clusters: Sequence[IntArray]) -> int:
@@ -122,8 +125,7 @@ def widening(sol: Solution, clusters: Sequence[IntArray], lags: int = 4,
 
     sand = cluster_robust_cov(sol, clusters, lags)
     model = np.diag(sol.cov_theta)
-    n_clusters = int(max(int(c.max()) for c in clusters if c.size) + 1)
-    nu = bartlett_dof(n_clusters, lags)
+    nu = bartlett_dof(_count(clusters), lags)
     threshold = stats.chi2.ppf(1.0 - false_alarm, nu) / nu
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.where(model > 0, np.diag(sand) / model, 1.0)

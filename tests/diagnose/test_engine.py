@@ -219,7 +219,7 @@ def test_the_step_zeroes_the_candidates_summed_score() -> None:
     score and the base's are zero: the step the robust variance is taken after is the one-step fit."""
     from magcal_cli.diagnose.score import _after_step, _extend
     from magcal_cli.models.map_effects import bind
-    from magcal_cli.models.sandwich import cluster_information, cluster_scores
+    from magcal_cli.models.sandwich import cluster_scores, cluster_scores_and_information
 
     _, problem, est = _fit("current", 3)
     ctx = est.context
@@ -227,7 +227,8 @@ def test_the_step_zeroes_the_candidates_summed_score() -> None:
     bias = ctx.pre.bias + ctx.layout.get(ctx.theta, "gyroscope_bias")
     bound, _ = bind(problem, problem.mags[0], ctx.ep.t, bias, ["current_interference"])
     ext = _extend(problem, problem.mags[0], est, bound)
-    scores, hc = cluster_scores(ext.sol, ext.clusters), cluster_information(ext.sol, ext.clusters)
+    scores, hc = cluster_scores_and_information(ext.sol, ext.clusters)
+    assert np.allclose(scores, cluster_scores(ext.sol, ext.clusters), rtol=1e-10, atol=1e-9 * np.abs(scores).max())
     a = ext.tested["current_interference"]
     rest = np.setdiff1d(np.arange(scores.shape[1]), a)
     info = np.linalg.pinv(ext.sol.cov_theta, hermitian=True)
