@@ -24,7 +24,7 @@ import numpy.typing as npt
 
 from .. import effects as registry
 from ..effects.base import Target
-from ..errors import InsufficientDataError, reason
+from ..errors import reason
 from ..models.map import MapEstimate, fit_map, point_at
 from ..models.map_effects import Bound
 from ..models.problem import Problem
@@ -32,7 +32,7 @@ from ..models.result import EffectFit
 from ..progress import Hook, current
 from ..streams import Stream
 from .score import Score, Screen, screen
-from .validate import FOLD_NOISE_ROUNDS, Heldout, crossvalidate
+from .validate import FOLD_NOISE_ROUNDS, REFIT_ERRORS, Heldout, crossvalidate
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -180,10 +180,10 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         try:
             trial = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=(*picked, best),
                             declination=declination, holdout=holdout, warm=est.context)
-        except (InsufficientDataError, np.linalg.LinAlgError) as exc:
+        except REFIT_ERRORS as exc:
             # a weakly determined log (an offsets-only flight) may not carry the extra term at all: the effect is
             # not established, and the diagnosis goes on without it
-            trial, bad = est, f"the fit with it failed ({reason(exc, f'{problem.where}: {mag.id}')})"
+            trial, bad = est, _failed(exc, problem, mag)
         else:
             bad = beyond_limits(trial, best)
         if bad:                   # it stands in for other physics (e.g. an accelerometer scale of -90 % in flight)
@@ -215,17 +215,18 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
 
     failed: dict[str, str] = {}
 
-    def fit(ids: tuple[str, ...], warm: MapEstimate) -> MapEstimate:
-        # a weakly determined flight may carry an effect on the training part (the forward step's fit) and not on
-        # the whole log: the last added is then dropped, with its reason, until the fit stands
+    def fit(ids: Sequence[str], warm: MapEstimate) -> tuple[MapEstimate, list[str]]:
+        """The fit with effects `ids` (the base fit without any), and the effects it kept: a weakly determined
+        flight may carry an effect on the training part (the forward step's fit) and not on the whole log; the
+        last added is then dropped, with its reason, until the fit stands."""
         kept = list(ids)
         while kept:
             try:
                 return fit_map(problem, mag, loss, dip_prior, effects=tuple(kept), declination=declination,
-                               warm=warm.context)
-            except (InsufficientDataError, np.linalg.LinAlgError) as exc:
-                failed[kept.pop()] = f"the fit with it failed ({reason(exc, f'{problem.where}: {mag.id}')})"
-        return base
+                               warm=warm.context), kept
+            except REFIT_ERRORS as exc:
+                failed[kept.pop()] = _failed(exc, problem, mag)
+        return base, kept
 
     def procedure(fold_base: MapEstimate, hold: tuple[tuple[float, float], ...]) -> tuple[str, ...]:
         # what the training data alone finds significant against the base model (the first forward step)
@@ -233,21 +234,17 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
 
     fw = forward(problem, mag, base, candidates, declination, loss, dip_prior, progress=hook)
     scr = fw.screens[0]
-    picked = list(fw.picked)
     first = fw.picked
     ambiguous = list(fw.ambiguous)
-    est = fit(tuple(picked), fw.estimate) if picked else base
-    picked = [p for p in picked if p not in failed]
+    est, picked = fit(fw.picked, fw.estimate)
     for _ in range(2):           # backward: keep what stays significant, with strong evidence, given the rest
         neff = n_eff(est) if picked else float("nan")
         weak = [f.id for f in est.effects if f.id in picked and not (
             f.p_value < WALD_ALPHA and f.statistic - f.dof * float(np.log(neff)) > BIC_MIN)]
         if not weak:
             break
-        picked = [p for p in picked if p not in weak]
         hook(f"{mag.id} diagnosis: refitting without {', '.join(weak)}", 0)
-        est = fit(tuple(picked), base) if picked else base
-        picked = [p for p in picked if p not in failed]
+        est, picked = fit([p for p in picked if p not in weak], base)
     held = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior, hook) if picked else None
     neff = n_eff(est) if picked else float("nan")
     verdicts: dict[str, EffectFit] = {}
@@ -270,11 +267,11 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
                                  reason="; ".join(why))
     accepted = tuple(e for e, v in verdicts.items() if v.status == "accepted")
     if set(accepted) != set(picked):
-        est = fit(accepted, base) if accepted else base
+        est, kept = fit(accepted, base)
+        accepted = tuple(kept)
+        verdicts = {k: v for k, v in verdicts.items() if k not in failed}
         verdicts.update({f.id: replace(f, status="accepted", evidence=verdicts[f.id].evidence)
                          for f in est.effects if f.id in accepted})
-        verdicts = {k: v for k, v in verdicts.items() if k not in failed}
-        accepted = tuple(e for e in accepted if e not in failed)
     implausible = {**fw.implausible, **failed}
     significant = {e for sc in fw.screens for e in holm(sc)}
     for s in fw.scores.values():
@@ -313,6 +310,11 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
                                 estimate=verdicts[eid].estimate if modelled else None)
     verdicts.update({u.id: u for u in scr.untestable if u.id not in verdicts})
     return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous))
+
+
+def _failed(exc: Exception, problem: Problem, mag: Stream) -> str:
+    """Why an effect was rejected when a fit with it failed."""
+    return f"the fit with it failed ({reason(exc, f'{problem.where}: {mag.id}')})"
 
 
 def _p(scores: dict[str, Score], eid: str) -> float:

@@ -35,6 +35,8 @@ FOLD_NOISE_ROUNDS = 0
 #: bootstrap resamples of the held-out blocks for the gain's interval
 BOOTSTRAP = 2000
 
+#: what a refit on a weakly determined log (a partial calibration) raises: that fold, or that effect, is left out
+REFIT_ERRORS = (InsufficientDataError, np.linalg.LinAlgError)
 
 @dataclass(frozen=True)
 class Heldout:
@@ -128,7 +130,7 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Pr
     def fold(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]] | None:
         try:
             return scored(hold)
-        except (InsufficientDataError, np.linalg.LinAlgError):
+        except REFIT_ERRORS:
             # a weakly determined flight (a partial calibration) may not be determined without a tenth of its
             # readings: that fold is left out; the check stands on the others
             return None
