@@ -250,7 +250,9 @@ def _secant(history: list[tuple[float, float]], x: float, f: float) -> float:
         x0, f0 = history[-1]
         if abs(x - x0) > 1e-12:
             slope = (f - f0) / (x - x0)
-    return -f / float(np.clip(slope, -1.0, -0.1))
+    if slope > -0.1:           # not a fixed-point slope: the other levels moved the factor (coupling)
+        slope = FIRST_GYRO_SLOPE
+    return -f / float(max(slope, -1.0))
 
 
 def noise_step(step: FloatArray, floor: FloatArray | None, levels: FloatArray, history: list[tuple[float, float]],
@@ -429,7 +431,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     else:
         intr = map_init.intrinsic_fit(clean, where)
     ep = epochs_for(problem, mag, intr.scale)
-    noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
+    noise = initial_noise(problem, mag, intr.scale, intr.noise_rms)
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
     floor = noise if still_s >= MIN_STILL_S else None
     if imu_start is not None:                  # already estimated on this IMU (floors still apply below)

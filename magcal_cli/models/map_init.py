@@ -24,6 +24,8 @@ FloatArray = npt.NDArray[np.float64]
 
 #: Wu & Luo integrate the kinematics over short windows (the authors' `alignment_interval`, s)
 ALIGNMENT_WINDOW_S = 0.5
+#: the magnetometer's start noise is at least the ellipsoid residual / this (`Intrinsic.noise_rms`)
+WHITE_FLOOR = 10.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -34,6 +36,27 @@ class Intrinsic:
     o0: FloatArray
     scale: float
     residual_rms: float
+    white_rms: float
+
+    @property
+    def noise_rms(self) -> float:
+        """The magnetometer noise to start from: the residual's white part when it is smaller (a slow disturbance
+        the model may take up is not noise), but not below a tenth of the whole residual (a coarse sensor's
+        successive readings are often equal, which zeroes the differences' spread)."""
+        if not np.isfinite(self.white_rms):
+            return self.residual_rms
+        return float(np.clip(self.white_rms, self.residual_rms / WHITE_FLOOR, self.residual_rms))
+
+
+def white_rms(m_b: FloatArray) -> float:
+    """The white part of the field-strength residual |m_b| - 1: robust RMS of successive differences / sqrt 2.
+
+    Slow disturbances (current, temperature, a drifting offset) cancel in the differences, so this is the
+    sensor's noise even when the ellipsoid residual is not; NaN with fewer than 3 readings."""
+    d = np.diff(np.linalg.norm(m_b, axis=1))
+    if d.size < 2:
+        return float("nan")
+    return 1.4826 * float(np.median(np.abs(d - np.median(d)))) / float(np.sqrt(2.0))
 
 
 def despike(y: FloatArray, width: int = 5, k: float = 6.0, share: float = 0.05) -> tuple[FloatArray, int]:
@@ -56,7 +79,8 @@ def intrinsic_fit(y: FloatArray, where: str) -> Intrinsic:
     authors' ml_estimate uses 200; this is only a start value)."""
     ell = fit_ellipsoid(y[:: max(1, len(y) // 2000)], where)
     scale = float(np.cbrt(np.linalg.det(ell.D0)))
-    return Intrinsic(ell.D0 / scale, ell.o0 / scale, scale, ell.residual_rms)
+    m_b = (y - ell.o0) @ np.linalg.inv(ell.D0).T
+    return Intrinsic(ell.D0 / scale, ell.o0 / scale, scale, ell.residual_rms, white_rms(m_b))
 
 
 def from_prior(y: FloatArray, d: FloatArray, o: FloatArray) -> Intrinsic:
@@ -65,7 +89,7 @@ def from_prior(y: FloatArray, d: FloatArray, o: FloatArray) -> Intrinsic:
     scale = float(np.cbrt(abs(np.linalg.det(d))))
     m_b = (y / scale - o / scale) @ np.linalg.inv(d / scale).T
     rms = float(np.sqrt(np.mean((np.linalg.norm(m_b, axis=1) - 1.0) ** 2)))
-    return Intrinsic(d / scale, o / scale, scale, rms)
+    return Intrinsic(d / scale, o / scale, scale, rms, white_rms(m_b))
 
 
 def wu_luo(h: FloatArray, phi: FloatArray, duration: FloatArray, window: int

@@ -204,7 +204,7 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
     mags = problem.mags
     intr = [map_init.intrinsic_fit(map_init.despike(m.xyz)[0], f"{problem.where}: {m.id}") for m in mags]
     je = joint_epochs(problem, mags, [s.scale for s in intr])
-    start = [initial_noise(problem, m, s.scale, s.residual_rms) for m, s in zip(mags, intr, strict=True)]
+    start = [initial_noise(problem, m, s.scale, s.noise_rms) for m, s in zip(mags, intr, strict=True)]
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
     dev = np.linalg.norm(je.acc, axis=1) - G
     spread = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))

@@ -149,3 +149,31 @@ def test_robust_loss_resists_magnetometer_outliers() -> None:
     err_robust = np.abs(robust.theta[15:18] - o_true) / robust.std[15:18]
     assert err_robust.max() < 5.0
     assert err_plain.max() > 3.0 * err_robust.max()
+
+
+def test_start_noise_is_the_residuals_white_part_not_a_slow_disturbance() -> None:
+    """A slow offset drift (current, temperature) inflates the ellipsoid residual but not the start noise."""
+    from magcal_cli.models.map_init import white_rms
+
+    rng = np.random.default_rng(3)
+    k = 6000
+    u = rng.normal(size=(k, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    noise = 0.002
+    white = u * (1.0 + noise * rng.normal(size=(k, 1)))
+    drift = u * (1.0 + 0.02 * np.sin(np.linspace(0, 6, k))[:, None] + noise * rng.normal(size=(k, 1)))
+    assert white_rms(white) == pytest.approx(noise, rel=0.05)
+    assert white_rms(drift) == pytest.approx(noise, rel=0.05)       # the full residual RMS is ~7x that
+    assert np.isnan(white_rms(u[:2]))
+
+
+@pytest.mark.parametrize(("history", "expected"), [
+    ([], -0.5 / mapm.FIRST_GYRO_SLOPE),            # first step: the paper protocol's slope
+    ([(0.0, 1.0)], 1.0),                           # measured slope (0.5 - 1) / (1 - 0) = -0.5: step 0.5 / 0.5
+    ([(0.0, 0.2)], -0.5 / mapm.FIRST_GYRO_SLOPE),  # the factor grew (+0.3): coupling, not a fixed-point slope
+])
+def test_gyro_noise_secant_falls_back_when_the_slope_is_not_a_fixed_points(
+        history: list[tuple[float, float]], expected: float) -> None:
+    """The secant's slope comes from the last two rounds; a positive one (the magnetometer level moved the gyro's
+    factor) would have sent the level 10x too far, as it did on an effects fit with a low magnetometer start."""
+    assert mapm._secant(history, 1.0, 0.5) == pytest.approx(expected)
