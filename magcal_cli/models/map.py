@@ -559,11 +559,17 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
 PARTIAL_MAX_NORM_RMS = 0.15
 
 
+def norm_spread(ep: Epochs, theta: FloatArray, layout: Layout) -> float:
+    """RMS of the calibrated field strength about 1 (relative): how far the calibration leaves the readings from a
+    sphere."""
+    d, o, _ = mag_layout(layout).unpack(theta)
+    return float(np.sqrt(np.mean((np.linalg.norm((ep.mag - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
+
+
 def _explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str) -> None:
     """Refuse a partial calibration that does not explain the readings: the calibrated field strength must stay
     within PARTIAL_MAX_NORM_RMS of constant (a full fit is judged by its quality numbers instead)."""
-    d, o, _ = mag_layout(layout).unpack(theta)
-    spread = float(np.sqrt(np.mean((np.linalg.norm((ep.mag - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
+    spread = norm_spread(ep, theta, layout)
     if spread > PARTIAL_MAX_NORM_RMS:
         msg = (f"{where}: even a partial calibration does not explain the readings (the calibrated field strength "
                f"still varies {100 * spread:.0f} % RMS): the log's motion determines too little, or a disturbance "
@@ -631,7 +637,8 @@ def _estimate(problem: Problem, ep: Epochs, pre: Preintegrated, noise: Noise, so
             f"unmodelled motion or a disturbance); the uncertainty of {', '.join(names)} was widened up to "
             f"{float(widen.max()):.1f}x (time-clustered sandwich estimate)", {"max_factor": float(widen.max())}))
     if held is not None:
-        check_useful(cov[np.ix_(base, base)], s, held.cols, where)
+        check_useful(cov[np.ix_(base, base)], s, held.cols, where,
+                     None if widen is None else widen[base], norm_spread(ep, sol.theta, layout))
     return MapEstimate(ep.mag_id, theta, cov, noise_si, states, ep.t, sol.cost, iters, sol.converged,
                        float(np.sqrt(np.mean(resid**2))), log, tuple(findings), notes, condition, layout)
 

@@ -108,17 +108,35 @@ def conditional(cov: FloatArray, held: IntArray) -> tuple[FloatArray, IntArray]:
     return cov[np.ix_(free, free)] - c_fh @ np.linalg.solve(cov[np.ix_(held, held)], c_fh.T), free
 
 
-def check_useful(cov: FloatArray, field: float, held: IntArray, where: str) -> None:
+#: a partial calibration refused with its uncertainty widened more than this, and the field strength still varying
+#: more than NONUNIFORM_SPREAD (relative RMS) after it, is refused for the field, not the motion
+NONUNIFORM_WIDENING = 3.0
+NONUNIFORM_SPREAD = 0.03
+NONUNIFORM_ADVICE = ("record away from steel, magnets and powered electronics (outdoors, or at least 1 m from "
+                     "them), keep the sensor in one place while turning it, and")
+
+
+def check_useful(cov: FloatArray, field: float, held: IntArray, where: str, widening: FloatArray | None = None,
+                 spread: float = 0.0) -> None:
     """Refuse a partial calibration whose estimated D or o entries are known no better than the fatal limit once
-    the prior's doubt and the correlated residuals are counted (the marginal, widened covariance)."""
+    the prior's doubt and the correlated residuals are counted (the marginal, widened covariance). With a large
+    `widening` (per entry) and calibrated field-strength `spread` the message names a non-uniform field, not the
+    motion."""
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None)) / field
-    worst = [(NAMES[i], std[i]) for g in (GROUP_OF["D"], GROUP_OF["o"])
+    worst = [(i, std[i]) for g in (GROUP_OF["D"], GROUP_OF["o"])
              for i in range(g.sl.start, g.sl.stop) if i not in held and std[i] > g.fatal]
     if worst:
-        name, sd = max(worst, key=lambda w: w[1])
-        msg = (f"{where}: the log's motion determines too little for even a partial calibration ({name} is "
-               f"uncertain to {100 * sd:.0f} % of the field once the held parameters' doubt and the correlated "
-               f"residuals are counted). To fix: {ROTATE_ADVICE}")
+        i, sd = max(worst, key=lambda w: w[1])
+        name, wide = NAMES[i], 1.0 if widening is None else float(widening[i])
+        if wide > NONUNIFORM_WIDENING and spread > NONUNIFORM_SPREAD:
+            msg = (f"{where}: no calibration explains these readings: the calibrated field strength still varies "
+                   f"{100 * spread:.0f} % RMS and the residuals drift together in time ({name}'s uncertainty "
+                   f"widened {wide:.1f}x, to {100 * sd:.0f} % of the field), so the field around the sensor was "
+                   f"not uniform or changed during the log. To fix: {NONUNIFORM_ADVICE} {ROTATE_ADVICE}")
+        else:
+            msg = (f"{where}: the log's motion determines too little for even a partial calibration ({name} is "
+                   f"uncertain to {100 * sd:.0f} % of the field once the held parameters' doubt and the correlated "
+                   f"residuals are counted). To fix: {ROTATE_ADVICE}")
         raise InsufficientDataError(msg)
 
 

@@ -107,3 +107,26 @@ def test_held_factor_jacobian_against_finite_differences() -> None:
         fd = (held.factor(theta + d, False).r - held.factor(theta - d, False).r) / (2 * eps)
         np.testing.assert_allclose(fd[:, 0], f.J_theta[:, 0, i], rtol=1e-6)
     assert np.allclose(held.soft().factor(theta, False).r, f.r * partial.PIN)
+
+
+@pytest.mark.parametrize(("widening", "spread", "says"), [
+    (None, 0.10, "the log's motion determines too little for even a partial calibration (D.20 is uncertain to "
+                 "20 % of the field"),
+    (np.full(BASE.size, 2.0), 0.10, "the log's motion determines too little"),      # residuals nearly white: the motion
+    (np.full(BASE.size, 8.0), 0.01, "the log's motion determines too little"),      # readings explained: the motion
+    (np.full(BASE.size, 8.0), 0.10, "no calibration explains these readings: the calibrated field strength still varies "
+                             "10 % RMS and the residuals drift together in time (D.20's uncertainty widened 8.0x, "
+                             "to 20 % of the field), so the field around the sensor was not uniform"),
+])
+def test_a_useless_partial_fit_names_the_field_or_the_motion(widening: np.ndarray | None, spread: float,
+                                                            says: str) -> None:
+    """A refused partial calibration blames a non-uniform field only when its residuals drift together and the
+    calibrated field strength still varies; otherwise the motion."""
+    from magcal_cli.errors import InsufficientDataError
+    from magcal_cli.models.observability import check_useful
+
+    cov = np.diag(np.full(BASE.size, 1e-8))
+    cov[BASE.cols("D")[2], BASE.cols("D")[2]] = 0.04                          # D.20: 20 % of a unit field
+    with pytest.raises(InsufficientDataError) as err:
+        check_useful(cov, 1.0, np.zeros(0, np.int64), "log: mag", widening, spread)
+    assert str(err.value).startswith(f"log: mag: {says}")

@@ -318,3 +318,19 @@ def test_real_phidgets_fit_fails_cleanly_on_yaw_only_motion(realdata: Path,
     with pytest.raises(InsufficientDataError, match=r"/imu/mag: .*even a partial calibration .* To fix: rotate the "
                                                      r"vehicle about all three axes"):
         calibrate(realdata / ROS / "phidgets_imu_upside_down.bag", Config())
+
+
+def test_real_phidgets_refusal_names_the_non_uniform_field(realdata: Path, tmp_path: Path) -> None:
+    """The phidgets bag (56 s, tilt < 13 deg, 250 deg of heading) leaves its field strength varying 14 % around
+    any calibration: the refusal says the field was not uniform, exit 1, and no output folder."""
+    from click.testing import CliRunner
+
+    from magcal_cli.cli import cli
+
+    out = tmp_path / "out"
+    res = CliRunner().invoke(cli, ["fit", str(realdata / ROS / PHIDGETS[0]), "-o", str(out), "-q"])
+    assert res.exit_code == 1
+    assert "/imu/mag: no calibration explains these readings: the calibrated field strength still varies 14 % RMS" \
+        in res.stderr
+    assert "the field around the sensor was not uniform or changed during the log" in res.stderr
+    assert not out.exists()
