@@ -186,3 +186,25 @@ def test_nongravity_effect_adds_its_sway_to_the_flight() -> None:
 def test_too_short_is_refused() -> None:
     with pytest.raises(MagcalError, match="the multirotor scenario needs --duration >= 90 s"):
         simulate("multirotor", 0, duration=60.0)
+
+
+def test_flat_rover_with_nongravity_is_within_its_uncertainty(tmp_path: Path) -> None:
+    """Rover seed 0 (tilt within 5 deg) with --effects nongravity_acceleration: the partial path must hold the
+    base entries where the effect's layout puts them. It held two accelerometer-bias entries and o.y instead of
+    the gyro biases and dip, and D came out 70 % off (max |z| 279)."""
+    from magcal_cli.config import Config
+    from magcal_cli.document import dumps_json, load
+    from magcal_cli.pipeline import calibrate
+    from magcal_cli.synth import truth_calibration
+
+    log = tmp_path / "rover.bin"
+    sim = simulate("rover", 0)
+    write_log(sim, log)
+    (tmp_path / "t.json").write_text(dumps_json(truth_calibration(sim, open_recording(log), "test", "")))
+    truth = load(tmp_path / "t.json")
+    res = calibrate(log, Config(effects=("nongravity_acceleration",)))
+    m, tm = res.calibration.magnetometers[0], truth.magnetometers[0]
+    assert np.linalg.norm(m.D - tm.D) / np.linalg.norm(tm.D) < 0.01
+    for got, want, std in ((m.D, tm.D, m.std_of("D")), (m.o, tm.o, m.std_of("o")),
+                           (m.dip_deg, tm.dip_deg, m.std_of("dip"))):
+        assert np.abs((np.asarray(got) - want) / std).max() < 5.0

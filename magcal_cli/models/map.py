@@ -171,6 +171,7 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
     ml = mag_layout(layout)
     ba, bg = layout.slice("accelerometer_bias").start, layout.slice("gyroscope_bias").start
     w_mag = row_weights(bound)
+    held = None if held is None else held.placed(layout)
     if holdout is not None:
         w_mag = holdout if w_mag is None else w_mag * holdout
         s_acc = s_acc * holdout
@@ -457,7 +458,8 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     if prior is not None:
         held = _rechoose(partial.prior_of(layout, theta, prior, ep.scale, dip_prior),
                           make_linearize(ep, pre, noise, layout, bound, hold), states, theta, where)
-        theta[held.cols] = held.mean
+        theta[held.theta_cols] = held.mean
+    held = None if held is None else held.placed(layout)      # a warm start's hold, in this fit's layout
     scale_jac = pre.d_scale is not None
     bg = layout.slice("gyroscope_bias")
     if floor is not None and any(b.effect.target.value == "mag" and b.effect.params for b in bound):
@@ -524,7 +526,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         if np.array_equal(more.cols, held.cols):
             break
         held, theta = more, sol.theta.copy()
-        theta[held.cols] = held.mean
+        theta[held.theta_cols] = held.mean
         sol = solve(make_linearize(ep, pre, noise, layout, bound, hold, held), sol.states, theta, first)
         iters += sol.iterations
         log.extend(f"held {', '.join(held.names())}: {line}" for line in sol.log)
@@ -545,7 +547,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     ids = time_clusters(ep.t)
     widen = widening(sol, factor_clusters(sol.factors, ids))
     if held is not None:
-        widen[held.cols] = 1.0                  # a held entry's std is its prior's doubt, not the data's
+        widen[held.theta_cols] = 1.0            # a held entry's std is its prior's doubt, not the data's
         _explains(ep, sol.theta, layout, where)
     est = _estimate(problem, ep, pre, noise, sol, iters, tuple(log), tuple(notes) + ep.notes, cov, widen, layout,
                     held)
@@ -588,6 +590,9 @@ def _rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray
         info = information(data, states, theta)
         if widen is not None:
             info = info / np.outer(widen, widen)
+        # `choose` wants the base entries first: accelerometer effect blocks come before them in the layout
+        order = np.concatenate([held.at, np.setdiff1d(np.arange(theta.size), held.at)])
+        info = info[np.ix_(order, order)]
         more = held.holding(partial.choose(info, held.prior_std, np.union1d(pinned, held.cols) if keep else pinned),
                             pinned)
     except np.linalg.LinAlgError:

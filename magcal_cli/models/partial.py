@@ -79,6 +79,18 @@ class Held:
     pinned: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
     #: the held factor's std relative to the prior's: pinned while fitting, the prior's own for the covariance
     stiffness: float = PIN
+    #: where each base entry sits in the fitted theta (`placed`): effect blocks may come before the base ones
+    at: IntArray = field(default_factory=lambda: BASE.cols(*BASE.names))
+
+    def placed(self, layout: Layout) -> Held:
+        """The same hold for a theta in `layout` (cols stay base indices; `theta_cols` follow the layout)."""
+        return replace(self, at=layout.cols(*BASE.names))
+
+    @property
+    def theta_cols(self) -> IntArray:
+        """The held entries' columns in the fitted theta."""
+        out: IntArray = self.at[self.cols]
+        return out
 
     @property
     def mean(self) -> FloatArray:
@@ -98,7 +110,7 @@ class Held:
     def holding(self, cols: IntArray, pinned: IntArray) -> Held:
         """The same priors holding these columns (and pinning those)."""
         return Held(np.asarray(cols, np.int64), self.prior_mean, self.prior_std, self.prior_sources,
-                    np.asarray(pinned, np.int64), self.stiffness)
+                    np.asarray(pinned, np.int64), self.stiffness, self.at)
 
     def soft(self) -> Held:
         """The same hold as a prior with the prior's own std: its covariance carries the prior's doubt into the
@@ -111,7 +123,7 @@ class Held:
 
     def factor(self, theta: FloatArray, jacobians: bool) -> Factor:
         """(theta_c - mean) / (std x stiffness) for the held columns."""
-        return gaussian_factor("held", self.cols, self.mean, self.std * self.stiffness, theta, jacobians)
+        return gaussian_factor("held", self.theta_cols, self.mean, self.std * self.stiffness, theta, jacobians)
 
     def names(self) -> list[str]:
         """The held entries' names ('D.02', 'o.z', 'dip', ...)."""
@@ -231,13 +243,13 @@ def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, d
         # an offsets-only fit: what goes stale in a flown calibration is the offsets (a new payload, wiring), so they
         # are estimated unless the data know them worse than an undetermined offset, D's doubt included
         std[o] = np.maximum(std[o], OFFSET_FATAL)
-    return Held(np.zeros(0, np.int64), mean, std, tuple(src), pins)
+    return Held(np.zeros(0, np.int64), mean, std, tuple(src), pins).placed(layout)
 
 
 def implausible(theta: FloatArray, held: Held) -> IntArray:
     """Free IMU-bias and dip entries more than IMPLAUSIBLE_SIGMAS prior stds from their priors."""
     cols = BASE.cols("accelerometer_bias", "gyroscope_bias", "dip")
-    far = np.abs(theta[cols] - held.prior_mean[cols]) > IMPLAUSIBLE_SIGMAS * held.prior_std[cols]
+    far = np.abs(theta[held.at[cols]] - held.prior_mean[cols]) > IMPLAUSIBLE_SIGMAS * held.prior_std[cols]
     return np.setdiff1d(cols[far], held.cols).astype(np.int64)
 
 

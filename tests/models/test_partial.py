@@ -109,6 +109,30 @@ def test_held_factor_jacobian_against_finite_differences() -> None:
     assert np.allclose(held.soft().factor(theta, False).r, f.r * partial.PIN)
 
 
+def test_held_entries_follow_the_layout_when_effect_blocks_come_first() -> None:
+    """An accelerometer effect's block sits before the base ones: the held factor, the implausibility check and
+    the start values must address the base entries where that layout puts them (they held the gyro biases' and
+    dip's neighbours, and a flat rover's D came out 70 % off)."""
+    from magcal_cli.effects import get
+    from magcal_cli.effects.base import Inputs
+    from magcal_cli.models.map_effects import Bound, layout_for
+
+    layout = layout_for([Bound(get("nongravity_acceleration"), Inputs(np.zeros(1), np.zeros((1, 3)),
+                                                                      np.zeros((1, 3)), {}, (), {}))])
+    assert layout.slice("gyroscope_bias").start == 2 + 3                        # kappa, delay_s, b_a, then b_g
+    theta = layout.zeros()
+    held = partial.prior_of(layout, theta, partial.MagPrior(np.eye(3), np.zeros(3), "t", 0.1), 1.0, 1.1)
+    held = held.holding(BASE.cols("gyroscope_bias")[:2].tolist() + BASE.cols("dip").tolist(), np.zeros(0, np.int64))
+    assert layout.entry_names()[held.theta_cols[0]] == "gyroscope_bias.x"
+    assert [layout.entry_names()[c] for c in held.theta_cols] == ["gyroscope_bias.x", "gyroscope_bias.y", "dip"]
+    f = held.factor(theta, True)
+    np.testing.assert_array_equal(f.theta_cols, held.theta_cols)
+    assert f.r[-1, 0] == pytest.approx(-1.1 / (partial.DIP_REF_STD * partial.PIN))     # dip's row reads theta's dip
+    theta[layout.slice("dip")] = 1.1 + 100 * partial.DIP_REF_STD
+    assert partial.implausible(theta, held.holding(np.zeros(0, np.int64), np.zeros(0, np.int64))).tolist() == \
+        BASE.cols("dip").tolist()
+
+
 @pytest.mark.parametrize(("widening", "spread", "says"), [
     (None, 0.10, "the log's motion determines too little for even a partial calibration (D.20 is uncertain to "
                  "20 % of the field"),
