@@ -19,7 +19,8 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from .. import so3
-from ..effects.base import Point
+from ..effects import get
+from ..effects.base import Point, Target
 from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
 from ..progress import current
@@ -182,8 +183,6 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
         fm = mag_factor(states, ep.mag, l_mag, theta, ml, idx, jac, compact=True)
         extra = None
         if bound:
-            from ..effects.base import Target
-
             at = point_at(states, theta, layout, pre)
             fa = with_terms(fa, l_acc, terms(bound, layout, theta, at, Target.ACCEL), layout)
             fm = with_terms(fm, l_mag, terms(bound, layout, theta, at, Target.MAG), layout)
@@ -282,32 +281,34 @@ def rescaled(noise: Noise, pre: Preintegrated, log_var: FloatArray) -> tuple[Noi
 
 
 def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
-                   cache: dict[bytes, Preintegrated]) -> Preintegrated:
-    """Preintegrate between the epochs, or rescale a cached preintegration of the same epochs and bias."""
-    key = ep.t.tobytes() + np.asarray(bias, dtype=np.float64).tobytes()
+                   cache: dict[bytes, Preintegrated], scale_jacobian: bool = False) -> Preintegrated:
+    """Preintegrate between the epochs (with the gyro-scale Jacobian when asked), or rescale a cached
+    preintegration of the same epochs and bias."""
+    key = ep.t.tobytes() + np.asarray(bias, dtype=np.float64).tobytes() + bytes([scale_jacobian])
     hit = cache.get(key)
     if hit is not None:
         ratio = noise.gyr / hit.noise_std
         if np.allclose(ratio, ratio[0], rtol=1e-12):
             return hit.scaled(float(ratio[0]) ** 2)
     pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}",
-                       breaks=problem.unmeasured)
+                       scale_jacobian=scale_jacobian, breaks=problem.unmeasured)
     cache[key] = pre
     return pre
 
 
 def _initial_state(problem: Problem, ep: Epochs, intr: map_init.Intrinsic, noise: Noise,
-                   dip_prior: float | None, cache: dict[bytes, Preintegrated], align: bool = True
-                   ) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
+                   dip_prior: float | None, cache: dict[bytes, Preintegrated], align: bool = True,
+                   scale_jacobian: bool = False) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
     """Start values (states, theta, preintegration) as in Sec. III-D; the trajectory that fits better wins.
-    Without `align` the start D stays in the body frame (a prior calibration: a flat log cannot align)."""
+    Without `align` the start D stays in the body frame (a prior calibration: a flat log cannot align);
+    `scale_jacobian`: a gyro effect will need the preintegration's scale Jacobian (integrate once, not twice)."""
     notes = []
     if problem.still.segments:
         bias = problem.still.gyr_bias
         notes.append(f"{ep.mag_id}: gyro bias started from {len(problem.still.segments)} still segments")
     else:
         bias = np.zeros(3)
-    pre = _preintegrated(problem, ep, bias, noise, cache)
+    pre = _preintegrated(problem, ep, bias, noise, cache, scale_jacobian)
     h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
     r_d, db = map_init.wu_luo(h, so3.log_small(pre.delta), pre.duration, window) if align else (np.eye(3), np.zeros(3))
@@ -449,7 +450,9 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         BASE.carry(theta, warm.layout, warm.theta)
     else:
         clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
-        states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache, prior is None)
+        gyro_effect = any(get(e).target is Target.GYRO for e in effects)
+        states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache, prior is None,
+                                                   gyro_effect)
     layout, bound, untestable, theta, pre = _with_effects(problem, mag, ep, pre, theta, effects, declination)
     if warm is not None:                  # the effect blocks that fit also had
         layout.carry(theta, warm.layout, warm.theta)
