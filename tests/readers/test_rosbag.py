@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcal_cli.errors import InsufficientDataError, LogReadError, UnsupportedFormatError
+from magcal_cli.errors import LogReadError, UnsupportedFormatError
 from magcal_cli.logwriters import write_log
 from magcal_cli.logwriters.rosbag import write_bag, write_ros2
 from magcal_cli.readers import ReadOptions, open_recording
