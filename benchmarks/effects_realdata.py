@@ -605,8 +605,8 @@ def findings(res: dict[str, Any]) -> list[str]:
         b1, b6 = by["01"], by["06"]
         out.append(
             f"- **Slow rotation (01):** tau = {b1['tau_ms']:.2f} ms (CI {b1['tau_ci95_ms'][0]:.2f}–"
-            f"{b1['tau_ci95_ms'][1]:.2f}, p = {b1['p_value']:.2g}) is `{b1['status']}` at magcal's 1 % level "
-            f"although the 95 % CI excludes 0; the mocap implies "
+            f"{b1['tau_ci95_ms'][1]:.2f}, p = {b1['p_value']:.2g}) is `{b1['status']}` at magcal's 1 % level"
+            f"{' although the 95 % CI excludes 0' if b1['status'] == 'rejected' else ''}; the mocap implies "
             f"{b1['scan_base']['delay_heading_ms'] + b1['mocap_lag_vs_gyro_ms']:.1f} ms. Heading "
             f"{b1['scores']['before: base fit, stamp t']['heading_rms_deg']:.2f}° → "
             f"{b1['scores']['after: time-offset fit, re-stamped t - tau']['heading_rms_deg']:.2f}° (slow motion: a "
