@@ -68,7 +68,12 @@ def acceleration_grid(pos: Stream) -> tuple[FloatArray, FloatArray]:
 
 def sample(grid: FloatArray, acc: FloatArray, t: FloatArray, deriv: int = 0) -> FloatArray:
     """The grid's acceleration (deriv 0) or jerk (deriv 1) at times t (K, 3) by a cubic spline; 0 off the grid."""
-    out: FloatArray = CubicSpline(grid, acc, axis=0)(t, deriv)
+    return _on(CubicSpline(grid, acc, axis=0), grid, t, deriv)
+
+
+def _on(spline: CubicSpline, grid: FloatArray, t: FloatArray, deriv: int) -> FloatArray:
+    """`spline` (of the grid's acceleration) or its derivative at times t; 0 off the grid."""
+    out: FloatArray = spline(t, deriv)
     out[(t < grid[0]) | (t > grid[-1])] = 0.0
     return out
 
@@ -129,7 +134,7 @@ class NonGravity(Effect):
         # "_" constants are the term's tables, not reported
         return Inputs(kin.t, kin.omega, kin.omega_dot, {}, (s.id,),
                       {"source": f"position ({s.id}), differentiated twice", "sigma_a": sigma,
-                       "_grid": grid, "_acc": acc})
+                       "_grid": grid, "_spline": CubicSpline(grid, acc, axis=0)})
 
     def start(self) -> FloatArray:
         """kappa = 0, the delay at its prior."""
@@ -144,8 +149,9 @@ class NonGravity(Effect):
         d/ddelay = kappa R^T j_n (the jerk); d/dphi = kappa [R^T a_n]x."""
         c = inp.constants
         when = inp.t + float(beta[1])
-        v = np.einsum("mji,mj->mi", at.rot, sample(c["_grid"], c["_acc"], when))
-        jerk = np.einsum("mji,mj->mi", at.rot, sample(c["_grid"], c["_acc"], when, deriv=1))
+        # the spline is built once per binding (inputs): building it per linearisation cost 10 % of a diagnosis
+        v = np.einsum("mji,mj->mi", at.rot, _on(c["_spline"], c["_grid"], when, 0))
+        jerk = np.einsum("mji,mj->mi", at.rot, _on(c["_spline"], c["_grid"], when, 1))
         return Term(float(beta[0]) * v, np.stack([v, float(beta[0]) * jerk], axis=2), float(beta[0]) * so3.hat(v))
 
     def correct(self, params: dict[str, Any], t: FloatArray, y: FloatArray,

@@ -16,7 +16,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 from scipy import stats
-from threadpoolctl import threadpool_limits
 
 from .. import so3
 from ..effects import get
@@ -47,7 +46,16 @@ from .partial import Held
 from .problem import Problem
 from .result import EffectFit
 from .sandwich import factor_clusters, time_clusters, widening
-from .solve import Factor, Linearize, Options, Solution, information, marginal_covariance, solve
+from .solve import (
+    Factor,
+    Linearize,
+    Options,
+    Solution,
+    information,
+    marginal_covariance,
+    one_blas_thread,
+    solve,
+)
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -352,7 +360,7 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
     effects = (*problem.base_effects, *(e for e in effects if e not in problem.base_effects))
     args = (problem, mag, loss, dip_prior, noise_rounds, imu_start, {} if cache is None else cache, effects,
             declination, holdout, warm)
-    with threadpool_limits(limits=1, user_api="blas"):       # small dense blocks: BLAS threads only cost
+    with one_blas_thread():       # small dense blocks: BLAS threads only cost
         try:
             return _plausible(_fit_map(*args), dip_prior, problem.where)
         except InsufficientDataError as refused:

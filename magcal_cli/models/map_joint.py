@@ -20,7 +20,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
-from threadpoolctl import threadpool_limits
 
 from .. import consistency, so3
 from ..align import interpolate
@@ -48,7 +47,7 @@ from .observability import check_observability
 from .params import ACCEL_BIAS, BASE, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Layout
 from .problem import Problem
 from .result import MagFit
-from .solve import Factor, Options
+from .solve import Factor, Options, one_blas_thread
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -195,7 +194,7 @@ def _start(problem: Problem, je: JointEpochs, intr: list[map_init.Intrinsic], no
 def fit_joint(problem: Problem, loss: str = "l2", dip_prior: float | None = None,
               noise_rounds: int = NOISE_ROUNDS) -> JointFit:
     """The joint MAP calibration of every magnetometer of the problem against its IMU, one trajectory for all."""
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _fit_joint(problem, loss, dip_prior, noise_rounds)
 
 

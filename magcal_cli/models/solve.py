@@ -10,14 +10,15 @@ The marginal covariance of theta is the inverse of the Schur complement at the o
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 from scipy import linalg
 from scipy.linalg import lapack
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from .. import so3
 
@@ -25,6 +26,16 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 #: the system a Levenberg-Marquardt step solves (`iterate`)
 S = TypeVar("S")
+_BLAS: list[ThreadpoolController] = []
+
+
+def one_blas_thread() -> AbstractContextManager[Any]:
+    """BLAS limited to one thread inside the block. The library scan is done once (threadpoolctl's
+    `threadpool_limits` repeats it on every call, 3 ms: 6 % of a diagnosis that solves a few hundred times)."""
+    if not _BLAS:
+        _BLAS.append(ThreadpoolController())
+    limiter: AbstractContextManager[Any] = _BLAS[0].limit(limits=1, user_api="blas")
+    return limiter
 
 
 @dataclass(frozen=True, eq=False)
@@ -349,7 +360,7 @@ def solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray,
     """Minimise 1/2 sum |r|^2 (or a robust loss) over states (right perturbation) and theta."""
     # the dense blocks are small (N x 3 x p): multi-threaded BLAS only adds overhead, and on a loaded machine
     # its spinning threads cost ~100x (measured on 2 shared cores)
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _solve(linearize, states0, theta0, opts or Options())
 
 
@@ -467,7 +478,7 @@ def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatAr
     factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         ne = _assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
         if trajectory_damping > 0.0:
             return _step(ne, trajectory_damping, u, lam_theta=0.0)[2]
@@ -480,7 +491,7 @@ def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> 
     factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         ne = _assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
         # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
         # its null directions (what the motion cannot determine)
