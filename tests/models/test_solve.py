@@ -110,3 +110,19 @@ def test_leverage_matches_the_dense_hat_matrix() -> None:
     dense = np.einsum("ij,jk,ik->i", j, np.linalg.inv(j.T @ j), j)
     np.testing.assert_allclose(h, dense, atol=1e-10)
     assert abs(h.sum() - (3 * n + 3)) < 1e-8           # trace of the hat matrix = number of unknowns
+
+
+def test_one_blas_thread_limits_blas_inside_the_block_only() -> None:
+    """The cached controller limits every loaded BLAS to one thread in the block and restores it after."""
+    from threadpoolctl import threadpool_info
+
+    from magcal_cli.models.solve import one_blas_thread
+
+    before = {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+    assert before, "numpy should have loaded a BLAS"
+    with one_blas_thread():
+        inside = {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+        assert set(inside.values()) == {1}
+    with one_blas_thread():                          # the second use reuses the scan and still limits
+        assert {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"} == {1}
+    assert {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"} == before
