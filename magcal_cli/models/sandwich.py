@@ -44,23 +44,24 @@ def _eliminated(sol: Solution, f: Factor, p: int) -> FloatArray:
 
 def cluster_scores(sol: Solution, clusters: Sequence[IntArray]) -> FloatArray:
     """Per-cluster gradient of the cost by theta after eliminating the trajectory, (C, p): E_c above."""
-    p = sol.cov_theta.shape[0]
-    out = np.zeros((_count(clusters), p))
-    for f, c in zip(sol.factors, clusters, strict=True):
-        keep = c >= 0
-        if np.any(keep):
-            e = np.einsum("mkp,mk->mp", _eliminated(sol, f, p)[keep], f.r[keep])
-            np.add.at(out, c[keep], e)
-    return out
+    return _per_cluster(sol, clusters, information=False)[0]
 
 
 def cluster_scores_and_information(sol: Solution, clusters: Sequence[IntArray]) -> tuple[FloatArray, FloatArray]:
     """Per-cluster scores E_c (C, p), as `cluster_scores`, and Gauss-Newton information H_c (C, p, p) of theta
     after eliminating the trajectory, from one pass: how each cluster's score moves with a step d of theta
     (E_c + H_c d), to first order."""
+    scores, info = _per_cluster(sol, clusters, information=True)
+    assert info is not None
+    return scores, info
+
+
+def _per_cluster(sol: Solution, clusters: Sequence[IntArray], information: bool
+                 ) -> tuple[FloatArray, FloatArray | None]:
+    """Each cluster's score and (when asked) information, summed over its row groups (negative ids left out)."""
     p = sol.cov_theta.shape[0]
     n = _count(clusters)
-    scores, info = np.zeros((n, p)), np.zeros((n, p, p))
+    scores, info = np.zeros((n, p)), np.zeros((n, p, p)) if information else None
     for f, c in zip(sol.factors, clusters, strict=True):
         keep = np.flatnonzero(c >= 0)
         if not keep.size:
@@ -73,7 +74,8 @@ def cluster_scores_and_information(sol: Solution, clusters: Sequence[IntArray]) 
         for cid, lo, hi in zip(ids, first, [*first[1:], order.size], strict=True):
             block = j[lo:hi].reshape(-1, p)
             scores[cid] += block.T @ r[lo:hi].reshape(-1)
-            info[cid] += block.T @ block
+            if info is not None:
+                info[cid] += block.T @ block
     return scores, info
 
 
