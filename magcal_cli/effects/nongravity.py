@@ -127,14 +127,15 @@ class NonGravity(Effect):
         s = fixes(aux)
         grid, acc = acceleration_grid(s)
         acc = acc @ so3.exp([0.0, 0.0, declination])                     # true NED -> magnetic NED
-        sigma = rms(sample(grid, acc, kin.t + DELAY_PRIOR[0]))
+        spline = CubicSpline(grid, acc, axis=0)
+        sigma = rms(_on(spline, grid, kin.t + DELAY_PRIOR[0], 0))
         if sigma < MIN_RMS:
             msg = f"the vehicle hardly accelerates (RMS {sigma:.2f} m/s^2 from {s.id})"
             raise NotTestable(msg)
         # "_" constants are the term's tables, not reported
         return Inputs(kin.t, kin.omega, kin.omega_dot, {}, (s.id,),
                       {"source": f"position ({s.id}), differentiated twice", "sigma_a": sigma,
-                       "_grid": grid, "_spline": CubicSpline(grid, acc, axis=0)})
+                       "_grid": grid, "_spline": spline})
 
     def start(self) -> FloatArray:
         """kappa = 0, the delay at its prior."""
