@@ -109,8 +109,7 @@ class Held:
 
     def holding(self, cols: IntArray, pinned: IntArray) -> Held:
         """The same priors holding these columns (and pinning those)."""
-        return Held(np.asarray(cols, np.int64), self.prior_mean, self.prior_std, self.prior_sources,
-                    np.asarray(pinned, np.int64), self.stiffness, self.at)
+        return replace(self, cols=np.asarray(cols, np.int64), pinned=np.asarray(pinned, np.int64))
 
     def soft(self) -> Held:
         """The same hold as a prior with the prior's own std: its covariance carries the prior's doubt into the
