@@ -138,7 +138,8 @@ class Effect:
         return None
 
     def weights(self, inp: Inputs) -> FloatArray | None:
-        """Per-epoch weights (K,) of the magnetometer rows, 0 = excluded (None: all rows count)."""
+        """Per-epoch weights (K,) of the rows of the factor the effect enters (`target`), 0 = excluded (None: all
+        rows count)."""
         return None
 
     def start(self) -> FloatArray:

@@ -180,7 +180,11 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
     ml = mag_layout(layout)
     ba, bg = layout.slice("accelerometer_bias").start, layout.slice("gyroscope_bias").start
     w_mag = row_weights(bound)
+    w_acc = row_weights(bound, Target.ACCEL)
     held = None if held is None else held.placed(layout)
+    if w_acc is not None:
+        s_acc = s_acc * w_acc
+        interpolated = True
     if holdout is not None:
         w_mag = holdout if w_mag is None else w_mag * holdout
         s_acc = s_acc * holdout

@@ -144,9 +144,10 @@ def gyro_extra(bound: Sequence[Bound], layout: Layout, theta: FloatArray, at: Po
     return value, jac, np.concatenate([c for _, c in parts]).astype(np.int64)
 
 
-def row_weights(bound: Sequence[Bound]) -> FloatArray | None:
-    """The product of the magnetometer row weights the effects ask for (None when none does)."""
-    ws = [w for e in bound if (w := e.effect.weights(e.inputs)) is not None]
+def row_weights(bound: Sequence[Bound], target: Target = Target.MAG) -> FloatArray | None:
+    """The product of the row weights that the effects entering `target`'s factor ask for (None when none
+    does)."""
+    ws = [w for e in bound if e.effect.target is target and (w := e.effect.weights(e.inputs)) is not None]
     return None if not ws else np.prod(np.stack(ws), axis=0)
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from magcal_cli.config import Config
 from magcal_cli.detect import unmeasured_windows
-from magcal_cli.effects.nongravity import acceleration_ned, flying
+from magcal_cli.effects.nongravity import acceleration_ned, flying, known
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models import map as map_model
 from magcal_cli.models import map_run
@@ -89,6 +89,16 @@ def test_the_acceleration_claims_nothing_at_the_ends_of_the_fixes() -> None:
     assert np.abs(a[t < 0.5]).max() == 0.0 and np.abs(a[(t > 30.5) & (t < 34.5)]).max() == 0.0
     mid = (t > 5.0) & (t < 25.0)
     assert a[mid, 0] == pytest.approx(np.full(mid.sum(), 0.5), abs=0.02)
+
+
+def test_a_parked_vehicle_far_from_the_equator_does_not_accelerate() -> None:
+    """Fixes that do not move, at 47 N 8.5 E: no acceleration. Differentiating absolute arc lengths (5e6 m)
+    gave a constant 3 mm/s^2, because the filter's weights sum to zero only to about 1e-12."""
+    t = np.arange(0.0, 60.0, 0.1)
+    pos = Stream(Kind.POSITION, "GPS[0]", t, np.tile([47.3977, 8.5456, 488.0], (t.size, 1)), "test", "deg")
+    assert np.abs(acceleration_ned(pos, t)).max() < 1e-6
+    inside = known(pos, t, 0.5)
+    assert not inside[t < 1.5].any() and not inside[t > 58.45].any() and inside[(t > 1.6) & (t < 58.3)].all()
 
 
 def test_auto_models_a_flights_own_acceleration_in_every_fit() -> None:
