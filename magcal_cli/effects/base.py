@@ -36,13 +36,15 @@ class NotTestable(Exception):  # noqa: N818 -- a finding, not an error
 class Kinematics:
     """The motion at one magnetometer's K epochs t (s): body rate omega (K, 3) rad/s with the start gyro bias
     removed and its derivative omega_dot (K, 3) rad/s^2; the gyro samples themselves (bias removed) for effects
-    that integrate between epochs: gyr_t (N,) s, gyr (N, 3) rad/s, each held over [t_j, t_j+1)."""
+    that integrate between epochs: gyr_t (N,) s, gyr (N, 3) rad/s, each held over [t_j, t_j+1); `still` (K,):
+    the epoch lies in a segment where the gyro and accelerometer show only noise (detect.py)."""
 
     t: FloatArray
     omega: FloatArray
     omega_dot: FloatArray
     gyr_t: FloatArray
     gyr: FloatArray
+    still: npt.NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True, eq=False)

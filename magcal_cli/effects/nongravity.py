@@ -143,11 +143,14 @@ class NonGravity(Effect):
         if sigma < MIN_RMS:
             msg = f"the vehicle hardly accelerates (RMS {sigma:.2f} m/s^2 from {s.id})"
             raise NotTestable(msg)
-        # where the acceleration is not known (the ends of the fixes, gaps) the term says 0, which is a claim, not
-        # an absence of one: 1.7 m/s^2 of sway in the first and last second of a simulated 2-minute log tilted D by
-        # 0.06 deg (chi^2 44 on 9 dof) once the accelerometer's level fell to its sensor noise. Those accelerometer
-        # rows are left out; the margin covers the delay's range
-        weight = known(s, kin.t + DELAY_PRIOR[0], KNOWN_MARGIN_S).astype(np.float64)
+        # where the fixes do not give the acceleration (before the first, after the last, across gaps) the term
+        # says 0, which is a claim, not an absence of one: 1.7 m/s^2 of sway in the first and last second of a
+        # simulated 2-minute log tilted D by 0.06 deg (chi^2 44 on 9 dof) once the accelerometer's level fell to
+        # its sensor noise. Those accelerometer rows are left out, except where the IMU itself shows the vehicle
+        # still (log171's 34 s on the ground before its first fix hold its best view of gravity); the margin
+        # covers the delay's range
+        inside = known(s, kin.t + DELAY_PRIOR[0], KNOWN_MARGIN_S)
+        weight = (inside if kin.still is None else inside | kin.still).astype(np.float64)
         # "_" constants are the term's tables, not reported
         return Inputs(kin.t, kin.omega, kin.omega_dot, {"weight": weight}, (s.id,),
                       {"source": f"position ({s.id}), differentiated twice", "sigma_a": sigma,

@@ -62,7 +62,10 @@ def kinematics(problem: Problem, t: FloatArray, bias: FloatArray) -> Kinematics:
     mid = g.t + 0.5 * dt
     omega = np.stack([np.interp(t, mid, w[:, i]) for i in range(3)], axis=1)
     omega_dot = np.stack([np.interp(t, mid, wdot[:, i]) for i in range(3)], axis=1)
-    return Kinematics(t, omega, omega_dot, g.t, w)
+    still = np.zeros(t.size, dtype=bool)
+    for seg in () if problem.still is None else problem.still.segments:     # tests build problems without one
+        still |= (t >= seg.start) & (t <= seg.end)
+    return Kinematics(t, omega, omega_dot, g.t, w, still)
 
 
 def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Sequence[str],

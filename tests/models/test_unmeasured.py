@@ -10,7 +10,8 @@ import pytest
 
 from magcal_cli.config import Config
 from magcal_cli.detect import unmeasured_windows
-from magcal_cli.effects.nongravity import acceleration_ned, flying, known
+from magcal_cli.effects.base import Kinematics
+from magcal_cli.effects.nongravity import NonGravity, acceleration_ned, flying, known
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models import map as map_model
 from magcal_cli.models import map_run
@@ -99,6 +100,22 @@ def test_a_parked_vehicle_far_from_the_equator_does_not_accelerate() -> None:
     assert np.abs(acceleration_ned(pos, t)).max() < 1e-6
     inside = known(pos, t, 0.5)
     assert not inside[t < 1.5].any() and not inside[t > 58.45].any() and inside[(t > 1.6) & (t < 58.3)].all()
+
+
+def test_accelerometer_rows_count_where_the_fixes_or_the_imu_give_the_acceleration() -> None:
+    """Fixes from 20 s on: before them only the still epochs keep their accelerometer rows (a vehicle on the
+    ground before its first fix); the fixes' first 1.5 s are unknown too."""
+    t = np.arange(0.0, 60.0, 0.1)
+    fix_t = np.arange(20.0, 60.0, 0.2)
+    north = 20.0 * np.sin(0.3 * fix_t)                  # 1.8 m/s^2 peak
+    pos = Stream(Kind.POSITION, "GPS[0]", fix_t, np.stack([47.0 + np.rad2deg(north / 6.36e6), 8.0 + 0 * fix_t,
+                                                         400.0 + 0 * fix_t], 1), "test", "deg")
+    still = t < 10.0
+    zero = np.zeros((t.size, 3))
+    inp = NonGravity().inputs((pos,), pos, Kinematics(t, zero, zero, t, zero, still), 0.0)
+    w = NonGravity().weights(inp)
+    assert w is not None
+    assert np.all(w[still] == 1.0) and np.all(w[(t >= 10.0) & (t < 21.3)] == 0.0) and np.all(w[(t > 21.4) & (t < 57)] == 1.0)
 
 
 def test_auto_models_a_flights_own_acceleration_in_every_fit() -> None:
