@@ -136,3 +136,30 @@ def test_resample_skips_dropouts() -> None:
     empty = Stream(Kind.BATTERY_CURRENT, "BAT[0]", np.arange(3.0), np.full(3, np.nan), "x", "A")
     with pytest.raises(NotTestable, match="fewer than two valid samples"):
         resample(empty, np.array([1.0]))
+
+
+def test_inputs_are_computed_once_per_problem_epochs_and_bias(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The diagnosis refits the same epochs dozens of times: bind computes an effect's inputs once for them, and
+    again for other epochs, another start bias or another problem."""
+    sim = simulate("handheld", 3, rate=50.0, mag_rate=25.0, duration=30.0)
+    rec = sim.recording
+    acc, gyr, mag = (rec.select(k) for k in (Kind.ACCELEROMETER, Kind.GYROSCOPE, Kind.MAGNETOMETER))
+    calls = []
+    eff = effects.get("time_offset")
+    real = type(eff).inputs
+
+    def counted(self: Effect, *args: object, **kwargs: object) -> Inputs:
+        calls.append(1)
+        return real(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(type(eff), "inputs", counted)
+    t = mag.t[(mag.t > gyr.t[1]) & (mag.t < gyr.t[-2])]
+    bias = sim.truth.gyro_bias
+    first = Problem("sim", acc.id, acc, gyr, (mag,), None)  # type: ignore[arg-type]
+    a, _ = bind(first, mag, t, bias, ("time_offset",))
+    b, _ = bind(first, mag, t, bias.copy(), ("time_offset",))
+    assert len(calls) == 1 and a[0].inputs is b[0].inputs
+    bind(first, mag, t[:-1], bias, ("time_offset",))
+    bind(first, mag, t, bias + 1e-6, ("time_offset",))
+    bind(Problem("sim", acc.id, acc, gyr, (mag,), None), mag, t, bias, ("time_offset",))  # type: ignore[arg-type]
+    assert len(calls) == 4
