@@ -1,5 +1,6 @@
 """Batched decoding for the bag reader: rosbags' message iteration with rosvec decoding, and ROS 2 storage read
-directly (sqlite3 rows in blocks, MCAP chunks through the MCAP reader), bypassing the per-message iteration.
+directly (sqlite3 rows from the file's B-tree pages or else in blocks through sqlite3, MCAP chunks through the
+MCAP reader), bypassing the per-message iteration.
 
 rosbags' own iteration costs several microseconds a message, as much as the whole vectorised decoding, so
 ROS 2 bags whose index rosbags accepted are read from their storage files by these faster paths; ROS 1
@@ -14,14 +15,20 @@ from pathlib import Path, PurePath
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from ..streams import Cut
 from . import ReadOptions
 from .rosmsg import Collector
 from .rosvec import BatchDecoder
+from .sqlite_pages import Rows, message_rows
 
 #: messages of one connection decoded at a time (bounds the raw bytes held: a few MB)
 BATCH = 8192
+#: rows of one topic decoded at a time when they are read from the sqlite file's pages (in a memory map), and
+#: the bytes of the file they come from (its pages are mapped, counted in the resident set, while decoded)
+ROWS_BATCH = 16384
+SPAN = 16 << 20
 
 
 def batch_decoder(reader: Any, msgtype: str) -> BatchDecoder:
@@ -38,8 +45,16 @@ def decode_into(collector: Collector, decoder: BatchDecoder, topic: str, raws: l
     length = np.fromiter(map(len, raws), dtype=np.int64, count=len(raws))
     start = np.concatenate([[0], np.cumsum(length)[:-1]]).astype(np.int64)
     buf = np.frombuffer(b"".join(raws), dtype=np.uint8)
+    return decode_rows(collector, decoder, topic, buf, start, length, np.array(recv, dtype=np.int64))
+
+
+def decode_rows(collector: Collector, decoder: BatchDecoder, topic: str, buf: npt.NDArray[np.uint8],
+                start: npt.NDArray[np.int64], length: npt.NDArray[np.int64], recv: npt.NDArray[np.int64]) -> int:
+    """Decode the messages buf[start:start + length] of one topic into `collector`; how many did not decode."""
+    if not start.size:
+        return 0
     ok, stamps, values = decoder(buf, start, length)
-    collector.add_batch(topic, decoder.msgtype, np.array(recv, dtype=np.int64)[ok], stamps[ok], values[ok])
+    collector.add_batch(topic, decoder.msgtype, recv[ok], stamps[ok], values[ok])
     return int(ok.size - ok.sum())
 
 
@@ -120,6 +135,8 @@ def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> 
         if not ids:
             return 0
         decoders = {i: batch_decoder(reader, c.msgtype) for i, c in ids.items()}
+        if (found := message_rows(db, ids)) is not None:
+            return _decode_rows(found, ids, decoders, collector)
         cur = con.execute(f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN "   # noqa: S608 - ints
                           f"({','.join(str(i) for i in ids)}) ORDER BY timestamp")
         bad = 0
@@ -133,3 +150,22 @@ def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> 
         return bad
     finally:
         con.close()
+
+
+def _decode_rows(rows: Rows, ids: dict[int, Any], decoders: dict[int, BatchDecoder], collector: Collector) -> int:
+    """Decode the rows of each topic in blocks, in time order; how many did not decode."""
+    bad = 0
+    groups: dict[tuple[str, str], list[int]] = defaultdict(list)
+    for i, c in ids.items():            # two topic ids of one topic and type: one stream, kept in time order
+        groups[(c.topic, c.msgtype)].append(i)
+    for (topic, _), group in groups.items():
+        sel = np.flatnonzero(np.isin(rows.topic_id, group))
+        # blocks of at most ROWS_BATCH rows, cut where the data reach into the next SPAN bytes of the file
+        reach = np.maximum.accumulate(rows.start[sel]) // SPAN
+        cuts = np.union1d(np.flatnonzero(np.diff(reach)) + 1, np.arange(0, sel.size, ROWS_BATCH)).tolist()
+        for lo, hi in zip(cuts, [*cuts[1:], sel.size], strict=True):
+            at = sel[lo:hi]
+            bad += decode_rows(collector, decoders[group[0]], topic, rows.buf, rows.start[at], rows.length[at],
+                               rows.timestamp[at])
+            rows.release()          # the resident set holds one block's pages of the file, not all of them
+    return bad
