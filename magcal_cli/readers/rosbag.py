@@ -15,7 +15,7 @@ from ..streams import Cut, Recording
 from . import ReadOptions
 from .cut import mark_cut, refuse_if_strict
 from .rosbag1_fast import read_indexed_bag1
-from .rosbag_batch import Batcher, read_ros2_storage
+from .rosbag_batch import Batcher, read_db3_bag, read_ros2_storage
 from .rosmsg import Collector, wanted
 
 #: how many ignored topics a note names before it says "and N more"
@@ -65,7 +65,10 @@ class RosbagReader:
                   ValueError, EOFError, OSError, MemoryError, OverflowError, struct.error)
         bag = bag_path(path)
         fmt = "rosbag" if bag.is_file() else "rosbag2"
-        collector, notes = Collector(), []
+        collector = Collector()
+        notes: list[str] = []
+        if bag.is_dir() and (ignored := read_db3_bag(bag, collector, notes)) is not None:
+            return collector.recording(path, fmt, options, ([ignored_note(ignored)] if ignored else []) + notes)
         try:
             reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()

@@ -14,6 +14,7 @@ import magcal_cli.readers.rosbag_batch as rosbag_batch
 from magcal_cli.logwriters.rosbag import write_ros2
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.rosbag import RosbagReader
+from magcal_cli.readers.rosmsg import Collector
 from magcal_cli.readers.sqlite_pages import Rows, message_rows
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.synth import Simulation, simulate
@@ -241,3 +242,22 @@ def test_bag_reads_the_same_from_the_pages_as_through_sqlite3(tmp_path: Path, si
         np.testing.assert_array_equal(a.values, b.values)
     mag = sim.recording.select(Kind.MAGNETOMETER)
     np.testing.assert_allclose(fast.select(Kind.MAGNETOMETER).values, mag.values, rtol=0, atol=0)
+
+
+def test_a_plain_bag_is_read_without_rosbags_anyreader(tmp_path: Path, sim: Simulation,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """AnyReader.open counts every topic's messages over the whole table: a plain sqlite3 bag does not need it;
+    a bag whose metadata says compressed goes the AnyReader way (read_db3_bag declines it)."""
+    from rosbags.highlevel import AnyReader
+
+    write_ros2(sim, tmp_path / "bag", storage="sqlite3")
+
+    def refuse(self: object) -> None:
+        raise AssertionError("AnyReader opened")
+
+    monkeypatch.setattr(AnyReader, "open", refuse)
+    rec = RosbagReader().read(tmp_path / "bag", ReadOptions())
+    assert len(rec.streams) == len(sim.recording.streams)
+    meta = tmp_path / "bag" / "metadata.yaml"
+    meta.write_text(meta.read_text().replace("compression_mode: ''", "compression_mode: FILE"))
+    assert rosbag_batch.read_db3_bag(tmp_path / "bag", Collector(), []) is None
