@@ -15,7 +15,8 @@ from ..streams import Cut, Recording
 from . import ReadOptions
 from .cut import mark_cut, refuse_if_strict
 from .rosbag1_fast import read_indexed_bag1
-from .rosbag_batch import Batcher, read_db3_bag, read_ros2_storage
+from .rosbag2_direct import read_direct
+from .rosbag_batch import Batcher, read_ros2_storage
 from .rosmsg import Collector, wanted
 
 #: how many ignored topics a note names before it says "and N more"
@@ -67,8 +68,10 @@ class RosbagReader:
         fmt = "rosbag" if bag.is_file() else "rosbag2"
         collector = Collector()
         notes: list[str] = []
-        if bag.is_dir() and (ignored := read_db3_bag(bag, collector, notes)) is not None:
-            return collector.recording(path, fmt, options, ([ignored_note(ignored)] if ignored else []) + notes)
+        if bag.is_dir() and (direct := read_direct(bag, collector, options, notes)) is not None:
+            ignored, cut = direct
+            return mark_cut(collector.recording(path, fmt, options, ([ignored_note(ignored)] if ignored else [])
+                                                + notes), cut)
         try:
             reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()

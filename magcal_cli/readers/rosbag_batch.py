@@ -12,7 +12,6 @@ from __future__ import annotations
 import sqlite3
 from collections import defaultdict
 from pathlib import Path, PurePath
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -20,7 +19,7 @@ import numpy.typing as npt
 
 from ..streams import Cut
 from . import ReadOptions
-from .rosmsg import Collector, wanted
+from .rosmsg import Collector
 from .rosvec import BatchDecoder
 from .sqlite_pages import Rows, message_rows
 
@@ -115,68 +114,6 @@ def read_ros2_storage(bag: Path, reader: Any, conns: list[Any], collector: Colle
     return True, None
 
 
-class _Cdr:
-    """What `batch_decoder` needs of a reader, for a bag read without rosbags' AnyReader (CDR, ROS 2 types)."""
-
-    is2 = True
-
-    def __init__(self, typestore: Any) -> None:
-        self.typestore = typestore
-
-    def deserialize(self, data: bytes, msgtype: str) -> Any:
-        """One message, for layouts the vectorised decoder leaves to the generic one."""
-        return self.typestore.deserialize_cdr(data, msgtype)
-
-
-def read_db3_bag(bag: Path, collector: Collector, notes: list[str]) -> list[str] | None:
-    """Read a plain ROS 2 sqlite3 bag without opening it through rosbags: the topics of types magcal does not
-    read, or None (nothing read) when it is not such a bag.
-
-    rosbags' AnyReader.open counts every topic's messages with a query over the whole table (0.26 s of a 1.1 s
-    read of 100 MB); the topics table and the standard types (Humble's, as the AnyReader path defaults to) are
-    all the pages reader needs. Compressed bags, types outside the typestore, other serialisations and any file
-    the pages reader declines go the AnyReader way."""
-    import yaml
-    from rosbags.typesys import Stores, get_typestore
-
-    try:
-        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-        plain = info.get("storage_identifier") == "sqlite3" and not info.get("compression_mode") \
-            and not info.get("compression_format")
-    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
-        return None
-    dbs = storage_files(bag)
-    if not plain or not dbs or not all(f.suffix == ".db3" and f.is_file() for f in dbs):
-        return None
-    reader = _Cdr(get_typestore(Stores.ROS2_HUMBLE))
-    found: list[tuple[Path, dict[int, Any], Rows]] = []
-    ignored: set[str] = set()
-    for db in dbs:
-        try:
-            con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-            try:
-                topics = con.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
-            finally:
-                con.close()
-        except sqlite3.Error:
-            return None
-        ids = {int(i): SimpleNamespace(topic=str(n), msgtype=str(t)) for i, n, t, _ in topics if wanted(str(n), str(t))}
-        ignored |= {f"{n} ({t})" for _, n, t, _ in topics if not wanted(str(n), str(t))}
-        if any(str(f) != "cdr" for i, _, _, f in topics if int(i) in ids) \
-                or any(c.msgtype not in reader.typestore.fielddefs for c in ids.values()):
-            return None
-        rows = message_rows(db, ids) if ids else None
-        if ids and rows is None:
-            return None
-        if rows is not None:
-            found.append((db, ids, rows))
-    bad = sum(_decode_rows(rows, ids, {i: batch_decoder(reader, c.msgtype) for i, c in ids.items()}, collector)
-              for _, ids, rows in found)
-    if bad:
-        notes.append(f"corrupt data: skipped {bad} messages that did not decode")
-    return sorted(ignored)
-
-
 def storage_files(bag: Path) -> list[Path]:
     """The storage files metadata.yaml lists, in its (time) order; [] when it cannot say."""
     import yaml
@@ -199,7 +136,7 @@ def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> 
             return 0
         decoders = {i: batch_decoder(reader, c.msgtype) for i, c in ids.items()}
         if (found := message_rows(db, ids)) is not None:
-            return _decode_rows(found, ids, decoders, collector)
+            return decode_table(found, ids, decoders, collector)
         cur = con.execute(f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN "   # noqa: S608 - ints
                           f"({','.join(str(i) for i in ids)}) ORDER BY timestamp")
         bad = 0
@@ -215,7 +152,7 @@ def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> 
         con.close()
 
 
-def _decode_rows(rows: Rows, ids: dict[int, Any], decoders: dict[int, BatchDecoder], collector: Collector) -> int:
+def decode_table(rows: Rows, ids: dict[int, Any], decoders: dict[int, BatchDecoder], collector: Collector) -> int:
     """Decode the rows of each topic in blocks, in time order; how many did not decode."""
     bad = 0
     groups: dict[tuple[str, str], list[int]] = defaultdict(list)

@@ -10,10 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import magcal_cli.readers.rosbag as rosbag
+import magcal_cli.readers.rosbag2_direct as rosbag2_direct
 import magcal_cli.readers.rosbag_batch as rosbag_batch
 from magcal_cli.logwriters.rosbag import write_ros2
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.rosbag import RosbagReader
+from magcal_cli.readers.rosbag2_direct import read_direct
 from magcal_cli.readers.rosmsg import Collector
 from magcal_cli.readers.sqlite_pages import Rows, message_rows
 from magcal_cli.streams import Kind, Recording, Stream
@@ -221,7 +224,8 @@ def counted(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[bool]]:
         calls.append(rows is not None)
         return rows
 
-    monkeypatch.setattr(rosbag_batch, "message_rows", spy)
+    for module in (rosbag2_direct, rosbag_batch):       # the direct path, then the AnyReader path's
+        monkeypatch.setattr(module, "message_rows", spy)
     yield calls
 
 
@@ -232,7 +236,8 @@ def test_bag_reads_the_same_from_the_pages_as_through_sqlite3(tmp_path: Path, si
     write_ros2(sim, tmp_path / "bag", storage="sqlite3")
     fast = RosbagReader().read(tmp_path / "bag", ReadOptions())
     assert counted == [True]
-    monkeypatch.setattr(rosbag_batch, "message_rows", lambda db, ids: None)
+    for module in (rosbag2_direct, rosbag_batch):       # through rosbags' AnyReader, then sqlite3's rows
+        monkeypatch.setattr(module, "message_rows", lambda db, ids: None)
     slow = RosbagReader().read(tmp_path / "bag", ReadOptions())
     assert len(fast.streams) == len(sim.recording.streams) == len(slow.streams)
     assert fast.t0 == slow.t0 and fast.notes == slow.notes
@@ -244,20 +249,27 @@ def test_bag_reads_the_same_from_the_pages_as_through_sqlite3(tmp_path: Path, si
     np.testing.assert_allclose(fast.select(Kind.MAGNETOMETER).values, mag.values, rtol=0, atol=0)
 
 
-def test_a_plain_bag_is_read_without_rosbags_anyreader(tmp_path: Path, sim: Simulation,
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_a_plain_bag_is_read_without_rosbags_anyreader(tmp_path: Path, sim: Simulation, storage: str,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    """AnyReader.open counts every topic's messages over the whole table: a plain sqlite3 bag does not need it;
-    a bag whose metadata says compressed goes the AnyReader way (read_db3_bag declines it)."""
+    """AnyReader.open counts every topic's messages over the whole table: a plain bag does not need it (the same
+    streams as the AnyReader path); a bag whose metadata says compressed goes the AnyReader way."""
     from rosbags.highlevel import AnyReader
 
-    write_ros2(sim, tmp_path / "bag", storage="sqlite3")
+    write_ros2(sim, tmp_path / "bag", storage=storage)
+    with monkeypatch.context() as m:
+        m.setattr(rosbag, "read_direct", lambda *args: None)
+        slow = RosbagReader().read(tmp_path / "bag", ReadOptions())             # through AnyReader
 
     def refuse(self: object) -> None:
         raise AssertionError("AnyReader opened")
 
     monkeypatch.setattr(AnyReader, "open", refuse)
     rec = RosbagReader().read(tmp_path / "bag", ReadOptions())
-    assert len(rec.streams) == len(sim.recording.streams)
+    assert len(rec.streams) == len(sim.recording.streams) == len(slow.streams) and rec.notes == slow.notes
+    for a, b in zip(rec.streams, slow.streams, strict=True):
+        assert (a.kind, a.id) == (b.kind, b.id)
+        np.testing.assert_array_equal(a.values, b.values)
     meta = tmp_path / "bag" / "metadata.yaml"
     meta.write_text(meta.read_text().replace("compression_mode: ''", "compression_mode: FILE"))
-    assert rosbag_batch.read_db3_bag(tmp_path / "bag", Collector(), []) is None
+    assert read_direct(tmp_path / "bag", Collector(), ReadOptions(), []) is None
