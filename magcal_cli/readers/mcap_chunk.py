@@ -69,10 +69,52 @@ def decompress(chunk: Any) -> bytes:
     return data
 
 
-def parse_records(data: bytes, whole: bool = True) -> tuple[list[Any], Batch]:
+@dataclass(frozen=True)
+class RawIndex:
+    """A message index record's bytes: channel id (u16), then a u32-prefixed array of (log time, offset) u64s."""
+
+    data: bytes
+
+    def offsets(self) -> I64 | None:
+        """The offsets of its channel's message records in the uncompressed chunk (None when it does not parse)."""
+        if len(self.data) < 6:
+            return None
+        n = int.from_bytes(self.data[2:6], "little")
+        if n % 16 or 6 + n > len(self.data):
+            return None
+        out: I64 = np.frombuffer(self.data, dtype="<u8", count=n // 8, offset=6)[1::2].astype(np.int64)
+        return out
+
+
+def indexed(data: bytes, index: list[RawIndex]) -> Batch | None:
+    """The message batch of a chunk from its message indexes, when every byte of the chunk is one of the
+    indexed message records (else None: other records in the chunk, or an index that disagrees with it)."""
+    parts = [r.offsets() for r in index]
+    if not parts or any(p is None for p in parts):
+        return None
+    at = np.sort(np.concatenate([p for p in parts if p is not None]))
+    size = len(data)
+    if not at.size or at[0] != 0 or at[-1] > size - MESSAGE_HEAD:
+        return None
+    buf = np.frombuffer(data, dtype=np.uint8)
+    length = _field(buf, at + 1, "<u8")
+    end = at + 9 + length
+    # back to back from the first byte to the last, each an opcode-5 record: exactly what the walk would find
+    if end[-1] != size or np.any(end[:-1] != at[1:]) or np.any(buf[at] != MESSAGE_OPCODE) \
+            or np.any(length < MESSAGE_HEAD - 9):
+        return None
+    return Batch(buf, _field(buf, at + 9, "<u2"), _field(buf, at + 15, "<u8"), at + MESSAGE_HEAD,
+                 length - (MESSAGE_HEAD - 9))
+
+
+def parse_records(data: bytes, whole: bool = True, index: list[RawIndex] | None = None) -> tuple[list[Any], Batch]:
     """(schema and channel records, message batch) of a run of records; `whole` False stops at a cut record.
 
-    Raises ChunkError when a record runs past the end of a `whole` run (its framing is broken)."""
+    With the chunk's message `index`, a chunk of message records only is read from it (one Python step per
+    record otherwise: 0.4 of 0.95 s of reading a 30 MB bag). Raises ChunkError when a record runs past the end
+    of a `whole` run (its framing is broken)."""
+    if index and whole and (batch := indexed(data, index)) is not None:
+        return [], batch
     size, pos = len(data), 0
     starts: list[int] = []
     defs: list[tuple[int, int]] = []

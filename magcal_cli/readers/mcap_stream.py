@@ -18,7 +18,7 @@ import numpy as np
 
 from ..progress import current
 from .cut import a_record
-from .mcap_chunk import Batch, ChunkError, decompress, from_messages, parse_records
+from .mcap_chunk import Batch, ChunkError, RawIndex, decompress, from_messages, parse_records
 from .partial import MCAP_RECORDS, decompress_prefix
 
 #: MCAP opcodes (spec: Records)
@@ -147,6 +147,21 @@ def iter_batches(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Def
     hook = current()
     base, skip_magic = 0, False
     loose: list[Any] = []                                   # messages outside chunks, batched
+    # the last chunk's records, parsed once the message indexes that follow it are read
+    pending: list[tuple[bytes, list[RawIndex]]] = []
+
+    def settle() -> Iterator[tuple[Defs, Defs, Batch]]:
+        """The pending chunk's messages, then the loose ones (file order)."""
+        while pending:
+            data, index = pending.pop()
+            try:
+                parsed = parse_records(data, index=index)
+            except Exception:  # noqa: BLE001 - a chunk whose record framing is broken: skipped
+                damage.chunks += 1
+                continue
+            yield from _known(parsed, schemas, channels, damage)
+        yield from _flush(loose, schemas, channels, damage)
+
     while True:
         fh.seek(base)
         reader = _reader(fh, skip_magic, size)
@@ -157,11 +172,11 @@ def iter_batches(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Def
             try:
                 rec = next(records, None)
             except EndOfFile:
-                yield from _flush(loose, schemas, channels, damage)
+                yield from settle()
                 yield from _known(damage.cut(fh, at, size, "it ends inside a record"), schemas, channels, damage)
                 return
             except Exception as exc:  # noqa: BLE001 - any parse failure of the framing: resynchronise
-                yield from _flush(loose, schemas, channels, damage)
+                yield from settle()
                 nxt = resync(fh, at + 1, size)
                 if nxt is None:
                     cut = isinstance(exc, (struct.error, RecordLengthLimitExceeded))   # a length past the end
@@ -173,40 +188,44 @@ def iter_batches(fh: IO[bytes], size: int, damage: Damage) -> Iterator[tuple[Def
                 damage.bytes_skipped += nxt - at
                 base, skip_magic = nxt, True
                 break
+            if isinstance(rec, RawIndex):
+                if pending:
+                    pending[-1][1].append(rec)
+                continue
             if rec is None or isinstance(rec, Footer):
-                yield from _flush(loose, schemas, channels, damage)
+                yield from settle()
                 return
             if isinstance(rec, Message):
+                yield from settle() if pending else iter(())
                 loose.append(rec)
                 if len(loose) >= LOOSE_BATCH:
                     yield from _flush(loose, schemas, channels, damage)
                 continue
-            yield from _flush(loose, schemas, channels, damage)
-            parsed: Parsed = ([rec], None)
+            yield from settle()
             if isinstance(rec, Chunk):
                 hook("reading", at, size)
                 try:
                     if rec.uncompressed_size > MAX_CHUNK_BYTES:
                         raise ChunkError(rec.uncompressed_size)
-                    parsed = parse_records(decompress(rec))
+                    pending.append((decompress(rec), []))
                 except Exception:  # noqa: BLE001 - a chunk that fails its CRC or does not decompress: skipped
                     damage.chunks += 1
-                    continue
                 del rec                                         # the compressed bytes are no longer needed
-            yield from _known(parsed, schemas, channels, damage)
+                continue
+            yield from _known(([rec], None), schemas, channels, damage)
 
 
 def _reader(fh: IO[bytes], skip_magic: bool, size: int) -> Any:
-    """mcap's StreamReader emitting chunks whole and passing over message indexes unparsed.
+    """mcap's StreamReader emitting chunks whole and message indexes as raw bytes.
 
-    Parsing the index entries (one per message) cost more than decoding the messages themselves."""
+    mcap parses an index entry (one per message) into a tuple, which cost more than decoding the messages."""
     from mcap.opcode import Opcode
     from mcap.stream_reader import StreamReader
 
     class _Reader(StreamReader):
         def _read_record(self, opcode: int, length: int) -> Any:
             if opcode == Opcode.MESSAGE_INDEX:
-                return None                                 # StreamReader reads the unread bytes as padding
+                return RawIndex(self._stream.read(length))      # parsed with numpy by its chunk
             return super()._read_record(opcode, length)
 
     return _Reader(fh, skip_magic=skip_magic, emit_chunks=True, record_size_limit=size)

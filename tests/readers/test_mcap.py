@@ -208,3 +208,53 @@ def test_broken_record_framing_resynchronises_on_the_next_chunk(tmp_path: Path, 
     got, want = rec.select(Kind.MAGNETOMETER), sim.recording.select(Kind.MAGNETOMETER)
     assert 0 < len(got) <= len(want)
     assert got.t[-1] + rec.t0 == pytest.approx(want.t[-1] + sim.recording.t0, abs=1e-6)   # read on to the end
+
+
+def test_chunks_read_from_their_message_indexes_as_by_the_record_walk(tmp_path: Path, sim: Simulation,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every chunk of message records only is read from its indexes (the first, which also holds the schema and
+    channel records, by the walk), with the same streams as the walk gives."""
+    from magcal_cli.readers import mcap_chunk
+
+    path = tmp_path / "x.mcap"
+    write_mcap(sim, path, "cdr", chunk_size=32_000)
+    used: list[bool] = []
+    real = mcap_chunk.indexed
+
+    def spy(data: bytes, index: list[Any]) -> Any:
+        used.append((got := real(data, index)) is not None)
+        return got
+
+    monkeypatch.setattr(mcap_chunk, "indexed", spy)
+    fast = open_recording(path)
+    assert len(used) > 1 and not used[0] and all(used[1:])
+    monkeypatch.setattr(mcap_chunk, "indexed", lambda data, index: None)
+    walked = open_recording(path)
+    assert fast.notes == walked.notes and len(fast.streams) == len(walked.streams)
+    for a, b in zip(fast.streams, walked.streams, strict=True):
+        assert (a.kind, a.id) == (b.kind, b.id)
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.values, b.values)
+    assert_same(fast, sim)
+
+
+def test_an_index_that_disagrees_with_its_chunk_is_not_used() -> None:
+    """Offsets that skip a record, point past the chunk or at another opcode: the walk reads the chunk."""
+    from magcal_cli.readers.mcap_chunk import MESSAGE_OPCODE, RawIndex, indexed
+
+    def record(channel: int, payload: bytes) -> bytes:
+        body = channel.to_bytes(2, "little") + bytes(4) + (7).to_bytes(8, "little") * 2 + payload
+        return bytes([MESSAGE_OPCODE]) + len(body).to_bytes(8, "little") + body
+
+    def index(*offsets: int) -> RawIndex:
+        entries = b"".join((5).to_bytes(8, "little") + o.to_bytes(8, "little") for o in offsets)
+        return RawIndex((1).to_bytes(2, "little") + len(entries).to_bytes(4, "little") + entries)
+
+    a, b = record(1, b"abc"), record(1, b"defgh")
+    data = a + b
+    good = indexed(data, [index(0, len(a))])
+    assert good is not None and good.start.tolist() == [31, len(a) + 31] and good.length.tolist() == [3, 5]
+    assert indexed(data, [index(0)]) is None                         # a record not indexed
+    assert indexed(data, [index(0, len(a) + 1)]) is None             # an offset inside a record
+    assert indexed(data + bytes([0x03]) + bytes(8), [index(0, len(a))]) is None   # another record follows
+    assert indexed(data, [RawIndex(b"\x01\x00\xff\xff\xff\xff")]) is None        # a length past the record
