@@ -56,14 +56,6 @@ class RosbagReader:
 
     def read(self, path: Path, options: ReadOptions) -> Recording:
         """Decode every message of a type magcal reads; a cut bag up to its last complete message."""
-        from rosbags.highlevel import AnyReader, AnyReaderError
-        from rosbags.rosbag1 import ReaderError as Reader1Error
-        from rosbags.rosbag2 import ReaderError as Reader2Error
-        from rosbags.serde import SerdeError
-        from rosbags.typesys import Stores, TypesysError, get_typestore
-
-        errors = (AnyReaderError, Reader1Error, Reader2Error, SerdeError, TypeError, TypesysError, KeyError,
-                  ValueError, EOFError, OSError, MemoryError, OverflowError, struct.error)
         bag = bag_path(path)
         fmt = "rosbag" if bag.is_file() else "rosbag2"
         collector = Collector()
@@ -72,6 +64,15 @@ class RosbagReader:
             ignored, cut = direct
             return mark_cut(collector.recording(path, fmt, options, ([ignored_note(ignored)] if ignored else [])
                                                 + notes), cut)
+        # imported here, not above: a plain ROS 2 bag does not need them (rosbags.highlevel alone is 0.1 s)
+        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.rosbag1 import ReaderError as Reader1Error
+        from rosbags.rosbag2 import ReaderError as Reader2Error
+        from rosbags.serde import SerdeError
+        from rosbags.typesys import Stores, TypesysError, get_typestore
+
+        errors = (AnyReaderError, Reader1Error, Reader2Error, SerdeError, TypeError, TypesysError, KeyError,
+                  ValueError, EOFError, OSError, MemoryError, OverflowError, struct.error)
         try:
             reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
