@@ -157,7 +157,7 @@ class NonGravity(Effect):
                        "_grid": grid, "_spline": spline})
 
     def weights(self, inp: Inputs) -> FloatArray | None:
-        """The accelerometer rows where the acceleration is known from the fixes."""
+        """The accelerometer rows where the fixes give the acceleration or the IMU shows the vehicle still."""
         return inp.channels["weight"]
 
     def start(self) -> FloatArray:

@@ -101,7 +101,8 @@ def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Se
 
 
 #: each problem's effect inputs by (effect, magnetometer, declination, epochs and start bias digest); the reason
-#: as a string where the effect was not testable. Dropped with the problem
+#: as a string where the effect was not testable. Dropped with the problem. A magnetometer's readings are the
+#: problem's own (or a thinned copy, whose epochs differ): its id and epochs name them
 _INPUTS: weakref.WeakKeyDictionary[Problem, dict[tuple[object, ...], Inputs | str]] = weakref.WeakKeyDictionary()
 _LOCK = threading.Lock()
 
