@@ -50,8 +50,8 @@ def read_direct(bag: Path, collector: Collector, options: ReadOptions, notes: li
         plain = not info.get("compression_mode") and not info.get("compression_format")
         topics = [(str(t["topic_metadata"]["name"]), str(t["topic_metadata"]["type"]))
                   for t in info.get("topics_with_message_count") or []]
-    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError):
-        return None
+    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError):
+        return None                         # not UTF-8 (ValueError), not YAML: AnyReader's error names it
     files = storage_files(bag)
     suffix = STORAGE.get(storage)
     if not plain or suffix is None or not files or not all(f.suffix == suffix and f.is_file() for f in files):

@@ -121,7 +121,7 @@ def storage_files(bag: Path) -> list[Path]:
     try:
         info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         return [bag / PurePath(str(x)).name for x in info["relative_file_paths"]]
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError):
         return []
 
 

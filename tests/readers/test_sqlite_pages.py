@@ -273,3 +273,15 @@ def test_a_plain_bag_is_read_without_rosbags_anyreader(tmp_path: Path, sim: Simu
     meta = tmp_path / "bag" / "metadata.yaml"
     meta.write_text(meta.read_text().replace("compression_mode: ''", "compression_mode: FILE"))
     assert read_direct(tmp_path / "bag", Collector(), ReadOptions(), []) is None
+
+
+def test_a_metadata_file_that_is_not_utf8_goes_the_anyreader_way(tmp_path: Path, sim: Simulation) -> None:
+    """The fuzzer's find: one byte inserted before metadata.yaml's text made read_direct raise UnicodeDecodeError
+    (exit 123); it now declines the bag, and the AnyReader path reads the storage file and says why."""
+    write_ros2(sim, tmp_path / "bag", storage="mcap")
+    meta = tmp_path / "bag" / "metadata.yaml"
+    meta.write_bytes(b"\xa7" + meta.read_bytes())
+    assert read_direct(tmp_path / "bag", Collector(), ReadOptions(), []) is None
+    rec = RosbagReader().read(tmp_path / "bag", ReadOptions())
+    assert len(rec.streams) == len(sim.recording.streams)
+    assert any("utf-8" in n for n in rec.notes)
