@@ -22,8 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-#: the formats fuzzed; "log" is a text DataFlash log, "ros2" a ROS 2 bag directory with MCAP storage
-FORMATS = ("bin", "log", "ulg", "mcap", "bag", "ros2", "csv")
+#: the formats fuzzed; "log" is a text DataFlash log, "ros2" a ROS 2 bag directory with MCAP storage, "db3" one
+#: with sqlite3 storage (its database read from the file's pages: sqlite_pages.py)
+FORMATS = ("bin", "log", "ulg", "mcap", "bag", "ros2", "db3", "csv")
 MUTATIONS = ("flip", "insert", "delete", "truncate", "duplicate", "zero", "header")
 #: chunk size (bytes) of the MCAP and ROS 1 seeds: several chunks, so skipping one leaves the others
 SEED_CHUNK = 16_000
@@ -96,7 +97,7 @@ def make_seeds(root: Path) -> dict[str, Path]:
     """One small simulated log per format (handheld, 10 Hz IMU, 5 Hz field: about 80 s, fits in ~0.3 s)."""
     from magcal_cli.logwriters import write_log
     from magcal_cli.logwriters.mcap import write_mcap
-    from magcal_cli.logwriters.rosbag import write_bag
+    from magcal_cli.logwriters.rosbag import write_bag, write_ros2
     from magcal_cli.synth import simulate
 
     root.mkdir(parents=True, exist_ok=True)
@@ -111,6 +112,8 @@ def make_seeds(root: Path) -> dict[str, Path]:
     write_bag(sim, seeds["bag"], chunk_size=SEED_CHUNK)
     seeds["ros2"] = root / "seed_ros2"
     write_log(sim, seeds["ros2"])
+    seeds["db3"] = root / "seed_db3"
+    write_ros2(sim, seeds["db3"], storage="sqlite3")
     seeds["log"] = root / "seed.log"
     text_log(seeds["bin"], seeds["log"])
     return seeds
