@@ -81,7 +81,7 @@ def _read_db3s(dbs: list[Path], collector: Collector, notes: list[str]) -> list[
                 topics = con.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
             finally:
                 con.close()
-        except sqlite3.Error:
+        except (sqlite3.Error, ValueError):             # a damaged database, a name that is not UTF-8
             return None
         ids = {int(i): SimpleNamespace(topic=str(n), msgtype=str(t)) for i, n, t, _ in topics
                if wanted(str(n), str(t))}

@@ -8,6 +8,8 @@ fail and are counted.
 from __future__ import annotations
 
 import contextlib
+import os
+import shutil
 import sqlite3
 import struct
 import tempfile
@@ -39,12 +41,18 @@ def read_cut_db3(db: Path, collector: Collector, notes: list[str]) -> Cut | None
         return None
     with tempfile.TemporaryDirectory(prefix="magcal-db3-") as tmp:
         padded = Path(tmp) / db.name
-        padded.write_bytes(db.read_bytes() + bytes(declared - size))
+        try:
+            shutil.copyfile(db, padded)
+            # a sparse extension, not zero bytes in memory: a damaged header may declare terabytes (the fuzzer's
+            # find: MemoryError), which the file system then refuses
+            os.truncate(padded, declared)
+        except (OSError, OverflowError):
+            return None
         con = sqlite3.connect(f"file:{padded}?mode=ro", uri=True)
         try:
             read, rows = _rows(con, collector)
-        except sqlite3.DatabaseError:   # the topics table itself is damaged: no row can be named (the fuzzer's find)
-            read, rows = 0, 0
+        except (sqlite3.DatabaseError, ValueError):     # the topics table is damaged (a name not UTF-8, a bad page):
+            read, rows = 0, 0                           # no row can be named
         finally:
             con.close()
     expected = _message_count(db.parent / "metadata.yaml")

@@ -107,7 +107,7 @@ def read_ros2_storage(bag: Path, reader: Any, conns: list[Any], collector: Colle
     try:
         for db in dbs:
             bad += _read_db3(db, reader, conns, collector)
-    except sqlite3.DatabaseError:
+    except (sqlite3.DatabaseError, ValueError):        # damaged, or a topic name that is not UTF-8
         return False, None
     if bad:
         notes.append(f"corrupt data: skipped {bad} messages that did not decode")

@@ -13,6 +13,7 @@ import pytest
 import magcal_cli.readers.rosbag as rosbag
 import magcal_cli.readers.rosbag2_direct as rosbag2_direct
 import magcal_cli.readers.rosbag_batch as rosbag_batch
+from magcal_cli.errors import LogReadError
 from magcal_cli.logwriters.rosbag import write_ros2
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.rosbag import RosbagReader
@@ -285,3 +286,17 @@ def test_a_metadata_file_that_is_not_utf8_goes_the_anyreader_way(tmp_path: Path,
     rec = RosbagReader().read(tmp_path / "bag", ReadOptions())
     assert len(rec.streams) == len(sim.recording.streams)
     assert any("utf-8" in n for n in rec.notes)
+
+
+def test_a_cut_database_whose_header_declares_terabytes_is_refused_cleanly(tmp_path: Path, sim: Simulation) -> None:
+    """The fuzzer's find: a damaged header declaring a page count of 2^32 - 1 made the cut-database reader
+    allocate the padding in memory (MemoryError, exit 123). The padding is now a sparse file extension, and one
+    the file system refuses leaves the bag to the 'cannot open' error."""
+    write_ros2(sim, tmp_path / "bag", storage="sqlite3")
+    db = next((tmp_path / "bag").glob("*.db3"))
+    data = bytearray(db.read_bytes())
+    data[16:18] = (1).to_bytes(2, "big")                 # 65536-byte pages
+    data[28:32] = (2**32 - 1).to_bytes(4, "big")         # 2^32 - 1 of them: 281 TB declared
+    db.write_bytes(bytes(data[: len(data) // 2]))
+    with pytest.raises(LogReadError, match="cannot open the rosbag2"):
+        RosbagReader().read(tmp_path / "bag", ReadOptions())
