@@ -17,9 +17,9 @@ from typing import Any
 
 from ..streams import Cut
 from . import ReadOptions
-from .rosbag_batch import batch_decoder, decode_table, storage_files
+from .ros2_types import humble_subset
+from .rosbag_batch import Decoded, add_decoded, batch_decoder, read_db3, storage_files
 from .rosmsg import Collector, wanted
-from .sqlite_pages import Rows, message_rows
 
 #: metadata.yaml's storage identifier -> the storage files' suffix
 STORAGE = {"sqlite3": ".db3", "mcap": ".mcap"}
@@ -52,7 +52,7 @@ def read_direct(bag: Path, collector: Collector, options: ReadOptions, notes: li
                   for t in info.get("topics_with_message_count") or []]
     except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, AttributeError):
         return None                         # not UTF-8 (ValueError), not YAML: AnyReader's error names it
-    files = storage_files(bag)
+    files = storage_files(bag, info)
     suffix = STORAGE.get(storage)
     if not plain or suffix is None or not files or not all(f.suffix == suffix and f.is_file() for f in files):
         return None
@@ -69,10 +69,8 @@ def read_direct(bag: Path, collector: Collector, options: ReadOptions, notes: li
 
 def _read_db3s(dbs: list[Path], collector: Collector, notes: list[str]) -> list[str] | None:
     """The sqlite3 files through the pages reader: the ignored topics, or None when one of them is not plain."""
-    from rosbags.typesys import Stores, get_typestore
-
-    reader = _Cdr(get_typestore(Stores.ROS2_HUMBLE))       # the AnyReader path's default typestore
-    found: list[tuple[dict[int, Any], Rows]] = []
+    reader = _Cdr(humble_subset())          # the wanted types of the AnyReader path's default typestore
+    found: list[Decoded] = []
     ignored: set[str] = set()
     for db in dbs:
         try:
@@ -89,13 +87,12 @@ def _read_db3s(dbs: list[Path], collector: Collector, notes: list[str]) -> list[
         if any(str(f) != "cdr" for i, _, _, f in topics if int(i) in ids) \
                 or any(c.msgtype not in reader.typestore.fielddefs for c in ids.values()):
             return None
-        rows = message_rows(db, ids) if ids else None
-        if ids and rows is None:
-            return None
-        if rows is not None:
-            found.append((ids, rows))
-    bad = sum(decode_table(rows, ids, {i: batch_decoder(reader, c.msgtype) for i, c in ids.items()}, collector)
-              for ids, rows in found)
+        if ids:
+            rows = read_db3(db, ids, {i: batch_decoder(reader, c.msgtype) for i, c in ids.items()})
+            if rows is None:
+                return None
+            found.append(rows)
+    bad = sum(add_decoded(rows, collector) for rows in found)      # nothing is added before every file is read
     if bad:
         notes.append(f"corrupt data: skipped {bad} messages that did not decode")
     return sorted(ignored)

@@ -16,6 +16,7 @@ import tempfile
 from pathlib import Path
 
 from ..streams import Cut
+from .ros2_types import humble_subset
 from .rosmsg import Collector, wanted
 
 #: ids queried at once; a range that fails is retried id by id
@@ -80,9 +81,7 @@ def _topics(con: sqlite3.Connection) -> dict[int, tuple[str, str]]:
 
 def _rows(con: sqlite3.Connection, collector: Collector) -> tuple[int, int]:
     """Decode every readable message row by id ranges; (messages magcal reads decoded, rows read)."""
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_HUMBLE)
+    store = humble_subset()                 # the wanted types of the Humble store the AnyReader path uses
     topics = _topics(con)
     read = total = empty = 0
     lo = 1

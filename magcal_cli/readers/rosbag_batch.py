@@ -21,14 +21,13 @@ from ..streams import Cut
 from . import ReadOptions
 from .rosmsg import Collector
 from .rosvec import BatchDecoder
-from .sqlite_pages import Rows, message_rows
+from .sqlite_pages import Rows, scan_rows
 
 #: messages of one connection decoded at a time (bounds the raw bytes held: a few MB)
 BATCH = 8192
-#: rows of one topic decoded at a time when they are read from the sqlite file's pages (in a memory map), and
-#: the bytes of the file they come from (its pages are mapped, counted in the resident set, while decoded)
-ROWS_BATCH = 16384
-SPAN = 16 << 20
+#: per (topic, type) of a sqlite3 file, blocks of (receive times, decoded?, header stamps, values)
+Decoded = dict[tuple[str, str], list[tuple[npt.NDArray[np.int64], npt.NDArray[np.bool_], npt.NDArray[np.int64],
+                                           npt.NDArray[np.float64]]]]
 
 
 def batch_decoder(reader: Any, msgtype: str) -> BatchDecoder:
@@ -114,12 +113,14 @@ def read_ros2_storage(bag: Path, reader: Any, conns: list[Any], collector: Colle
     return True, None
 
 
-def storage_files(bag: Path) -> list[Path]:
-    """The storage files metadata.yaml lists, in its (time) order; [] when it cannot say."""
+def storage_files(bag: Path, info: Any = None) -> list[Path]:
+    """The storage files metadata.yaml lists, in its (time) order; [] when it cannot say. `info`: its
+    rosbag2_bagfile_information when the caller has parsed it already."""
     import yaml
 
     try:
-        info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        if info is None:
+            info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
         return [bag / PurePath(str(x)).name for x in info["relative_file_paths"]]
     except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError):
         return []
@@ -135,8 +136,8 @@ def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> 
         if not ids:
             return 0
         decoders = {i: batch_decoder(reader, c.msgtype) for i, c in ids.items()}
-        if (found := message_rows(db, ids)) is not None:
-            return decode_table(found, ids, decoders, collector)
+        if (found := read_db3(db, ids, decoders)) is not None:
+            return add_decoded(found, collector)
         cur = con.execute(f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN "   # noqa: S608 - ints
                           f"({','.join(str(i) for i in ids)}) ORDER BY timestamp")
         bad = 0
@@ -152,20 +153,37 @@ def _read_db3(db: Path, reader: Any, conns: list[Any], collector: Collector) -> 
         con.close()
 
 
-def decode_table(rows: Rows, ids: dict[int, Any], decoders: dict[int, BatchDecoder], collector: Collector) -> int:
-    """Decode the rows of each topic in blocks, in time order; how many did not decode."""
-    bad = 0
+def read_db3(db: Path, ids: dict[int, Any], decoders: dict[int, BatchDecoder]) -> Decoded | None:
+    """The rows of `ids` decoded from the file's pages a chunk at a time, while they are mapped: per (topic, type),
+    blocks in rowid order; None when the file is not the plain case (sqlite_pages)."""
     groups: dict[tuple[str, str], list[int]] = defaultdict(list)
-    for i, c in ids.items():            # two topic ids of one topic and type: one stream, kept in time order
+    for i, c in ids.items():            # two topic ids of one topic and type: one stream
         groups[(c.topic, c.msgtype)].append(i)
-    for (topic, _), group in groups.items():
-        sel = np.flatnonzero(np.isin(rows.topic_id, group))
-        # blocks of at most ROWS_BATCH rows, cut where the data reach into the next SPAN bytes of the file
-        reach = np.maximum.accumulate(rows.start[sel]) // SPAN
-        cuts = np.union1d(np.flatnonzero(np.diff(reach)) + 1, np.arange(0, sel.size, ROWS_BATCH)).tolist()
-        for lo, hi in zip(cuts, [*cuts[1:], sel.size], strict=True):
-            at = sel[lo:hi]
-            bad += decode_rows(collector, decoders[group[0]], topic, rows.buf, rows.start[at], rows.length[at],
-                               rows.timestamp[at])
-            rows.release()          # the resident set holds one block's pages of the file, not all of them
+    found: Decoded = {key: [] for key in groups}
+
+    def visit(rows: Rows) -> None:
+        for key, group in groups.items():
+            sel = np.flatnonzero(np.isin(rows.topic_id, group))
+            if sel.size:
+                decoder = decoders[group[0]]
+                found[key].append((rows.timestamp[sel], *decoder(rows.buf, rows.start[sel], rows.length[sel])))
+
+    return found if scan_rows(db, list(ids), visit) else None
+
+
+def add_decoded(found: Decoded, collector: Collector) -> int:
+    """Add each topic's decoded rows to `collector` in timestamp order, ties in rowid order (as ORDER BY
+    timestamp gives them); how many did not decode."""
+    bad = 0
+    for (topic, msgtype), blocks in found.items():
+        if not blocks:
+            continue
+        recv, ok, stamps, values = (np.concatenate([b[k] for b in blocks]) for k in range(4))
+        if (recv[1:] < recv[:-1]).any():        # a recorder's rowid order is time order: sorted only when it is not
+            order = np.argsort(recv, kind="stable")
+            recv, ok, stamps, values = recv[order], ok[order], stamps[order], values[order]
+        if not ok.all():
+            recv, stamps, values = recv[ok], stamps[ok], values[ok]
+        collector.add_batch(topic, msgtype, recv, stamps, values)
+        bad += int(ok.size - ok.sum())
     return bad

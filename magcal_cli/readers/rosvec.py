@@ -134,9 +134,10 @@ class BatchDecoder:
             self._each(buf, start, length, np.arange(n), stamps, values, ok)
             return ok, stamps, values
         at = np.where(head, start, int(start[np.argmax(head)]))        # short ones read a valid place, unused
-        frame_len = np.where(head, _gather(buf, at + FRAME_LEN_AT, "<u4"), 0).astype(np.int64)
+        first = _windows(buf, at, FRAME_LEN_AT + 4)                     # each message's first bytes, at once
+        frame_len = np.where(head, _column(first, FRAME_LEN_AT, "<u4"), 0).astype(np.int64)
         if not self.ros1:           # only little-endian CDR (0x00 0x01) has the layout computed here
-            head &= _gather(buf, at, "<u2") == 0x0100
+            head &= _column(first, 0, "<u2") == 0x0100
         key = np.where(head, frame_len * (1 << 32) + length, -1)
         uniq, inverse = np.unique(key, return_inverse=True)
         order = np.argsort(inverse, kind="stable")
@@ -175,22 +176,23 @@ class BatchDecoder:
                 stamps[i], values[i], ok[i] = got[0], got[1], True
 
 
-def _gather(buf: U8, pos: I64, dtype: str) -> npt.NDArray[Any]:
-    """The `dtype` value at each byte offset `pos` of `buf`."""
-    size = np.dtype(dtype).itemsize
-    out: npt.NDArray[Any] = buf[pos[:, None] + np.arange(size)].view(dtype).reshape(-1)
-    return out
+def _windows(buf: U8, pos: I64, width: int) -> U8:
+    """The `width` bytes from each byte offset `pos` of `buf`, one row each.
+
+    `buf` seen as overlapping `width`-byte items and indexed: one copy a message, about 1.5 times as fast as a
+    sliding-window view's rows and several times as fast as gathering byte by byte."""
+    items = np.ndarray((buf.size - width + 1,), dtype=f"V{width}", buffer=np.ascontiguousarray(buf), strides=(1,))
+    rows: U8 = items[pos].view(np.uint8).reshape(-1, width)
+    return rows
 
 
 def _rows(buf: U8, pos: I64, fields: list[tuple[int, str]]) -> tuple[U8, int]:
     """The bytes of each message from its first to the end of its last field, one row each, and where they begin.
 
-    One row copy per message (a sliding-window view indexed by the offsets) is about three times faster than
-    gathering each field's bytes on its own."""
+    One row copy per message is about three times faster than gathering each field's bytes on its own."""
     lo = min(o for o, _ in fields)
     hi = max(o + np.dtype(d).itemsize for o, d in fields)
-    rows: U8 = np.lib.stride_tricks.sliding_window_view(buf, hi - lo)[pos + lo]
-    return rows, lo
+    return _windows(buf, pos + lo, hi - lo), lo
 
 
 def _column(rows: U8, at: int, dtype: str) -> npt.NDArray[Any]:

@@ -3,14 +3,14 @@
 Python's sqlite3 costs ~1.7 us a fetched row, as much as decoding the message; here the cells of all leaf pages
 are parsed together (varints, record headers, integers gathered as arrays) and the blobs stay in a memory map.
 Only the plain case is read: anything else (a WAL or journal beside the file, another table layout, a page
-that is not a table page, a wanted row spilling onto overflow pages) gives None, and the caller uses sqlite3.
+that is not a table page, a wanted row spilling onto overflow pages) is declined, and the caller uses sqlite3.
 """
 
 from __future__ import annotations
 
 import mmap
 import sqlite3
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +38,7 @@ MAX_PAYLOAD = 1 << 31
 
 @dataclass(frozen=True)
 class Rows:
-    """Rows of the wanted topics in timestamp order; row i's data is buf[start[i]:start[i] + length[i]]."""
+    """Rows of the wanted topics; row i's data is buf[start[i]:start[i] + length[i]] (buf maps the file)."""
 
     topic_id: I64
     timestamp: I64
@@ -47,40 +47,45 @@ class Rows:
     buf: U8
     mapped: mmap.mmap
 
-    def release(self) -> None:
-        """Unmap the file's pages read so far (see _release)."""
-        _release(self.mapped)
-
 
 def message_rows(db: Path, topic_ids: Collection[int]) -> Rows | None:
-    """The `messages` rows of `topic_ids` from rosbag2's sqlite3 file `db`; None when it is not the plain case."""
+    """The `messages` rows of `topic_ids` from rosbag2's sqlite3 file `db` in timestamp order (ties in rowid
+    order, as ORDER BY timestamp gives them); None when it is not the plain case."""
+    parts: list[Rows] = []
+    if not scan_rows(db, topic_ids, parts.append) or not parts:
+        return None
+    tid, stamp, start, length = (np.concatenate([getattr(p, k) for p in parts])
+                                 for k in ("topic_id", "timestamp", "start", "length"))
+    order = np.argsort(stamp, kind="stable")
+    return Rows(tid[order], stamp[order], start[order], length[order], parts[0].buf, parts[0].mapped)
+
+
+def scan_rows(db: Path, topic_ids: Collection[int], visit: Callable[[Rows], object]) -> bool:
+    """Pass `visit` the `messages` rows of `topic_ids` a chunk of leaf pages at a time, in rowid order, while the
+    chunk's pages are mapped; False when the file is not the plain case (the chunks passed are then void)."""
     geometry = _geometry(db)
     root = _root(db) if geometry is not None else None
     if geometry is None or root is None or not 1 <= root <= geometry[2]:
-        return None
+        return False
     page, usable, pages = geometry
     try:
         with db.open("rb") as fh:               # a mapping: the blobs are not read into memory
             mapped = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
     except (OSError, ValueError):
-        return None
+        return False
     buf: U8 = np.frombuffer(mapped, dtype=np.uint8)
     leaves = _leaves(buf, root, page, usable, pages)
     if leaves is None:
-        return None
+        return False
     ids = np.array(sorted(topic_ids), dtype=np.int64)
-    parts: list[tuple[I64, I64, I64, I64]] = []
     step = max(1, CHUNK_BYTES // page)
     for lo in range(0, leaves.size, step):
         got = _leaf_rows(buf, leaves[lo:lo + step], page, usable, ids)
         if got is None:
-            return None
-        parts.append(got)
+            return False
+        visit(Rows(*got, buf, mapped))          # decoded while its pages are mapped: each is read in once
         _release(mapped)                        # the resident set holds one chunk's pages of the file
-    tid, stamp, start, length = (np.concatenate([p[k] for p in parts]) if parts else np.zeros(0, np.int64)
-                                 for k in range(4))
-    order = np.argsort(stamp, kind="stable")    # ties keep rowid order, as ORDER BY timestamp gives them
-    return Rows(tid[order], stamp[order], start[order], length[order], buf, mapped)
+    return True
 
 
 def _release(mapped: mmap.mmap) -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import sqlite3
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 
 import magcal_cli.readers.rosbag as rosbag
-import magcal_cli.readers.rosbag2_direct as rosbag2_direct
 import magcal_cli.readers.rosbag_batch as rosbag_batch
+import magcal_cli.readers.sqlite_pages as sqlite_pages
 from magcal_cli.errors import LogReadError
 from magcal_cli.logwriters.rosbag import write_ros2
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.rosbag import RosbagReader
 from magcal_cli.readers.rosbag2_direct import read_direct
 from magcal_cli.readers.rosmsg import Collector
-from magcal_cli.readers.sqlite_pages import Rows, message_rows
+from magcal_cli.readers.sqlite_pages import Rows, message_rows, scan_rows
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.synth import Simulation, simulate
 
@@ -217,16 +217,15 @@ def test_files_off_the_plain_case_give_none(tmp_path: Path) -> None:
 
 @pytest.fixture
 def counted(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[bool]]:
-    """Whether each message_rows call of the bag reader read the pages (True) or fell back (False)."""
+    """Whether each scan of a database file by the bag reader read the pages (True) or fell back (False)."""
     calls: list[bool] = []
 
-    def spy(db: Path, ids: Collection[int]) -> Rows | None:
-        rows = message_rows(db, ids)
-        calls.append(rows is not None)
-        return rows
+    def spy(db: Path, ids: Collection[int], visit: Callable[[Rows], object]) -> bool:
+        done = scan_rows(db, ids, visit)
+        calls.append(done)
+        return done
 
-    for module in (rosbag2_direct, rosbag_batch):       # the direct path, then the AnyReader path's
-        monkeypatch.setattr(module, "message_rows", spy)
+    monkeypatch.setattr(rosbag_batch, "scan_rows", spy)     # the direct path's and the AnyReader path's
     yield calls
 
 
@@ -237,8 +236,7 @@ def test_bag_reads_the_same_from_the_pages_as_through_sqlite3(tmp_path: Path, si
     write_ros2(sim, tmp_path / "bag", storage="sqlite3")
     fast = RosbagReader().read(tmp_path / "bag", ReadOptions())
     assert counted == [True]
-    for module in (rosbag2_direct, rosbag_batch):       # through rosbags' AnyReader, then sqlite3's rows
-        monkeypatch.setattr(module, "message_rows", lambda db, ids: None)
+    monkeypatch.setattr(rosbag_batch, "scan_rows", lambda db, ids, visit: False)   # through AnyReader, then sqlite3
     slow = RosbagReader().read(tmp_path / "bag", ReadOptions())
     assert len(fast.streams) == len(sim.recording.streams) == len(slow.streams)
     assert fast.t0 == slow.t0 and fast.notes == slow.notes
@@ -248,6 +246,33 @@ def test_bag_reads_the_same_from_the_pages_as_through_sqlite3(tmp_path: Path, si
         np.testing.assert_array_equal(a.values, b.values)
     mag = sim.recording.select(Kind.MAGNETOMETER)
     np.testing.assert_allclose(fast.select(Kind.MAGNETOMETER).values, mag.values, rtol=0, atol=0)
+
+
+def test_rows_out_of_time_order_are_read_in_time_order(tmp_path: Path, sim: Simulation, counted: list[bool],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rowids out of time order and receive times with ties, read a page at a time: each topic's decoded rows are
+    put in ORDER BY timestamp's order (ties in rowid order), the same streams and notes as through sqlite3."""
+    write_ros2(sim, tmp_path / "bag", storage="sqlite3")
+    db = next((tmp_path / "bag").glob("*.db3"))
+    con = sqlite3.connect(db)
+    rows = con.execute("SELECT topic_id, timestamp, data FROM messages").fetchall()
+    con.execute("DELETE FROM messages")
+    con.executemany("INSERT INTO messages (id, topic_id, timestamp, data) VALUES (?, ?, ?, ?)",
+                    [(k + 1, rows[i][0], rows[i][1] // 50_000_000 * 50_000_000, rows[i][2])
+                     for k, i in enumerate(np.random.default_rng(9).permutation(len(rows)).tolist())])
+    con.commit()
+    con.execute("VACUUM")
+    con.close()
+    monkeypatch.setattr(sqlite_pages, "CHUNK_BYTES", 4096)      # one leaf page at a time
+    fast = RosbagReader().read(tmp_path / "bag", ReadOptions())
+    assert counted == [True]
+    monkeypatch.setattr(rosbag_batch, "scan_rows", lambda db, ids, visit: False)
+    slow = RosbagReader().read(tmp_path / "bag", ReadOptions())
+    assert any("went backwards" in n for n in fast.notes)
+    assert fast.t0 == slow.t0 and fast.notes == slow.notes and len(fast.streams) == len(slow.streams)
+    for a, b in zip(fast.streams, slow.streams, strict=True):
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.values, b.values)
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
