@@ -36,6 +36,20 @@ def vee(m: npt.ArrayLike) -> FloatArray:
     )
 
 
+def hat_squared(v: FloatArray) -> FloatArray:
+    """hat(v) @ hat(v) = v v^T - |v|^2 I, entry by entry (the Exp and Jacobian formulas below run on thousands
+    of rows per call, where a 3x3 matmul per row costs several times more)."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    xx, yy, zz = x * x, y * y, z * z
+    out = np.empty(v.shape[:-1] + (9,))
+    out[..., 0], out[..., 4], out[..., 8] = -(yy + zz), -(xx + zz), -(xx + yy)
+    out[..., 1] = out[..., 3] = x * y
+    out[..., 2] = out[..., 6] = x * z
+    out[..., 5] = out[..., 7] = y * z
+    result: FloatArray = out.reshape(v.shape[:-1] + (3, 3))
+    return result
+
+
 def _coefficients(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """theta, sin(t)/t, (1-cos t)/t^2, (t-sin t)/t^3 with Taylor branches near zero."""
     theta = np.linalg.norm(phi, axis=-1)
@@ -53,7 +67,7 @@ def exp(phi: npt.ArrayLike) -> FloatArray:
     phi = np.asarray(phi, dtype=np.float64)
     _, a, b, _ = _coefficients(phi)
     k = hat(phi)
-    return np.eye(3) + a[..., None, None] * k + b[..., None, None] * (k @ k)
+    return np.eye(3) + a[..., None, None] * k + b[..., None, None] * hat_squared(phi)
 
 
 def log(rot: npt.ArrayLike) -> FloatArray:
@@ -73,20 +87,25 @@ def right_jacobian(phi: npt.ArrayLike) -> FloatArray:
     phi = np.asarray(phi, dtype=np.float64)
     _, _, b, c = _coefficients(phi)
     k = hat(phi)
-    return np.eye(3) - b[..., None, None] * k + c[..., None, None] * (k @ k)
+    return np.eye(3) - b[..., None, None] * k + c[..., None, None] * hat_squared(phi)
 
 
 def right_jacobian_inv(phi: npt.ArrayLike) -> FloatArray:
     """J_r(phi)^-1 = I + k/2 + (1/t^2 - cot(t/2)/(2t)) k^2 (Forster 2017 eq. 9), finite up to |phi| < 2 pi."""
     phi = np.asarray(phi, dtype=np.float64)
-    theta = np.linalg.norm(phi, axis=-1)
+    d = jr_inv_coefficient(np.linalg.norm(phi, axis=-1))
+    k = hat(phi)
+    return np.eye(3) + 0.5 * k + d[..., None, None] * hat_squared(phi)
+
+
+def jr_inv_coefficient(theta: FloatArray) -> FloatArray:
+    """The k^2 coefficient 1/t^2 - cot(t/2)/(2t) of J_r^-1 at angles theta (Taylor series near zero)."""
     small = theta < _SMALL
     t = np.where(small, 1.0, theta)
     t2 = theta * theta
-    d = np.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
-                 1.0 / (t * t) - 1.0 / (2.0 * t * np.tan(t / 2.0)))
-    k = hat(phi)
-    return np.eye(3) + 0.5 * k + d[..., None, None] * (k @ k)
+    out: FloatArray = np.where(small, 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0,
+                               1.0 / (t * t) - 1.0 / (2.0 * t * np.tan(t / 2.0)))
+    return out
 
 
 def left_jacobian(phi: npt.ArrayLike) -> FloatArray:
@@ -166,15 +185,32 @@ def angle(rot: npt.ArrayLike) -> FloatArray:
 def cumulative_product(rots: npt.ArrayLike, reproject: bool = True) -> FloatArray:
     """Prefix products P_k = R_0 R_1 ... R_k of (N, 3, 3) rotations, by a log-depth scan (Hillis-Steele).
 
-    ceil(log2 N) batched matmuls instead of N sequential ones; the result is re-projected onto SO(3) unless
-    `reproject` is False (each P_k is then a product of only ~log2 N factors, orthogonal to ~1e-15).
+    ceil(log2 N) batched products instead of N sequential ones, with the stack axis innermost (a 3x3 matmul per
+    row costs several times more); the result is re-projected onto SO(3) unless `reproject` is False (each P_k
+    is then a product of only ~log2 N factors, orthogonal to ~1e-15).
     """
     out = np.array(rots, dtype=np.float64)
-    shift = 1
-    while shift < out.shape[0]:
-        out[shift:] = out[:-shift] @ out[shift:]
-        shift *= 2
-    return project(out) if reproject else out
+    if out.shape[0] > 1:
+        cm = np.ascontiguousarray(out.transpose(1, 2, 0))
+        shift = 1
+        while shift < cm.shape[2]:
+            cm[:, :, shift:] = np.einsum("ikn,kjn->ijn", cm[:, :, :-shift], cm[:, :, shift:])
+            shift *= 2
+        out = np.ascontiguousarray(cm.transpose(2, 0, 1))
+    return _reorthogonalised(out) if reproject else out
+
+
+def _reorthogonalised(m: FloatArray) -> FloatArray:
+    """`project` of (N, 3, 3) matrices; one Bjorck-Bowie step m (3 I - m^T m) / 2 when all are orthogonal to 1e-8
+    (its error is then below 1e-16, and it is ten times cheaper than the SVD), else the SVD."""
+    cm = np.ascontiguousarray(m.transpose(1, 2, 0))
+    gram = np.einsum("kin,kjn->ijn", cm, cm)
+    for i in range(3):
+        gram[i, i] -= 1.0
+    if not gram.size or float(np.max(np.abs(gram))) > 1e-8:
+        return project(m)
+    step: FloatArray = cm - 0.5 * np.einsum("ikn,kjn->ijn", cm, gram)
+    return np.ascontiguousarray(step.transpose(2, 0, 1))
 
 
 def log_small(rot: npt.ArrayLike, limit: float = 3.0) -> FloatArray:
@@ -186,11 +222,7 @@ def log_small(rot: npt.ArrayLike, limit: float = 3.0) -> FloatArray:
     """
     rot = np.asarray(rot, dtype=np.float64)
     v = vee(rot)
-    s = np.linalg.norm(v, axis=-1)
-    c = 0.5 * (np.trace(rot, axis1=-2, axis2=-1) - 1.0)
-    theta = np.arctan2(s, c)
-    small = s < _SMALL
-    ratio = np.where(small, 1.0 + s * s / 6.0, theta / np.where(small, 1.0, s))   # theta / sin(theta)
+    ratio, theta = log_ratio(np.linalg.norm(v, axis=-1), 0.5 * (np.trace(rot, axis1=-2, axis2=-1) - 1.0))
     out: FloatArray = ratio[..., None] * v
     far = theta > limit
     if np.any(far):
@@ -198,9 +230,36 @@ def log_small(rot: npt.ArrayLike, limit: float = 3.0) -> FloatArray:
     return out
 
 
+def log_ratio(s: FloatArray, c: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """theta / sin(theta) and theta = atan2(s, c) from s = |vee(R)| = sin(theta) and c = (tr R - 1) / 2."""
+    theta = np.arctan2(s, c)
+    small = s < _SMALL
+    ratio: FloatArray = np.where(small, 1.0 + s * s / 6.0, theta / np.where(small, 1.0, s))
+    return ratio, theta
+
+
 #: hat(v) = v @ _HAT_BASIS reshaped: the generators [e_x]x, [e_y]x, [e_z]x as rows
 _HAT_BASIS = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]],
                       dtype=np.float64)
+
+
+def times_hat(m: FloatArray, v: FloatArray) -> FloatArray:
+    """m [v]x for one (3, 3) matrix m and (N, 3) vectors v, as one (N, 3) x (3, 9) product (the entries of m [v]x
+    are linear in v): a stacked matmul would loop over N tiny products."""
+    basis = (m @ _HAT_BASIS.reshape(3, 3, 3)).reshape(3, 9)       # row l: m [e_l]x
+    out: FloatArray = (v @ basis).reshape(v.shape[:-1] + (3, 3))
+    return out
+
+
+def exp_coefficients(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """sin(t)/t, (1-cos t)/t^2, (t-sin t)/t^3 of (..., 3) rotation vectors, as `exp_and_right_jacobian` uses them:
+    the Taylor series to theta^4 when every angle is below 1e-2 rad."""
+    t2 = np.einsum("...i,...i->...", phi, phi)
+    if t2.size and float(t2.max()) < 1e-4:
+        return (1.0 + t2 * (-1.0 / 6.0 + t2 / 120.0), 0.5 + t2 * (-1.0 / 24.0 + t2 / 720.0),
+                1.0 / 6.0 + t2 * (-1.0 / 120.0 + t2 / 5040.0))
+    _, a, b, c = _coefficients(phi)
+    return a, b, c
 
 
 def exp_and_right_jacobian(phi: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -210,14 +269,8 @@ def exp_and_right_jacobian(phi: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     double precision (first neglected term ~theta^6/5040 < 1e-15), evaluated without square root or branches.
     """
     phi = np.asarray(phi, dtype=np.float64)
-    t2 = np.einsum("...i,...i->...", phi, phi)
-    if t2.size and float(t2.max()) < 1e-4:
-        a = 1.0 + t2 * (-1.0 / 6.0 + t2 / 120.0)
-        b = 0.5 + t2 * (-1.0 / 24.0 + t2 / 720.0)
-        c = 1.0 / 6.0 + t2 * (-1.0 / 120.0 + t2 / 5040.0)
-    else:
-        _, a, b, c = _coefficients(phi)
+    a, b, c = exp_coefficients(phi)
     k = (phi @ _HAT_BASIS).reshape(phi.shape[:-1] + (3, 3))
-    k2 = k @ k
+    k2 = hat_squared(phi)
     a, b, c = a[..., None, None], b[..., None, None], c[..., None, None]
     return np.eye(3) + a * k + b * k2, np.eye(3) - b * k + c * k2

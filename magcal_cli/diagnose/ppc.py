@@ -97,6 +97,15 @@ def _corr(a: FloatArray, b: FloatArray) -> float:
     return float(np.sum(a * b) / den) if den > 0 else 0.0
 
 
+def _corrs(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Pearson correlations of every row of a (m, K) with every row of b (n, K), as `_corr` (0 for a constant row),
+    in one product: the battery runs on every replicate."""
+    a, b = a - a.mean(axis=1, keepdims=True), b - b.mean(axis=1, keepdims=True)
+    den = np.sqrt(np.outer(np.sum(a * a, axis=1), np.sum(b * b, axis=1)))
+    out: FloatArray = np.where(den > 0, (a @ b.T) / np.where(den > 0, den, 1.0), 0.0)
+    return out
+
+
 def _low(x: FloatArray, n: int) -> float:
     """Fraction of x's variance below the moving-average band (n samples)."""
     if x.size <= n or n < 2:
@@ -126,9 +135,10 @@ def battery(ctx: FitContext, factors: Sequence[Factor], states: FloatArray, thet
         vals.append(v)
 
     series = {f"mag_{a}": fm.r[:, i] for i, a in enumerate(AXES)} | {"field_norm": rho}
-    for sname, x in series.items():
-        for cname, c in reg.items():
-            add(f"{sname} ~ {cname}", _corr(x, c))
+    with_reg = _corrs(np.stack(list(series.values())), np.stack(list(reg.values())))
+    for (sname, x), row in zip(series.items(), with_reg, strict=True):
+        for cname, c in zip(reg, row, strict=True):
+            add(f"{sname} ~ {cname}", float(c))
         add(f"{sname} lag-1 autocorrelation", _corr(x[:-1], x[1:]))
         add(f"{sname} low band", _low(x, n_low))
     for i, a in enumerate(AXES):
@@ -183,7 +193,8 @@ def check(problem: Problem, mag: Stream, est: MapEstimate, replicates: int = REP
 
     def one(s: int) -> tuple[FloatArray, FloatArray]:
         ep, pre = replicate(ctx, factors, np.random.default_rng(s))
-        sol = solve(ctx.linearize(ep=ep, pre=pre, holdout=None), ctx.states, ctx.theta, Options(max_iterations=1))
+        sol = solve(ctx.linearize(ep=ep, pre=pre, holdout=None), ctx.states, ctx.theta,
+                    Options(max_iterations=1, covariance=False))
         _, v, w = battery(replace(ctx, ep=ep, pre=pre), sol.factors, sol.states, sol.theta, reg)
         return v, w
 

@@ -12,6 +12,8 @@ flight (an accelerometer scale standing in for a held D), and its residuals hid 
 
 from __future__ import annotations
 
+import threading
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -20,7 +22,7 @@ import numpy.typing as npt
 from scipy import stats
 
 from .. import effects as registry
-from ..models.gyro import preintegrate
+from ..models.gyro import Preintegrated, preintegrate
 from ..models.map import MapEstimate
 from ..models.map_effects import Bound, bind, layout_for
 from ..models.params import Layout
@@ -97,8 +99,7 @@ def _extend(problem: Problem, mag: Stream, est: MapEstimate, bound: Sequence[Bou
         tested[b.effect.id], held[b.effect.id] = cols[free], cols[~free]
     pre = ctx.pre
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
-        pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ctx.ep.t, pre.bias, pre.noise_std,
-                           f"{problem.where}: {mag.id}", scale_jacobian=True, breaks=problem.unmeasured)
+        pre = _with_scale_jacobian(problem, mag, ctx.ep.t, pre)
     lin = ctx.linearize(layout, all_bound, pre=pre, holdout=ctx.holdout)
     sol = solve(lin, ctx.states, theta, Options(max_iterations=0))
     t = ctx.ep.t
@@ -109,6 +110,25 @@ def _extend(problem: Problem, mag: Stream, est: MapEstimate, bound: Sequence[Bou
         ids = np.where(ids >= 0, np.searchsorted(kept, ids), -1)
     clusters = factor_clusters(sol.factors, ids)
     return _Extended(sol, layout, tested, held, clusters)
+
+
+#: each problem's preintegrations with the gyro-scale Jacobian by epochs, bias and noise: every screen of a
+#: magnetometer (each forward round, each fold) asks for the same one (2015 logs: 18 calls, 2 different)
+_SCALE_JACOBIAN: weakref.WeakKeyDictionary[Problem, dict[bytes, Preintegrated]] = weakref.WeakKeyDictionary()
+_LOCK = threading.Lock()
+
+
+def _with_scale_jacobian(problem: Problem, mag: Stream, t: FloatArray, pre: Preintegrated) -> Preintegrated:
+    """`pre` integrated again with the gyro-scale Jacobian (models/gyro.py), once per epochs, bias and noise."""
+    key = t.tobytes() + pre.bias.tobytes() + pre.noise_std.tobytes()
+    with _LOCK:
+        memo = _SCALE_JACOBIAN.setdefault(problem, {})
+    hit = memo.get(key)
+    if hit is None:
+        hit = preintegrate(problem.gyr.t, problem.gyr.xyz, t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}",
+                           scale_jacobian=True, breaks=problem.unmeasured)
+        memo[key] = hit
+    return hit
 
 
 def _lags(clusters: int) -> int:

@@ -97,7 +97,7 @@ def scores_in(ctx: FitContext, windows: Sequence[tuple[float, float]], keep: Flo
     if ctx.excluded is not None:                 # readings the IMU's motion did not cover are nobody's score
         w = w * ctx.excluded
     lin = _frozen(ctx.linearize(holdout=w), ctx.theta)
-    sol = solve(lin, ctx.states, np.zeros(0), Options(max_iterations=3, abs_cost_tol=1e-2))
+    sol = solve(lin, ctx.states, np.zeros(0), Options(max_iterations=3, abs_cost_tol=1e-2, covariance=False))
     fa, fm, fg = sol.factors[0], sol.factors[1], sol.factors[2]
     logdet = float(np.sum(np.log(ctx.noise.acc)) + np.sum(np.log(ctx.noise.mag)))
     det = np.abs(np.linalg.det(ctx.pre.l_inv))

@@ -30,10 +30,10 @@ def accel_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: Float
         return Factor("accel", r)
     if compact:
         jt = np.broadcast_to(-l_inv, (y.shape[0], 3, 3))
-        return Factor("accel", r, idx, l_inv @ so3.hat(g_b), None, jt, np.arange(bias_at, bias_at + 3))
+        return Factor("accel", r, idx, so3.times_hat(l_inv, g_b), None, jt, np.arange(bias_at, bias_at + 3))
     jt = np.zeros((y.shape[0], 3, theta.size))
     jt[:, :, bias_at:bias_at + 3] = -l_inv
-    return Factor("accel", r, idx, l_inv @ so3.hat(g_b), None, jt)
+    return Factor("accel", r, idx, so3.times_hat(l_inv, g_b), None, jt)
 
 
 def vertical_factor(rot: FloatArray, v: FloatArray, l_inv: FloatArray, idx: IntArray | None,

@@ -18,6 +18,7 @@ import numpy.typing as npt
 
 from .. import so3
 from ..errors import InsufficientDataError
+from . import stacks
 from .solve import Factor
 
 FloatArray = npt.NDArray[np.float64]
@@ -45,6 +46,14 @@ class Preintegrated:
     #: (K-1,) intervals that overlap a window the gyro could not measure (saturation, impact): no gyro factor
     broken: npt.NDArray[np.bool_] | None = None
 
+
+    def component_major(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """delta, l_inv and d_bias as component-major stacks (3, 3, K-1) (models/stacks.py), made once."""
+        got = self.__dict__.get("_cm")
+        if got is None:
+            got = (stacks.cm(self.delta), stacks.cm(self.l_inv), stacks.cm(self.d_bias))
+            object.__setattr__(self, "_cm", got)
+        return got
 
     def scaled(self, variance_factor: float) -> Preintegrated:
         """The same preintegration with its noise covariance multiplied by `variance_factor`."""
@@ -144,19 +153,25 @@ def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_
     g_db = pre.d_bias @ db
     if extra is not None:
         g_db = g_db + extra[0]
-    exp_g, jr_g = so3.exp(g_db), so3.right_jacobian(g_db)
-    corrected = pre.delta @ exp_g
-    rel = states[:-1].transpose(0, 2, 1) @ states[1:]
-    err = corrected.transpose(0, 2, 1) @ rel
-    r = so3.log_small(err)
-    rw = (pre.l_inv @ r[:, :, None])[:, :, 0]
+    # component-major stacks (models/stacks.py): the diagnosis linearises this factor ~1500 times per log. The
+    # same Exp with or without Jacobians, so that a solver's cost does not depend on which it asked for
+    delta, l_inv, d_bias = pre.component_major()
+    s = stacks.cm(states)
+    rel = stacks.tmul(s[:, :, :-1], s[:, :, 1:])                     # R_i^T R_j
+    exp_g, jr_g = stacks.exp_and_right_jacobian(g_db)
+    err_t = stacks.tmul(rel, stacks.mul(delta, exp_g))              # err^T
+    r = stacks.log_small_transposed(err_t)
+    rw = np.ascontiguousarray(np.einsum("ijn,jn->ni", l_inv, r))
     if not jacobians:
         return Factor("gyro", rw)
-    a = pre.l_inv @ so3.right_jacobian_inv(r)
-    lead = -a @ err.transpose(0, 2, 1) @ jr_g
-    jt = lead @ pre.d_bias
+    a = stacks.mul(l_inv, stacks.right_jacobian_inv(r))
+    lead = stacks.mul(a, stacks.mul(err_t, jr_g))
+    np.negative(lead, out=lead)
+    jt = stacks.rm(stacks.mul(lead, d_bias))
     cols = np.arange(bias_at, bias_at + 3)
     if extra is not None:
-        jt = np.concatenate([jt, lead @ extra[1]], axis=2)
+        jt = np.concatenate([jt, stacks.rm(lead) @ extra[1]], axis=2)
         cols = np.concatenate([cols, extra[2]])
-    return Factor("gyro", rw, np.arange(r.shape[0]), -a @ rel.transpose(0, 2, 1), a, jt, cols.astype(np.int64))
+    j_x = stacks.mult(a, rel)
+    np.negative(j_x, out=j_x)
+    return Factor("gyro", rw, np.arange(r.shape[1]), stacks.rm(j_x), stacks.rm(a), jt, cols.astype(np.int64))

@@ -57,9 +57,14 @@ def mag_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: FloatAr
                            [layout.dip]])
     jt = np.zeros((m, 3, 13)) if compact else np.zeros((m, 3, theta.size))
     at_d, at_o, at_dip = (0, 9, 12) if compact else (layout.D, layout.o, layout.dip)
-    jt[:, :, at_d:at_d + 9] = -np.einsum("ik,mj->mijk", l_inv, mb).reshape(m, 3, 9)
+    diag = np.diagonal(l_inv)
+    if np.any(l_inv - np.diag(diag)):
+        jt[:, :, at_d:at_d + 9] = -np.einsum("ik,mj->mijk", l_inv, mb).reshape(m, 3, 9)
+    else:                      # diagonal L^-1: row i only touches D's row i (entries i, i + 3, i + 6)
+        for i in range(3):
+            jt[:, i, at_d + i:at_d + 9:3] = mb * -diag[i]
     jt[:, :, at_o:at_o + 3] = -l_inv
     dm = np.einsum("mji,j->mi", rot, np.array([-np.sin(dip), 0.0, np.cos(dip)]))
     jt[:, :, at_dip] = -dm @ (l_inv @ d).T
-    jx = -(l_inv @ d) @ so3.hat(mb)
+    jx = so3.times_hat(-(l_inv @ d), mb)
     return Factor(name, r, idx, jx, None, jt, cols.astype(np.int64) if compact else None)

@@ -23,7 +23,7 @@ from ..streams import Stream
 from .params import ACCEL_BIAS, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Estimate, Layout, ParamBlock
 from .problem import Problem
 from .result import EffectFit
-from .solve import Factor, gaussian_factor
+from .solve import Factor, gaussian_factor, whiten
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -146,22 +146,25 @@ def with_terms(f: Factor, l_inv: FloatArray, extra: Sequence[tuple[Term, IntArra
     if f.J_theta is None or f.theta_cols is None:
         return Factor(f.name, r)
     jx = None if f.J_x is None else f.J_x.copy()
-    jt = f.J_theta.copy()
     cols = f.theta_cols
-    where = {int(c): i for i, c in enumerate(cols)}
-    new_j, new_c = [jt], [cols]
+    all_c = np.concatenate([cols, *(c for _, c in extra)])
+    # the base columns first, then each term's beta columns: filled in place (no copy-and-concatenate)
+    jt = np.empty(f.J_theta.shape[:2] + (all_c.size,))
+    jt[:, :, :cols.size] = f.J_theta
+    at = cols.size
     for term, beta_cols in extra:
         if term.d_state is not None and jx is not None:
-            jx -= l_inv @ term.d_state
+            jx -= whiten(l_inv, term.d_state)
         for name, d in term.d_base.items():
-            pos = [where[int(c)] for c in layout.cols(name)]
-            jt[:, :, pos] -= np.einsum("ij,mjk->mik", l_inv, d)
-        new_j.append(-np.einsum("ij,mjk->mik", l_inv, term.d_beta))
-        new_c.append(beta_cols)
-    all_c = np.concatenate(new_c)
+            pos = np.searchsorted(cols, layout.cols(name))        # theta_cols are sorted
+            run = slice(int(pos[0]), int(pos[-1]) + 1) if pos.size and pos[-1] - pos[0] == pos.size - 1 else pos
+            jt[:, :, run] -= whiten(l_inv, d)
+        np.negative(whiten(l_inv, term.d_beta), out=jt[:, :, at:at + beta_cols.size])
+        at += beta_cols.size
     order = np.argsort(all_c, kind="stable")
-    return Factor(f.name, r, f.idx, jx, f.J_next, np.concatenate(new_j, axis=2)[:, :, order],
-                  all_c[order].astype(np.int64))
+    if np.any(order != np.arange(order.size)):          # a layout from `layout_for` is already in order
+        jt, all_c = jt[:, :, order], all_c[order]
+    return Factor(f.name, r, f.idx, jx, f.J_next, jt, all_c.astype(np.int64))
 
 
 def gyro_extra(bound: Sequence[Bound], layout: Layout, theta: FloatArray, at: Point

@@ -81,12 +81,16 @@ class Layout:
     def __init__(self, blocks: Iterable[ParamBlock]) -> None:
         self.blocks: tuple[ParamBlock, ...] = tuple(blocks)
         self._at: dict[str, int] = {}
+        self._size: dict[str, int] = {}
+        #: `cols` by names: the solver's linearisations ask for the same columns thousands of times
+        self._cols: dict[tuple[str, ...], IntArray] = {}
         at = 0
         for b in self.blocks:
             if b.name in self._at:
                 msg = f"parameter block {b.name!r} appears twice in a layout"
                 raise ValueError(msg)
             self._at[b.name] = at
+            self._size[b.name] = b.size
             at += b.size
         self.size = at
 
@@ -118,7 +122,7 @@ class Layout:
         except KeyError:
             msg = f"no parameter block {name!r} in {self!r}"
             raise KeyError(msg) from None
-        return slice(at, at + self.block(name).size)
+        return slice(at, at + self._size[name])
 
     def span(self, first: str, last: str) -> builtins.slice:
         """The contiguous run of theta from block `first` through block `last`."""
@@ -130,8 +134,12 @@ class Layout:
 
     def cols(self, *names: str) -> IntArray:
         """Theta columns of the named blocks, in the order given."""
-        parts = [np.arange(self.slice(n).start, self.slice(n).stop) for n in names]
-        return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+        got = self._cols.get(names)
+        if got is None:
+            parts = [np.arange(self.slice(n).start, self.slice(n).stop) for n in names]
+            got = np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)
+            self._cols[names] = got
+        return got.copy()
 
     def get(self, theta: FloatArray, name: str) -> FloatArray:
         """Block `name` of theta (a view)."""

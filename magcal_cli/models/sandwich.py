@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from .solve import Factor, Solution
+from .solve import Factor, Solution, _run
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -34,11 +34,13 @@ def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 
 
 def _eliminated(sol: Solution, f: Factor, p: int) -> FloatArray:
     """A factor's Jacobian by theta with the trajectory eliminated, (M, k, p): J_theta - J_x W (rows whitened)."""
-    jt = f.full_theta(p)
-    out = np.zeros((*f.r.shape, p)) if jt is None else jt.copy()
+    out = np.zeros((*f.r.shape, p))
     for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
         if jx is not None and idx is not None:
-            out -= np.einsum("mki,mip->mkp", jx, sol._w[idx])
+            start = _run(idx)                      # a run of states: W's rows as a view, not a copy
+            out -= jx @ (sol._w[idx] if start is None else sol._w[start:start + idx.shape[0]])
+    if f.J_theta is not None:
+        out[:, :, f.theta_slice(p)] += f.J_theta
     return out
 
 
@@ -70,7 +72,9 @@ def _per_cluster(sol: Solution, clusters: Sequence[IntArray], information: bool
         # summed with np.add.at took seconds on a long log
         order = keep[np.argsort(c[keep], kind="stable")]
         ids, first = np.unique(c[order], return_index=True)
-        j, r = _eliminated(sol, f, p)[order], f.r[order]
+        j, r = _eliminated(sol, f, p), f.r
+        if order.size != r.shape[0] or np.any(np.diff(order) != 1):       # time clusters usually keep row order
+            j, r = j[order], r[order]
         for cid, lo, hi in zip(ids, first, [*first[1:], order.size], strict=True):
             block = j[lo:hi].reshape(-1, p)
             scores[cid] += block.T @ r[lo:hi].reshape(-1)
