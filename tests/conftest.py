@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,12 @@ from magcal_cli.synth import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 REALDATA = Path(os.environ.get("MAGCAL_REALDATA", ROOT.parent / "shared" / "realdata"))
+
+# a suite started from a background job (`cmd &`, nohup) inherits SIGINT ignored, so the Ctrl-C tests' signals
+# would never arrive: give each test process Python's own handler, as a terminal does (its children then start
+# with the default disposition)
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
