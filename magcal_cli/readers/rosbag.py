@@ -132,7 +132,7 @@ def _read_unindexed(path: Path, bag: Path, options: ReadOptions, why: str) -> Re
     """A bag rosbags cannot open (a cut one has no index) read record by record; None when that is no help."""
     from .mcap import collect
     from .rosbag1_scan import scan_bag1
-    from .rosbag2_sqlite import read_cut_db3
+    from .rosbag2_sqlite import read_cut_db3, read_damaged_db3
 
     collector, cut, notes = Collector(), None, list[str]()
     if bag.is_file():
@@ -140,7 +140,9 @@ def _read_unindexed(path: Path, bag: Path, options: ReadOptions, why: str) -> Re
         fmt = "rosbag"
     elif storage := sorted(bag.glob("*.db3")):
         for f in storage:
-            cut = read_cut_db3(f, collector, notes) or cut
+            if (lost := read_cut_db3(f, collector, notes)) is None:      # whole length, damaged inside
+                read_damaged_db3(f, collector, notes, why)
+            cut = lost or cut
         fmt = "rosbag2"
     else:
         storage = sorted(bag.glob("*.mcap"))

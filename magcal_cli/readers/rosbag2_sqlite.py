@@ -62,6 +62,20 @@ def read_cut_db3(db: Path, collector: Collector, notes: list[str]) -> Cut | None
     return Cut(None, size, f"the database file has {size} of the {declared} bytes its header declares; {lost}")
 
 
+def read_damaged_db3(db: Path, collector: Collector, notes: list[str], why: str) -> None:
+    """Read the readable rows of a damaged .db3 into `collector` by id ranges: its indexes are not trusted (a
+    query through a damaged timestamp index ran for ever inside SQLite on a fuzzed bag)."""
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    try:
+        read, _ = _rows(con, collector)
+    except (sqlite3.DatabaseError, ValueError):         # the topics table is damaged: no row can be named
+        read = 0
+    finally:
+        con.close()
+    notes.append(f"corrupt data: {db.name} is damaged ({why}); read the {read} readable messages of the topics "
+                 "magcal uses by their row ids")
+
+
 def _message_count(metadata: Path) -> int | None:
     """The bag's message count from metadata.yaml, or None when it cannot be read."""
     import yaml

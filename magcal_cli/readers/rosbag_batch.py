@@ -106,8 +106,17 @@ def read_ros2_storage(bag: Path, reader: Any, conns: list[Any], collector: Colle
     try:
         for db in dbs:
             bad += _read_db3(db, reader, conns, collector)
-    except (sqlite3.DatabaseError, ValueError):        # damaged, or a topic name that is not UTF-8
+    except ValueError:                                  # a topic name that is not UTF-8: rosbags names it
         return False, None
+    except sqlite3.DatabaseError as exc:
+        # damaged: rows by id, not rosbags' query (a join ordered through the timestamp index, which on a damaged
+        # index can run for ever)
+        from .rosbag2_sqlite import read_damaged_db3
+
+        collector.clear()
+        for db in dbs:
+            read_damaged_db3(db, collector, notes, str(exc))
+        return True, None
     if bad:
         notes.append(f"corrupt data: skipped {bad} messages that did not decode")
     return True, None

@@ -81,6 +81,11 @@ class Collector:
         self.recv: dict[tuple[str, str], list[int]] = defaultdict(list)
         self.values: dict[tuple[str, str], list[tuple[float, ...]]] = defaultdict(list)
 
+    def clear(self) -> None:
+        """Forget everything collected (a read that failed midway starts again another way)."""
+        for d in (self.blocks, self.stamps, self.recv, self.values):
+            d.clear()
+
     def add(self, topic: str, msgtype: str, recv_ns: int, msg: Any) -> None:
         """Keep one decoded message of a type in ROS_TYPES."""
         key = (topic, normalise_type(msgtype))

@@ -321,3 +321,81 @@ def test_real_phidgets_refusal_names_the_non_uniform_field(realdata: Path, tmp_p
         in res.stderr
     assert "the field around the sensor was not uniform or changed during the log" in res.stderr
     assert not out.exists()
+
+
+
+def _damage_index(db: Path, leaf: bool) -> None:
+    """Make a page of the .db3's timestamp index unreadable: its root, or a middle leaf below an interior root."""
+    import sqlite3
+
+    con = sqlite3.connect(db)
+    root = con.execute("SELECT rootpage FROM sqlite_master WHERE name = 'timestamp_idx'").fetchone()[0]
+    con.close()
+    raw = bytearray(db.read_bytes())
+    size = int.from_bytes(raw[16:18], "big")
+    at = (root - 1) * size
+    if leaf:
+        assert raw[at] == 0x02, "the index fits one page: the simulation is too short for this test"
+        cells = int.from_bytes(raw[at + 3:at + 5], "big")
+        cell = int.from_bytes(raw[at + 12 + 2 * (cells // 2):at + 14 + 2 * (cells // 2)], "big")
+        at = (int.from_bytes(raw[at + cell:at + cell + 4], "big") - 1) * size       # that cell's child page
+    raw[at] = 0x00                                  # not a b-tree page type: SQLite says "malformed"
+    db.write_bytes(bytes(raw))
+
+
+
+def _forbid_rosbags_queries(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make the plain-case readers decline (they walk the table's pages and never read the index, as they decline
+    on damage of their own) and rosbags' message query fail the test if it runs."""
+    from rosbags.highlevel import AnyReader
+
+    from magcal_cli.readers import rosbag, rosbag_batch
+
+    def never(*_a: object, **_k: object) -> None:
+        raise AssertionError("rosbags' message query must not run on a damaged database")
+
+    monkeypatch.setattr(rosbag, "read_direct", lambda *_a: None)
+    monkeypatch.setattr(rosbag_batch, "read_db3", lambda *_a: None)
+    monkeypatch.setattr(AnyReader, "messages", never)
+
+
+def _damaged_note(notes: list[str], sim: Simulation) -> list[str]:
+    """The note that says the database was read by row ids, with every message of the simulation."""
+    messages = sum(len(s) for s in sim.recording.streams if s.kind is not Kind.GYROSCOPE)
+    return [n for n in notes if n.startswith("corrupt data: bag.db3 is damaged (")
+            and n.endswith(f"); read the {messages} readable messages of the topics magcal uses by their row ids")]
+
+
+def test_a_db3_rosbags_cannot_open_for_a_damaged_index_is_read_by_row_ids(sim: Simulation, tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """The timestamp index's root page damaged: rosbags cannot open the bag; its rows are read by id."""
+    bag = tmp_path / "bag"
+    write_ros2(sim, bag, storage="sqlite3")
+    _damage_index(bag / "bag.db3", leaf=False)
+    _forbid_rosbags_queries(monkeypatch)
+    rec = open_recording(bag)
+    assert_same(rec, sim)
+    assert _damaged_note(list(rec.notes), sim), rec.notes
+
+
+def test_a_db3_whose_ordered_query_fails_is_read_by_row_ids_not_through_rosbags(
+        sim: Simulation, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """rosbags opened the bag, then magcal's query ordered through the damaged index fails: the rows are read by id,
+    never by rosbags' own join through that index (on a fuzzed bag it ran for ever inside SQLite)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from magcal_cli.readers import ReadOptions
+    from magcal_cli.readers.rosbag_batch import read_ros2_storage
+    from magcal_cli.readers.rosmsg import Collector, wanted
+
+    bag = tmp_path / "bag"
+    write_ros2(sim, bag, storage="sqlite3")
+    _forbid_rosbags_queries(monkeypatch)
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        _damage_index(bag / "bag.db3", leaf=True)        # after rosbags read what it needs to open the bag
+        conns = [c for c in reader.connections if wanted(c.topic, c.msgtype)]
+        collector, notes = Collector(), list[str]()
+        assert read_ros2_storage(bag, reader, conns, collector, ReadOptions(), notes) == (True, None)
+    assert_same(collector.recording(bag, "rosbag2", ReadOptions(), notes), sim)
+    assert _damaged_note(notes, sim), notes
