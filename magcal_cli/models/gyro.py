@@ -46,7 +46,6 @@ class Preintegrated:
     #: (K-1,) intervals that overlap a window the gyro could not measure (saturation, impact): no gyro factor
     broken: npt.NDArray[np.bool_] | None = None
 
-
     def component_major(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """delta, l_inv and d_bias as component-major stacks (3, 3, K-1) (models/stacks.py), made once."""
         got = self.__dict__.get("_cm")

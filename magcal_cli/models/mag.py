@@ -8,7 +8,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .. import so3
-from .solve import Factor
+from .solve import Factor, diagonal_of
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -57,8 +57,8 @@ def mag_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: FloatAr
                            [layout.dip]])
     jt = np.zeros((m, 3, 13)) if compact else np.zeros((m, 3, theta.size))
     at_d, at_o, at_dip = (0, 9, 12) if compact else (layout.D, layout.o, layout.dip)
-    diag = np.diagonal(l_inv)
-    if np.any(l_inv - np.diag(diag)):
+    diag = diagonal_of(l_inv)
+    if diag is None:
         jt[:, :, at_d:at_d + 9] = -np.einsum("ik,mj->mijk", l_inv, mb).reshape(m, 3, 9)
     else:                      # diagonal L^-1: row i only touches D's row i (entries i, i + 3, i + 6)
         for i in range(3):

@@ -23,7 +23,7 @@ from ..streams import Stream
 from .params import ACCEL_BIAS, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Estimate, Layout, ParamBlock
 from .problem import Problem
 from .result import EffectFit
-from .solve import Factor, gaussian_factor, whiten
+from .solve import Factor, gaussian_factor, run_start, whiten
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -157,7 +157,8 @@ def with_terms(f: Factor, l_inv: FloatArray, extra: Sequence[tuple[Term, IntArra
             jx -= whiten(l_inv, term.d_state)
         for name, d in term.d_base.items():
             pos = np.searchsorted(cols, layout.cols(name))        # theta_cols are sorted
-            run = slice(int(pos[0]), int(pos[-1]) + 1) if pos.size and pos[-1] - pos[0] == pos.size - 1 else pos
+            start = run_start(pos)
+            run = pos if start is None else slice(start, start + pos.size)
             jt[:, :, run] -= whiten(l_inv, d)
         np.negative(whiten(l_inv, term.d_beta), out=jt[:, :, at:at + beta_cols.size])
         at += beta_cols.size

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from .solve import Factor, Solution, _run
+from .solve import Factor, Solution, run_start
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -37,7 +37,7 @@ def _eliminated(sol: Solution, f: Factor, p: int) -> FloatArray:
     out = np.zeros((*f.r.shape, p))
     for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
         if jx is not None and idx is not None:
-            start = _run(idx)                      # a run of states: W's rows as a view, not a copy
+            start = run_start(idx)                      # a run of states: W's rows as a view, not a copy
             out -= jx @ (sol._w[idx] if start is None else sol._w[start:start + idx.shape[0]])
     if f.J_theta is not None:
         out[:, :, f.theta_slice(p)] += f.J_theta

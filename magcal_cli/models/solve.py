@@ -21,6 +21,7 @@ from scipy.linalg import lapack
 from threadpoolctl import ThreadpoolController
 
 from .. import so3
+from . import stacks
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -59,9 +60,8 @@ class Factor:
         c = self.theta_cols
         if c is None:
             return slice(0, p)
-        if c.size and c[-1] - c[0] == c.size - 1 and bool(np.all(np.diff(c) == 1)):
-            return slice(int(c[0]), int(c[-1]) + 1)
-        return c
+        start = run_start(c)
+        return c if start is None else slice(start, start + c.size)
 
     def full_theta(self, p: int) -> FloatArray | None:
         """J_theta expanded to all p columns."""
@@ -72,11 +72,17 @@ class Factor:
         return out
 
 
+def diagonal_of(l_inv: FloatArray) -> FloatArray | None:
+    """The diagonal of a noise L^-1 when it is diagonal (every noise model here), else None."""
+    d: FloatArray = np.diagonal(l_inv)
+    return None if np.any(l_inv - np.diag(d)) else d
+
+
 def whiten(l_inv: FloatArray, x: FloatArray) -> FloatArray:
-    """L^-1 x for a stack x (M, 3, k): a diagonal L^-1 (every noise model here) scales rows, which is exact and an
-    order of magnitude cheaper than a matmul per row."""
-    d = np.diagonal(l_inv)
-    if not np.any(l_inv - np.diag(d)):
+    """L^-1 x for a stack x (M, 3, k): a diagonal L^-1 scales rows, which is exact and an order of magnitude cheaper
+    than a matmul per row."""
+    d = diagonal_of(l_inv)
+    if d is not None:
         out: FloatArray = d[:, None] * x
         return out
     return np.asarray(l_inv @ x, dtype=np.float64)
@@ -262,8 +268,9 @@ class _Normal:
     gt: FloatArray         # (p,)
 
 
-def _run(idx: IntArray) -> int | None:
-    """The first state when idx is a run of consecutive states (the common case), else None."""
+def run_start(idx: IntArray) -> int | None:
+    """The first entry when idx is a run of consecutive integers (states, theta columns: the common case), else
+    None."""
     m = idx.shape[0]
     if m and idx[-1] - idx[0] == m - 1 and (m < 3 or bool(np.all(np.diff(idx) == 1))):
         return int(idx[0])
@@ -271,10 +278,10 @@ def _run(idx: IntArray) -> int | None:
 
 
 def _scatter(target: FloatArray, idx: IntArray, values: FloatArray, start: int | None = -1) -> None:
-    """target[idx] += values; a slice add when idx is a run of consecutive states from `start` (`_run`'s answer,
+    """target[idx] += values; a slice add when idx is a run of consecutive states from `start` (`run_start`'s answer,
     -1: find out here)."""
     if start == -1:
-        start = _run(idx)
+        start = run_start(idx)
     if start is None:
         np.add.at(target, idx, values)
     else:
@@ -282,11 +289,10 @@ def _scatter(target: FloatArray, idx: IntArray, values: FloatArray, start: int |
 
 
 def _gram(a: FloatArray, b: FloatArray) -> FloatArray:
-    """a^T b per row group of (M, k, 3) stacks, computed with the stack axis innermost: np.matmul loops over M
-    tiny products, ~2.5x slower (the block-diagonal and off-diagonal trajectory blocks)."""
-    sa = np.ascontiguousarray(a.transpose(1, 2, 0))
-    sb = sa if b is a else np.ascontiguousarray(b.transpose(1, 2, 0))
-    out: FloatArray = np.einsum("kin,kjn->ijn", sa, sb).transpose(2, 0, 1)
+    """a^T b per row group of (M, k, 3) stacks, on component-major stacks (models/stacks.py): np.matmul loops over
+    M tiny products, ~2.5x slower (the block-diagonal and off-diagonal trajectory blocks)."""
+    sa = stacks.cm(a)
+    out: FloatArray = stacks.tmul(sa, sa if b is a else stacks.cm(b)).transpose(2, 0, 1)
     return out
 
 
@@ -311,7 +317,7 @@ def _assemble(factors: Sequence[Factor], weights: Sequence[FloatArray], n: int, 
             ne.gt[cols] += jt2.T @ r.reshape(-1)
         if f.idx is None:
             continue
-        start = _run(f.idx)
+        start = run_start(f.idx)
         hxt = ne.hxt[:, :, cols]                              # a view: scatters below write into ne.hxt
         for jx, shift in ((f.J_x, 0), (f.J_next, 1)):
             if jx is None:

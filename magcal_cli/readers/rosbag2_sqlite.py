@@ -49,13 +49,7 @@ def read_cut_db3(db: Path, collector: Collector, notes: list[str]) -> Cut | None
             os.truncate(padded, declared)
         except (OSError, OverflowError):
             return None
-        con = sqlite3.connect(f"file:{padded}?mode=ro", uri=True)
-        try:
-            read, rows = _rows(con, collector)
-        except (sqlite3.DatabaseError, ValueError):     # the topics table is damaged (a name not UTF-8, a bad page):
-            read, rows = 0, 0                           # no row can be named
-        finally:
-            con.close()
+        read, rows = _read_rows(padded, collector)
     expected = _message_count(db.parent / "metadata.yaml")
     lost = f"{expected - rows} of its {expected} messages lost" if expected is not None else "messages lost"
     notes.append(f"{db.name}: read the {read} messages of the topics magcal uses on the pages before the cut")
@@ -65,15 +59,21 @@ def read_cut_db3(db: Path, collector: Collector, notes: list[str]) -> Cut | None
 def read_damaged_db3(db: Path, collector: Collector, notes: list[str], why: str) -> None:
     """Read the readable rows of a damaged .db3 into `collector` by id ranges: its indexes are not trusted (a
     query through a damaged timestamp index ran for ever inside SQLite on a fuzzed bag)."""
-    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-    try:
-        read, _ = _rows(con, collector)
-    except (sqlite3.DatabaseError, ValueError):         # the topics table is damaged: no row can be named
-        read = 0
-    finally:
-        con.close()
+    read, _ = _read_rows(db, collector)
     notes.append(f"corrupt data: {db.name} is damaged ({why}); read the {read} readable messages of the topics "
                  "magcal uses by their row ids")
+
+
+def _read_rows(db: Path, collector: Collector) -> tuple[int, int]:
+    """`_rows` of the database file `db`, opened read-only; (0, 0) when its topics table is damaged (a name not
+    UTF-8, a bad page): no row can be named."""
+    con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    try:
+        return _rows(con, collector)
+    except (sqlite3.DatabaseError, ValueError):
+        return 0, 0
+    finally:
+        con.close()
 
 
 def _message_count(metadata: Path) -> int | None:
