@@ -213,7 +213,7 @@ def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = N
     raw = stream.xyz * f
     t, y = stream.t, raw
     if effects and rec is not None:
-        t, y, _ = remove(effects, stream.id, rec, stream.t, raw, ("accepted", "ambiguous"))
+        t, y, _ = remove(effects, stream.id, rec, stream.t, raw)
     m_b = (y - o) @ np.linalg.inv(d).T
     used = np.all(np.isfinite(m_b), axis=1)                # excluded (transient) readings are NaN
     norm_err = np.linalg.norm(m_b[used], axis=1) - 1.0

@@ -1,4 +1,11 @@
-"""Accepted magnetometer effects removed from readings: what `apply` writes and what the quality figures see."""
+"""Modelled magnetometer effects removed from readings: what `apply` writes and what the quality figures see.
+
+The calibration is the base model plus every effect the final fit carried: an `accepted` one, and an
+`ambiguous` one the fit modelled (it carries an estimate; its rival, which explains the same readings, does not).
+D and o were fitted with that term in the model: without it they describe the readings worse than the
+calibration the vehicle flew with (log171 MAG[1]: yaw RMS against ATT 26.5 deg without its throttle term, 11.4
+deg with it; docs/decisions.md).
+"""
 
 from __future__ import annotations
 
@@ -13,6 +20,9 @@ from . import EFFECTS, get
 from .base import Effect, Target
 
 FloatArray = npt.NDArray[np.float64]
+
+#: the statuses whose fitted entries are part of the calibration
+MODELLED = ("accepted", "ambiguous")
 
 
 def _fitted(eff: Effect, params: dict[str, Any]) -> bool:
@@ -29,11 +39,11 @@ def _fitted(eff: Effect, params: dict[str, Any]) -> bool:
 
 
 def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: FloatArray, y: FloatArray,
-           statuses: tuple[str, ...] = ("accepted",)) -> tuple[FloatArray, FloatArray, list[str]]:
-    """Readings and stamps with the accepted magnetometer effects of `mag_id` removed, and what was done.
+           statuses: tuple[str, ...] = MODELLED) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Readings and stamps with the modelled magnetometer effects of `mag_id` removed, and what was done.
 
-    `statuses`: which entries count; the quality figures also remove an `ambiguous` effect the fit modelled
-    (it carries parameters), `apply` only what was accepted."""
+    `statuses`: which entries count (an entry without an estimate is never removed: an ambiguous rival the fit
+    did not model)."""
     notes = []
     for e in effects:
         eid = str(e.get("id"))

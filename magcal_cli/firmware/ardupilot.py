@@ -19,7 +19,7 @@ from .. import so3
 from ..calibration import Calibration, MagCalibration
 from ..readers.dataflash_mag import param_suffix
 from . import FirmwareError, NotExportableError, rotations
-from .effects import accepted
+from .effects import carried
 from .export import (
     Collected,
     Export,
@@ -209,7 +209,7 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
             out[f"COMPASS_ORIENT{suffix}"] = float(rot.enum_id)  # type: ignore[arg-type]
         integers.add(f"COMPASS_ORIENT{suffix}")
     kind = None
-    inter, inter_notes = accepted(cal, mag)
+    inter, inter_notes = carried(cal, mag)
     notes += inter_notes
     if inter is not None:
         mot = -sp.held @ (inter.c * k)
@@ -225,7 +225,7 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
 
 def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Options | None = None,
                      mag_ids: Sequence[str] | None = None) -> Export:
-    """COMPASS_* parameters of the selected magnetometers; MOT* and MOTCT from accepted interference effects."""
+    """COMPASS_* parameters of the selected magnetometers; MOT* and MOTCT from the interference effects the calibration carries (firmware/effects.py)."""
     options = options or Options()
     mags = select_mags(cal, mag_ids, options)
     suffixes = {_slot(m.id, i, params, options.slot)[0] for i, m in enumerate(mags)}

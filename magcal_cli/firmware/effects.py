@@ -1,7 +1,9 @@
-"""Motor/current interference from a calibration document's accepted effects, in the magnetometer's unit.
+"""Motor/current interference from a calibration document's modelled effects, in the magnetometer's unit.
 
 calibration-file.md: `current_interference` is y += c I(t) (c in mag unit per ampere), `throttle_interference`
-is y += c u(t)^p (c in mag unit at full throttle). Only `status: accepted` entries are exported.
+is y += c u(t)^p (c in mag unit at full throttle). An `accepted` entry is exported, else an `ambiguous` one the
+fit modelled (it carries c): D and o were fitted with that term, and current and throttle come out ambiguous
+exactly when they are proportional in the log, so either compensates flights like it (effects/correct.py).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ class Interference:
     c: FloatArray
     exponent: float
     effect_id: str
+    status: str = "accepted"
 
 
 def _c_in_mag_unit(effect: dict[str, Any], mag: MagCalibration, where: str) -> FloatArray:
@@ -55,21 +58,30 @@ def _c_in_mag_unit(effect: dict[str, Any], mag: MagCalibration, where: str) -> F
     return c * units.to_si(canonical) * units.from_si(mag.unit)
 
 
-def accepted(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None, list[str]]:
-    """The accepted interference effect of `mag` (current preferred over throttle) and notes on what was left."""
+def carried(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None, list[str]]:
+    """The interference effect of `mag` the calibration carries (accepted, else ambiguous with an estimate;
+    current preferred over throttle) and notes on what was left."""
     found: dict[str, Interference] = {}
-    for i, effect in enumerate(cal.effects):
-        kind = kind_of(str(effect.get("id")))
-        if kind is None or effect.get("sensor") != mag.id or effect.get("status") != "accepted":
-            continue
-        where = f"calibration: effects[{i}] ({effect.get('id')}, {mag.id})"
-        p = float((effect.get("params") or {}).get("p", 1.0)) if kind == "throttle" else 1.0
-        found[kind] = Interference(kind, _c_in_mag_unit(effect, mag, where), p, str(effect["id"]))
+    for status in ("ambiguous", "accepted"):          # an accepted entry replaces an ambiguous one of its kind
+        for i, effect in enumerate(cal.effects):
+            kind = kind_of(str(effect.get("id")))
+            params = effect.get("params") or {}
+            if kind is None or effect.get("sensor") != mag.id or effect.get("status") != status:
+                continue
+            if status == "ambiguous" and "c" not in params:          # a rival the fit did not model
+                continue
+            where = f"calibration: effects[{i}] ({effect.get('id')}, {mag.id})"
+            p = float(params.get("p", 1.0)) if kind == "throttle" else 1.0
+            found[kind] = Interference(kind, _c_in_mag_unit(effect, mag, where), p, str(effect["id"]), status)
     notes = []
     if len(found) == 2:
-        notes.append(f"{mag.id}: both current and throttle interference were accepted; the firmware compensates "
+        notes.append(f"{mag.id}: both current and throttle interference are in the calibration; the firmware compensates "
                      "one signal, so the current term is exported and the throttle term is not")
     chosen = found.get("current") or found.get("throttle")
+    if chosen is not None and chosen.status == "ambiguous":
+        notes.append(f"{mag.id}: {chosen.effect_id} is exported although the diagnosis found it ambiguous (its "
+                     "rival explains the same readings in this log): the calibration was fitted with it, and without "
+                     "it D and o would not describe the readings")
     if chosen is not None and chosen.kind == "throttle" and abs(chosen.exponent - 1.0) > 1e-6:
         notes.append(f"{mag.id}: the firmware's throttle compensation is linear; the fitted exponent "
                      f"p={chosen.exponent:.2f} is dropped (largest error at u in [0,1]: "

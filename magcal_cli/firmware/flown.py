@@ -21,7 +21,7 @@ from ..align import onto
 from ..calibration import Calibration
 from ..streams import Kind, Recording, Stream
 from . import FirmwareError, ardupilot, px4
-from .effects import accepted
+from .effects import carried
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -95,7 +95,7 @@ def _document(rec: Recording, mag: Stream, cal: Calibration) -> Flown:
     doc = cal.magnetometer(mag.id)
     raw = mag.xyz * units.from_si(doc.unit)
     y = raw
-    inter, _ = accepted(cal, doc)
+    inter, _ = carried(cal, doc)
     if inter is not None:
         s = signal_at(rec, Kind.BATTERY_CURRENT if inter.kind == "current" else Kind.THROTTLE, mag.t)
         if s is not None:

@@ -12,7 +12,7 @@ from ..calibration import Calibration, MagCalibration
 from ..errors import MagcalError
 from ..models.params import MAG
 from ..streams import Kind
-from .effects import accepted, tested
+from .effects import carried, tested
 from .split import HEADINGS_DEG
 
 if TYPE_CHECKING:
@@ -33,7 +33,7 @@ METRICS = {
     "heading_std_deg": "1-sigma heading uncertainty of a level vehicle, worst heading",
     "heading_error_deg": "worst level heading error of what the log's firmware can hold (0 without firmware)",
     "residual_misalignment_deg": "misalignment the log's firmware cannot represent (0 without firmware)",
-    "interference_pct": "accepted current/throttle interference at the log's peak, % of the field",
+    "interference_pct": "current/throttle interference the calibration carries at the log's peak, % of the field",
 }
 #: the firmware whose parameters a log's vehicle takes (fit writes them for these formats)
 FIRMWARE_OF_FORMAT = {"dataflash": "ardupilot", "ulog": "px4"}
@@ -72,8 +72,8 @@ def heading_std_curve_deg(mag: MagCalibration, headings_deg: FloatArray = HEADIN
 
 
 def _interference(cal: Calibration, mag: MagCalibration, peak_current: float | None) -> tuple[float | None, str]:
-    """% of the field at the peak signal of an accepted effect; 0 when tested and not accepted."""
-    inter, _ = accepted(cal, mag)
+    """% of the field at the peak signal of the interference the calibration carries; 0 when tested, not carried."""
+    inter, _ = carried(cal, mag)
     if inter is not None:
         peak = 1.0 if inter.kind == "throttle" else peak_current
         if peak is None:

@@ -18,7 +18,7 @@ import numpy.typing as npt
 from .. import so3
 from ..calibration import Calibration, MagCalibration
 from . import FirmwareError, NotExportableError, rotations
-from .effects import accepted
+from .effects import carried
 from .export import (
     Collected,
     Export,
@@ -161,7 +161,7 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
         out[f"{p}ID"] = float(dev)
         integers.add(f"{p}ID")
     kind = None
-    inter, inter_notes = accepted(cal, mag)
+    inter, inter_notes = carried(cal, mag)
     notes += inter_notes
     if inter is not None:
         comp = -inter.c * k * (KILO if inter.kind == "current" else 1.0)

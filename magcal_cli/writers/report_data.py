@@ -12,7 +12,7 @@ from .. import units
 from ..calibration import Calibration, MagCalibration
 from ..effects import EFFECTS, get
 from ..effects.base import Target
-from ..effects.correct import remove
+from ..effects.correct import MODELLED, remove
 from ..errors import MagcalError
 from ..firmware.metrics import FIRMWARE_OF_FORMAT, heading_std_curve_deg
 from ..firmware.split import HEADINGS_DEG, heading_errors_deg
@@ -24,8 +24,6 @@ if TYPE_CHECKING:
 FloatArray = npt.NDArray[np.float64]
 Window = tuple[float, float]
 
-#: the statuses whose effects the fit modelled (an ambiguous one carries parameters too), as the pipeline uses
-MODELLED = ("accepted", "ambiguous")
 #: readings whose specific force is further than this from g do not show the vertical (the vehicle accelerates)
 GRAVITY_TOLERANCE = 0.1
 

@@ -20,10 +20,11 @@ from .. import so3
 from ..detect import Segment, window_means
 from ..effects import get
 from ..effects.base import NotTestable, Target
+from ..effects.correct import MODELLED
 from ..errors import MagcalError
 from ..registry import resolve
 from ..streams import Kind, Stream
-from .report_data import MODELLED, EffectView, FloatArray
+from .report_data import EffectView, FloatArray
 
 if TYPE_CHECKING:
     from ..pipeline import RunResult

@@ -49,6 +49,32 @@ def test_the_truth_gives_the_field_strength_and_the_true_direction() -> None:
     assert np.max(np.linalg.norm(rows(without)[:, 1:4] - expected, axis=1)) / F > 0.02   # the term mattered
 
 
+def test_an_ambiguous_term_the_fit_modelled_is_applied_and_exported_its_rival_not() -> None:
+    """Current and throttle ambiguous (proportional in the log): the one the fit modelled carries c and is part
+    of the calibration, in `apply` and in the ArduPilot export (with a note); the rival without c is neither.
+    Dropped, D and o fitted with the term were wrong in flight (log171 MAG[1]: yaw RMS 26.5 against 11.4 deg)."""
+    from magcal_cli.firmware.ardupilot import export_ardupilot
+
+    fl = flight(0, noise=0.5)
+    modelled = {"id": "current_interference", "sensor": "MAG[0]", "status": "ambiguous",
+                "params": {"c": fl.c.tolist()}, "units": {"c": "milligauss/ampere"},
+                "confounded_with": ["throttle_interference"]}
+    rival = {"id": "throttle_interference", "sensor": "MAG[0]", "status": "ambiguous", "params": {},
+             "confounded_with": ["current_interference"]}
+    accepted = replace(fl.truth(), effects=({**modelled, "status": "accepted"},))
+    cal = replace(fl.truth(), effects=(modelled, rival))
+    text, notes = apply_to_recording(cal, fl.recording)
+    assert notes == ["MAG[0]: current_interference removed"]
+    assert text == apply_to_recording(accepted, fl.recording)[0]
+    exp = export_ardupilot(cal, fl.recording.params)
+    same = export_ardupilot(accepted, fl.recording.params)
+    assert exp.params["COMPASS_MOTCT"] == 2 and all(
+        exp.params[f"COMPASS_MOT_{a}"] == same.params[f"COMPASS_MOT_{a}"] != 0 for a in "XYZ")
+    assert any("exported although the diagnosis found it ambiguous" in n for m in exp.mags for n in m.notes)
+    only_rival = export_ardupilot(replace(fl.truth(), effects=(rival,)), fl.recording.params)
+    assert "COMPASS_MOTCT" not in only_rival.params
+
+
 def test_apply_cli(tmp_path: Path) -> None:
     out = tmp_path / "field.csv"
     truth = SAMPLE.with_name(SAMPLE.name + ".truth.json")
