@@ -10,12 +10,12 @@ deg with it; docs/decisions.md).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
-from ..streams import Recording
+from ..streams import Kind, Stream
 from . import EFFECTS, get
 from .base import Effect, Target
 
@@ -23,6 +23,13 @@ FloatArray = npt.NDArray[np.float64]
 
 #: the statuses whose fitted entries are part of the calibration
 MODELLED = ("accepted", "ambiguous")
+
+
+class Channels(Protocol):
+    """Where an effect's channels (current, throttle, temperature) are found: a Recording, or a Problem's aux."""
+
+    def of_kind(self, kind: Kind) -> list[Stream]:
+        """All streams of one kind."""
 
 
 def _fitted(eff: Effect, params: dict[str, Any]) -> bool:
@@ -38,7 +45,7 @@ def _fitted(eff: Effect, params: dict[str, Any]) -> bool:
     return True
 
 
-def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Recording, t: FloatArray, y: FloatArray,
+def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels, t: FloatArray, y: FloatArray,
            statuses: tuple[str, ...] = MODELLED) -> tuple[FloatArray, FloatArray, list[str]]:
     """Readings and stamps with the modelled magnetometer effects of `mag_id` removed, and what was done.
 

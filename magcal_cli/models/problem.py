@@ -37,3 +37,7 @@ class Problem:
     def channels(self, kind: Kind) -> tuple[Stream, ...]:
         """The auxiliary streams of one kind, in log order."""
         return tuple(s for s in self.aux if s.kind is kind and len(s) >= 2)
+
+    def of_kind(self, kind: Kind) -> list[Stream]:
+        """The auxiliary streams of one kind, as a Recording lists them (effects/correct.remove reads them)."""
+        return list(self.channels(kind))
