@@ -2,9 +2,8 @@
 
 Each row is one magnetometer sample: time (s, the log's stream time), stream id, the calibrated body-frame
 field F A (y - o - terms) in the document's unit and its magnitude. Every magnetometer effect the calibration
-carries (accepted, or ambiguous with an estimate: effects/correct.py; interference, temperature drift,
-time offset, ...) is removed by its plug-in's `correct` when the log has the
-channels it needs (calibration-file.md).
+carries (accepted, or ambiguous with an estimate: effects/correct.py; interference, temperature drift, time
+offset, ...) is removed by its plug-in's `correct` when the log has the channels it needs (calibration-file.md).
 """
 
 from __future__ import annotations

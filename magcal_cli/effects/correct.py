@@ -2,9 +2,9 @@
 
 The calibration is the base model plus every effect the final fit carried: an `accepted` one, and an
 `ambiguous` one the fit modelled (it carries an estimate; its rival, which explains the same readings, does not).
-D and o were fitted with that term in the model: without it they describe the readings worse than the
+D and o were fitted with that term in the model: without it they can describe the readings worse than the
 calibration the vehicle flew with (log171 MAG[1]: yaw RMS against ATT 26.5 deg without its throttle term, 11.4
-deg with it; docs/decisions.md).
+deg with it, 19.4 deg flown; docs/decisions.md).
 """
 
 from __future__ import annotations

@@ -225,7 +225,8 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
 
 def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Options | None = None,
                      mag_ids: Sequence[str] | None = None) -> Export:
-    """COMPASS_* parameters of the selected magnetometers; MOT* and MOTCT from the interference effects the calibration carries (firmware/effects.py)."""
+    """COMPASS_* parameters of the selected magnetometers; MOT* and MOTCT from the interference effects the
+    calibration carries (firmware/effects.py)."""
     options = options or Options()
     mags = select_mags(cal, mag_ids, options)
     suffixes = {_slot(m.id, i, params, options.slot)[0] for i, m in enumerate(mags)}

@@ -75,8 +75,8 @@ def carried(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None,
             found[kind] = Interference(kind, _c_in_mag_unit(effect, mag, where), p, str(effect["id"]), status)
     notes = []
     if len(found) == 2:
-        notes.append(f"{mag.id}: both current and throttle interference are in the calibration; the firmware compensates "
-                     "one signal, so the current term is exported and the throttle term is not")
+        notes.append(f"{mag.id}: both current and throttle interference are in the calibration; the firmware "
+                     "compensates one signal, so the current term is exported and the throttle term is not")
     chosen = found.get("current") or found.get("throttle")
     if chosen is not None and chosen.status == "ambiguous":
         notes.append(f"{mag.id}: {chosen.effect_id} is exported although the diagnosis found it ambiguous (its "
