@@ -45,22 +45,29 @@ def _fitted(eff: Effect, params: dict[str, Any]) -> bool:
     return True
 
 
-def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels, t: FloatArray, y: FloatArray,
-           statuses: tuple[str, ...] = MODELLED) -> tuple[FloatArray, FloatArray, list[str]]:
-    """Readings and stamps with the modelled magnetometer effects of `mag_id` removed, and what was done.
-
-    `statuses`: which entries count (an entry without an estimate is never removed: an ambiguous rival the fit
-    did not model)."""
-    notes = []
+def terms(effects: Sequence[dict[str, Any]], mag_id: str, statuses: tuple[str, ...] = MODELLED
+          ) -> list[tuple[dict[str, Any], Effect]]:
+    """The entries of `mag_id`'s magnetometer effects with an estimate, with their plug-ins: what the calibration
+    carries. An entry without one (an ambiguous rival the fit did not model) may still carry constants such as a
+    reference temperature: it is left out."""
+    out = []
     for e in effects:
         eid = str(e.get("id"))
         if e.get("sensor") != mag_id or e.get("status") not in statuses or eid not in EFFECTS:
             continue
         eff = get(eid)
-        # an entry without an estimate (an ambiguous rival the fit did not model) may still carry constants such
-        # as a reference temperature: only a fitted one is removed
-        if eff.target is not Target.MAG or not _fitted(eff, e.get("params") or {}):
-            continue
+        if eff.target is Target.MAG and _fitted(eff, e.get("params") or {}):
+            out.append((e, eff))
+    return out
+
+
+def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels, t: FloatArray, y: FloatArray,
+           statuses: tuple[str, ...] = MODELLED) -> tuple[FloatArray, FloatArray, list[str]]:
+    """Readings and stamps with the modelled magnetometer effects of `mag_id` (`terms`) removed, and what was
+    done."""
+    notes = []
+    for e, eff in terms(effects, mag_id, statuses):
+        eid = eff.id
         chans: dict[str, np.ndarray] = {}
         for kind in eff.channels:
             named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
@@ -69,8 +76,8 @@ def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels, t: Flo
                 chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
         missing = [k.value for k in eff.channels if k.value not in chans]
         if missing:
-            notes.append(f"{mag_id}: the accepted {eid} is not removed (the log lacks its {', '.join(missing)} "
-                         "channel)")
+            notes.append(f"{mag_id}: the {e.get('status')} {eid} is not removed (the log lacks its "
+                         f"{', '.join(missing)} channel)")
             continue
         t, y = eff.correct(dict(e.get("params") or {}), t, y, chans)
         notes.append(f"{mag_id}: {eid} removed")

@@ -12,6 +12,7 @@ import numpy.typing as npt
 from .. import so3, units
 from ..atomic import write_text
 from ..calibration import MagCalibration
+from ..effects.correct import terms
 from ..findings import Severity
 
 if TYPE_CHECKING:
@@ -37,8 +38,10 @@ def _mat(m: npt.ArrayLike, indent: int, fmt: str = "{:+.4f}") -> str:
     return ("\n" + " " * indent).join(rows)
 
 
-def advice(mag: MagCalibration, misalign_deg: float, norm_before: float) -> list[str]:
-    """Next steps for one magnetometer, from its quality numbers."""
+def advice(mag: MagCalibration, misalign_deg: float, norm_before: float,
+           carried: tuple[str, ...] = ()) -> list[str]:
+    """Next steps for one magnetometer, from its quality numbers; `carried`: the ids of the magnetometer effects
+    its calibration carries (they are removed before A is applied)."""
     q, out = mag.quality, []
     if q is not None and q.coverage_pct < 30.0:
         out.append("Coverage is low: record again, rolling and pitching the vehicle through all orientations.")
@@ -51,8 +54,10 @@ def advice(mag: MagCalibration, misalign_deg: float, norm_before: float) -> list
     if norm_before > 5.0:
         out.append("The raw readings deviate strongly from a sphere; use this calibration (A, b) rather than "
                    "offsets only.")
-    out.append("Apply m_b = A (y - b) to raw readings (calibration.json: magnetometers[].A, .b); the result is a "
-               "unit vector in the IMU body frame.")
+    first = (f"after correcting the readings for {', '.join(carried)} (calibration.json: effects[] of {mag.id}; "
+             "`magcal apply` does both)" if carried else "")
+    out.append("Apply m_b = A (y - b) to raw readings (calibration.json: magnetometers[].A, .b)"
+               + (f" {first}" if first else "") + "; the result is a unit vector in the IMU body frame.")
     return out
 
 
@@ -122,7 +127,8 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
                   f"    coverage           {q.coverage_pct:.0f} % of the sphere of field directions",
                   f"    solver             {'converged' if q.converged else 'NOT converged'} "
                   f"after {q.iterations} iterations"]
-    lines += ["  What to do next"] + [f"    - {a}" for a in advice(mag, misalign, before)]
+    carried = tuple(eff.id for _, eff in terms(result.calibration.effects, mag.id))
+    lines += ["  What to do next"] + [f"    - {a}" for a in advice(mag, misalign, before, carried)]
     return lines
 
 

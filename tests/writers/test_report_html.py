@@ -105,3 +105,19 @@ def test_dip_view_recovers_the_fitted_dip(result: RunResult) -> None:
     assert view is not None and view.dip_cal is not None
     assert np.nanmedian(view.dip_cal) == pytest.approx(mag.dip_deg, abs=1.0)
     assert np.sqrt(np.mean(view.norm_cal_pct ** 2)) < 1.0
+
+
+def test_the_apply_step_names_the_terms_the_calibration_carries(result: RunResult) -> None:
+    """A calibration that carries a magnetometer effect (here an ambiguous current term with its estimate) tells
+    the reader to correct for it before A; its unmodelled rival and a calibration without terms do not."""
+    from magcal_cli.writers.report import render
+
+    mag = result.calibration.magnetometers[0]
+    plain = render(result)
+    assert "after correcting the readings for" not in plain
+    fitted = {"id": "current_interference", "sensor": mag.id, "status": "ambiguous", "params": {"c": [1e-8, 0, 0]}}
+    rival = {"id": "throttle_interference", "sensor": mag.id, "status": "ambiguous", "params": {}}
+    carried = replace(result, calibration=replace(result.calibration, effects=(fitted, rival)))
+    text = render(carried)
+    assert f"after correcting the readings for current_interference (calibration.json: effects[] of {mag.id}" in text
+    assert "throttle_interference (calibration.json" not in text
