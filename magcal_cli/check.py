@@ -211,7 +211,8 @@ def _residual_metrics(c: CompassCheck, f: Flown, rec: Recording, mask: npt.NDArr
             c.missing[k] = why
         return
     try:
-        r = fit_residual(f.field[mask][keep], lev[keep], None if signal is None else signal[mask][keep])
+        r = fit_residual(f.field[mask][keep], lev[keep], None if signal is None else signal[mask][keep],
+                         f.t[mask][keep])
     except MagcalError as exc:
         for k in ("heading_error_deg", "heading_error_std_deg", "residual_offset_pct", "interference_pct"):
             c.missing[k] = str(exc)

@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 from .. import so3
 from ..errors import InsufficientDataError
 from ..models.params import XYZ, Layout, ParamBlock
+from ..models.sandwich import bartlett_dof, newey_west, time_clusters
 from .split import heading_error_deg
 
 FloatArray = npt.NDArray[np.float64]
@@ -32,6 +33,8 @@ FloatArray = npt.NDArray[np.float64]
 PRIOR_S, PRIOR_C0, PRIOR_Q = 0.3, 1.0, 0.2
 MIN_SAMPLES = 50
 MAX_SAMPLES = 3000
+#: neighbouring time blocks allowed to correlate, and the false-alarm rate of the widening (as models/sandwich.py)
+LAGS, FALSE_ALARM = 4, 1e-3
 
 #: the residual fit's parameters (field quantities in units of the median field strength, tilt in rad): S's five
 #: free entries, the tilt (qx, qy), c0, k (only with a signal), then the levelled field's H and Z
@@ -96,6 +99,32 @@ def _residuals(theta: FloatArray, c: FloatArray, lev: FloatArray, s: FloatArray,
     return np.concatenate([data, prior])
 
 
+def sandwich(jac: FloatArray, r: FloatArray, cov: FloatArray, t: FloatArray) -> tuple[FloatArray, int]:
+    """Cluster-robust covariance of the parameters from time blocks of samples (models/sandwich.py): each
+    sample's two data rows (|g_xy| - H, g_z - Z) score its block, the prior rows none; and the block count."""
+    n = t.size
+    ids = time_clusters(t)
+    rows = np.concatenate([ids, ids])                             # data rows are [horizontal (n), vertical (n)]
+    score = jac[: 2 * n] * r[: 2 * n, None]
+    scores = np.zeros((int(ids.max()) + 1, jac.shape[1]))
+    np.add.at(scores, rows, score)
+    return cov @ newey_west(scores, LAGS) @ cov, scores.shape[0]
+
+
+def widening(grad: FloatArray, cov: FloatArray, sand: tuple[FloatArray, int] | None) -> float:
+    """Factor >= 1 for the std of a derived figure with gradient `grad`: sqrt(sandwich / model variance) where
+    that ratio exceeds what a correct white-noise model gives by chance (chi2(nu)/nu at 1 - FALSE_ALARM)."""
+    if sand is None:
+        return 1.0
+    from scipy import stats
+
+    model, robust = float(grad @ cov @ grad), float(grad @ sand[0] @ grad)
+    nu = bartlett_dof(sand[1], LAGS)
+    if model <= 0.0 or robust / model <= stats.chi2.ppf(1.0 - FALSE_ALARM, nu) / nu:
+        return 1.0
+    return float(np.sqrt(robust / model))
+
+
 def _heading(theta: FloatArray, with_k: bool, lo: float, hi: float) -> float:
     """Worst level heading error over all headings and the signal's range."""
     E, c0, k, H, Z = _unpack(theta, with_k)
@@ -104,15 +133,19 @@ def _heading(theta: FloatArray, with_k: bool, lo: float, hi: float) -> float:
     return max(heading_error_deg(E, (c0 + s * k) / f, dip) for s in {lo, hi})
 
 
-def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike | None = None) -> Residual:
+def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike | None = None,
+                 t: npt.ArrayLike | None = None) -> Residual:
     """Fit the residual model to the flown field c (N, 3) with levelling rotations (N, 3, 3) = Ry(pitch) Rx(roll).
 
-    `signal` (N,) is battery current (A) or throttle (0..1) at the samples; None leaves interference out.
+    `signal` (N,) is battery current (A) or throttle (0..1) at the samples; None leaves interference out. `t`
+    (N,) s: the samples' times; with them the standard deviations are widened where the residuals are
+    correlated in time beyond the fit's white-noise model (`widening`).
     """
     c = np.asarray(c, dtype=np.float64)
     lev = np.asarray(level, dtype=np.float64)
     step = max(1, c.shape[0] // MAX_SAMPLES)          # long logs: every step-th sample keeps the fit fast
     c, lev = c[::step], lev[::step]
+    times = None if t is None else np.asarray(t, dtype=np.float64)[::step]
     if signal is not None:
         signal = np.asarray(signal, dtype=np.float64)[::step]
     if c.shape[0] < MIN_SAMPLES:
@@ -147,7 +180,8 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
         d = np.zeros_like(fit.x)
         d[i] = step
         grad[i] = (_heading(fit.x + d, with_k, lo, hi) - _heading(fit.x - d, with_k, lo, hi)) / (2 * step)
-    he_std = float(np.sqrt(max(float(grad @ cov @ grad), 0.0)))
+    sand = None if times is None else sandwich(jac, fit.fun, cov, times)
+    he_std = float(np.sqrt(max(float(grad @ cov @ grad), 0.0))) * widening(grad, cov, sand)
     E, c0, k, H, Z = _unpack(fit.x, with_k)
     F = float(np.hypot(H, Z))
     inter = inter_std = None
@@ -156,7 +190,7 @@ def fit_residual(c: npt.ArrayLike, level: npt.ArrayLike, signal: npt.ArrayLike |
         inter = float(100.0 * np.linalg.norm(k) * peak / F)
         gk = np.zeros(fit.x.size)
         gk[lay.slice("k")] = 100.0 * peak / F * k / max(float(np.linalg.norm(k)), 1e-12)
-        inter_std = float(np.sqrt(max(float(gk @ cov @ gk), 0.0)))
+        inter_std = float(np.sqrt(max(float(gk @ cov @ gk), 0.0))) * widening(gk, cov, sand)
     rms = float(100.0 * np.sqrt(np.mean((fit.fun[: 2 * n] * sigma) ** 2)) / F)
     S = so3.polar(E)[1] - np.eye(3)
     qx, qy = lay.get(fit.x, "tilt")
