@@ -36,10 +36,13 @@ def check_writable(folder: Path, create: bool = False, hint: str = "Choose anoth
         raise OutputError(msg)
     try:
         fd, name = tempfile.mkstemp(prefix=".magcal-probe-", dir=probe)
-        os.close(fd)
-        Path(name).unlink()
     except OSError as exc:
         raise _cannot_write(folder, exc, hint) from None
+    try:                                  # a Ctrl-C right after mkstemp must not leave the probe behind
+        os.close(fd)
+    finally:
+        with contextlib.suppress(OSError):
+            Path(name).unlink()
 
 
 @contextlib.contextmanager
@@ -54,12 +57,12 @@ def atomic_path(target: Path) -> Iterator[Path]:
         fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent or Path())
     except OSError as exc:
         raise _cannot_write(target, exc, "Choose another output location") from None
-    os.close(fd)
     tmp = Path(name)
-    umask = os.umask(0)
-    os.umask(umask)
-    tmp.chmod(0o666 & ~umask)           # mkstemp makes 0600; outputs get the usual permissions
-    try:
+    try:                                  # from here on a Ctrl-C (or any error) deletes the temporary file
+        os.close(fd)
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o666 & ~umask)         # mkstemp makes 0600; outputs get the usual permissions
         yield tmp
         tmp.replace(target)
     except BaseException as exc:

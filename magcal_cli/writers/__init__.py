@@ -90,14 +90,15 @@ def write_outputs(result: RunResult, outdir: Path, names: list[str]) -> list[Pat
     removed again when it stays empty).
     """
     created = not outdir.exists()
-    try:
-        outdir.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=".magcal-", suffix=".part", dir=outdir))
-    except OSError as exc:
-        msg = f"{outdir}: cannot create the output directory ({exc.strerror or exc}). Choose another -o"
-        raise OutputError(msg) from None
     done = False
-    try:
+    stage: Path | None = None
+    try:                                  # a Ctrl-C right after mkdtemp still removes the staging directory
+        try:
+            outdir.mkdir(parents=True, exist_ok=True)
+            stage = Path(tempfile.mkdtemp(prefix=".magcal-", suffix=".part", dir=outdir))
+        except OSError as exc:
+            msg = f"{outdir}: cannot create the output directory ({exc.strerror or exc}). Choose another -o"
+            raise OutputError(msg) from None
         staged = [p for name in names for p in get_writer(name).write(result, stage)]
         with _sigint_deferred():
             final = []
@@ -112,7 +113,8 @@ def write_outputs(result: RunResult, outdir: Path, names: list[str]) -> list[Pat
         msg = f"{outdir}: cannot write the outputs ({exc.strerror or exc}). Check the directory's permissions"
         raise OutputError(msg) from None
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
         if created and not done:
             with contextlib.suppress(OSError):
                 outdir.rmdir()                   # only when empty: nothing of ours or anyone else's is lost
