@@ -17,6 +17,7 @@ from .epochs import BIAS_SCALE, Noise
 from .gyro import Preintegrated
 from .map import MapEstimate, fit_map, mag_layout
 from .map_joint import fit_joint_or_note
+from .map_shared import is_shared, shared
 from .params import BASE, MAG
 from .problem import Problem
 from .result import HeldEntry, ImuFit, MagFit, MethodResult
@@ -39,7 +40,8 @@ def held_entries(est: MapEstimate) -> tuple[HeldEntry, ...]:
     total[BASE.slice("gyroscope_bias")] = est.context.pre.bias
     names = est.held.names()
     return tuple(HeldEntry(n, float(est.held.prior_mean[c] * si[c] + total[c]), float(est.held.prior_std[c] * si[c]),
-                           s) for n, c, s in zip(names, est.held.cols, est.held.sources, strict=True))
+                           s) for n, c, s in zip(names, est.held.cols, est.held.sources, strict=True)
+                 if not is_shared(s))             # the shared IMU bias is no partial calibration (map_shared.py)
 
 
 def with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, start: Noise | None,
@@ -142,6 +144,8 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
                             / BIAS_SCALE))
 
     best = min(ests, key=bias_std) if joint is None else joint.estimates[0]     # the joint fit's IMU biases
+    if joint is None and len(ests) > 1:                # one IMU, one accelerometer bias (map_shared.py)
+        ests = shared(problem, ests, best, loss, dip_prior, declination)
     imu = ImuFit(problem.imu_id, best.value("accelerometer_bias"), best.value("gyroscope_bias"),
                  best.std_of("accelerometer_bias"), best.std_of("gyroscope_bias"))
     notes: list[str] = []

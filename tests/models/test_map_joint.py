@@ -169,3 +169,19 @@ def test_consistency_compares_calibrations_not_the_interference_one_magnetometer
     angles = [s["closest_angle_rms_deg"] for s in found.evidence["sensors"].values()]
     assert max(angles) < 0.5, found.message
     assert not [f for f in result.findings if f.code == "magnetometer_inconsistent"]
+
+
+def test_separate_fits_share_the_imus_accelerometer_bias_and_stay_within_their_uncertainty() -> None:
+    """Three magnetometers fitted one by one (an effect keeps them off the joint path): the two that did not give
+    the IMU's biases are refitted with its accelerometer bias held at the reference fit's (one IMU, one bias),
+    which is no partial calibration (nothing in `held`), and each calibration stays within its reported
+    uncertainty of the truth (Mahalanobis distance of vec D, o, dip: chi2(13) 0.999 quantile 34.5)."""
+    sim = simulate_array("paper", 4, 3, 62.5, 62.5 / 3, 40.0)
+    cfg = Config(method="map", effects=("time_offset",))
+    result = map_run.run(select_problem(sim.recording, cfg), cfg)
+    shared = [n for n in result.notes if "one IMU, one bias" in n]
+    assert len(shared) == 2, result.notes
+    for fit, truth in zip(result.mags, sim.truths, strict=True):
+        assert not any("accelerometer_bias" in h.name for h in fit.held)
+        err = np.concatenate([(fit.D - truth.D).ravel(order="F"), fit.o - truth.o, [fit.dip - truth.dip]])
+        assert float(err @ np.linalg.solve(fit.cov, err)) < 34.5, fit.id
