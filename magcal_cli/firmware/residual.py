@@ -24,7 +24,7 @@ from scipy.optimize import least_squares
 from .. import so3
 from ..errors import InsufficientDataError
 from ..models.params import XYZ, Layout, ParamBlock
-from ..models.sandwich import bartlett_dof, newey_west, time_clusters
+from ..models.sandwich import newey_west, std_factors, time_clusters
 from .split import heading_error_deg
 
 FloatArray = npt.NDArray[np.float64]
@@ -116,13 +116,8 @@ def widening(grad: FloatArray, cov: FloatArray, sand: tuple[FloatArray, int] | N
     that ratio exceeds what a correct white-noise model gives by chance (chi2(nu)/nu at 1 - FALSE_ALARM)."""
     if sand is None:
         return 1.0
-    from scipy import stats
-
-    model, robust = float(grad @ cov @ grad), float(grad @ sand[0] @ grad)
-    nu = bartlett_dof(sand[1], LAGS)
-    if model <= 0.0 or robust / model <= stats.chi2.ppf(1.0 - FALSE_ALARM, nu) / nu:
-        return 1.0
-    return float(np.sqrt(robust / model))
+    model, robust = np.array([grad @ cov @ grad]), np.array([grad @ sand[0] @ grad])
+    return float(std_factors(model, robust, sand[1], LAGS, FALSE_ALARM)[0])
 
 
 def _heading(theta: FloatArray, with_k: bool, lo: float, hi: float) -> float:

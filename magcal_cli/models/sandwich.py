@@ -127,12 +127,19 @@ def widening(sol: Solution, clusters: Sequence[IntArray], lags: int = 4,
     chi2(nu)/nu with nu = C / (1 + 2 sum_l w_l^2) for C clusters and Bartlett weights w_l; only ratios
     above its 1 - false_alarm quantile widen (so simulated, well-specified data keep the model covariance).
     """
+    sand = cluster_robust_cov(sol, clusters, lags)
+    return std_factors(np.diag(sol.cov_theta), np.diag(sand), _count(clusters), lags, false_alarm)
+
+
+def std_factors(model: FloatArray, robust: FloatArray, clusters: int, lags: int, false_alarm: float = 1e-3
+                ) -> FloatArray:
+    """sqrt(robust / model) variances where that ratio exceeds its 1 - false_alarm quantile under a correct
+    noise model (chi2(nu)/nu, nu from `bartlett_dof`), else 1."""
     from scipy import stats
 
-    sand = cluster_robust_cov(sol, clusters, lags)
-    model = np.diag(sol.cov_theta)
-    nu = bartlett_dof(_count(clusters), lags)
+    nu = bartlett_dof(clusters, lags)
     threshold = stats.chi2.ppf(1.0 - false_alarm, nu) / nu
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(model > 0, np.diag(sand) / model, 1.0)
-    return np.where(ratio > threshold, np.sqrt(ratio), 1.0)
+        ratio = np.where(model > 0, robust / model, 1.0)
+    out: FloatArray = np.where(ratio > threshold, np.sqrt(ratio), 1.0)
+    return out
