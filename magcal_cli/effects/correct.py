@@ -32,7 +32,7 @@ class Channels(Protocol):
         """All streams of one kind."""
 
 
-def _fitted(eff: Effect, params: dict[str, Any]) -> bool:
+def has_estimate(eff: Effect, params: dict[str, Any]) -> bool:
     """Whether an entry carries the estimate of every parameter that vanishes under the base model (an exponent
     with a prior, like throttle's p, may be left out: `correct` then uses its default)."""
     prior = eff.prior()
@@ -56,7 +56,7 @@ def terms(effects: Sequence[dict[str, Any]], mag_id: str, statuses: tuple[str, .
         if e.get("sensor") != mag_id or e.get("status") not in statuses or eid not in EFFECTS:
             continue
         eff = get(eid)
-        if eff.target is Target.MAG and _fitted(eff, e.get("params") or {}):
+        if eff.target is Target.MAG and has_estimate(eff, e.get("params") or {}):
             out.append((e, eff))
     return out
 

@@ -61,6 +61,9 @@ def _c_in_mag_unit(effect: dict[str, Any], mag: MagCalibration, where: str) -> F
 def carried(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None, list[str]]:
     """The interference effect of `mag` the calibration carries (accepted, else ambiguous with an estimate;
     current preferred over throttle) and notes on what was left."""
+    from ..effects import get
+    from ..effects.correct import has_estimate
+
     found: dict[str, Interference] = {}
     for status in ("ambiguous", "accepted"):          # an accepted entry replaces an ambiguous one of its kind
         for i, effect in enumerate(cal.effects):
@@ -68,7 +71,7 @@ def carried(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None,
             params = effect.get("params") or {}
             if kind is None or effect.get("sensor") != mag.id or effect.get("status") != status:
                 continue
-            if status == "ambiguous" and "c" not in params:          # a rival the fit did not model
+            if status == "ambiguous" and not has_estimate(get(str(effect["id"])), params):   # an unmodelled rival
                 continue
             where = f"calibration: effects[{i}] ({effect.get('id')}, {mag.id})"
             p = float(params.get("p", 1.0)) if kind == "throttle" else 1.0

@@ -54,10 +54,10 @@ def advice(mag: MagCalibration, misalign_deg: float, norm_before: float,
     if norm_before > 5.0:
         out.append("The raw readings deviate strongly from a sphere; use this calibration (A, b) rather than "
                    "offsets only.")
-    first = (f"after correcting the readings for {', '.join(carried)} (calibration.json: effects[] of {mag.id}; "
-             "`magcal apply` does both)" if carried else "")
-    out.append("Apply m_b = A (y - b) to raw readings (calibration.json: magnetometers[].A, .b)"
-               + (f" {first}" if first else "") + "; the result is a unit vector in the IMU body frame.")
+    then = (f" after correcting the readings for {', '.join(carried)} (calibration.json: effects[] of {mag.id}; "
+            "`magcal apply` does both)" if carried else "")
+    out.append(f"Apply m_b = A (y - b) to raw readings (calibration.json: magnetometers[].A, .b){then}; the result "
+               "is a unit vector in the IMU body frame.")
     return out
 
 
