@@ -533,7 +533,8 @@ def export_cmd(ctx: click.Context, calibration: Path, ardupilot_out: Path | None
 @click.argument("calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
 @click.option("-o", "--output", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
-              help="CSV file to write: t [s], id, the calibrated field x, y, z and its magnitude.")
+              help="CSV file to write: t [s], id, the calibrated field x, y, z and its magnitude ('-': standard "
+                   "output).")
 @click.option("--mag", "mags", multiple=True, callback=options.mag_ids, metavar="ID[,ID...]|all",
               help=MAG_HELP.format(what="apply"))
 @click.option("--format", "fmt", default=None, callback=options.log_format, help=FORMAT_HELP)
@@ -550,14 +551,19 @@ def apply_cmd(ctx: click.Context, calibration: Path, log: Path, out: Path, mags:
 
     cal = options.calibration_document(calibration, "CALIBRATION", "The arguments look swapped; run: magcal "
                                        "apply CAL.json LOG -o OUT.csv")
-    options.refuse_existing((out,), force, ", or choose another -o")
-    check_writable(out.parent, hint="Choose another -o")
+    stdout = str(out) == "-"                  # as Unix tools read it, not a file named '-'
+    if not stdout:
+        options.refuse_existing((out,), force, ", or choose another -o")
+        check_writable(out.parent, hint="Choose another -o")
     rec = open_recording(log, fmt)
     if rec.cut is not None:
         _stderr(ctx, f"warning: {rec.cut.message}")
     text, notes = apply_to_recording(cal, rec, list(mags) or None)
     for n in notes:
         _stderr(ctx, n)
+    if stdout:
+        click.echo(text, nl=False)
+        return
     write_text(out, text)
     click.echo(f"wrote {out}")
 

@@ -75,7 +75,7 @@ def test_an_ambiguous_term_the_fit_modelled_is_applied_and_exported_its_rival_no
     assert "COMPASS_MOTCT" not in only_rival.params
 
 
-def test_apply_cli(tmp_path: Path) -> None:
+def test_apply_cli(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out = tmp_path / "field.csv"
     truth = SAMPLE.with_name(SAMPLE.name + ".truth.json")
     result = CliRunner().invoke(cli, ["apply", str(truth), str(SAMPLE), "-o", str(out), "-q"])
@@ -85,6 +85,9 @@ def test_apply_cli(tmp_path: Path) -> None:
     assert np.median(data[:, 4]) == pytest.approx(strength, rel=0.01)
     again = CliRunner().invoke(cli, ["apply", str(truth), str(SAMPLE), "-o", str(out)])
     assert again.exit_code == 2 and "exists already. Pass --force to overwrite it" in again.stderr
+    monkeypatch.chdir(tmp_path)
+    piped = CliRunner().invoke(cli, ["apply", str(truth), str(SAMPLE), "-o", "-", "-q"])  # '-': standard output
+    assert piped.exit_code == 0 and piped.stdout == out.read_text() and not Path("-").exists()
 
 
 def test_apply_errors() -> None:
