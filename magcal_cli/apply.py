@@ -14,7 +14,8 @@ from . import units
 from .calibration import Calibration
 from .effects.correct import remove
 from .errors import StreamError
-from .streams import Kind, Recording
+from .streams import Kind, Recording, Sampling
+from .timing import CHOICES, as_instants, stated
 
 #: how the CSV header names each document unit (the CSV input contract's spellings)
 SHORT = {"tesla": "T", "millitesla": "mT", "microtesla": "uT", "nanotesla": "nT", "gauss": "G",
@@ -39,6 +40,9 @@ def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | No
     rows: list[tuple[float, str, np.ndarray]] = []
     for mag in (m for m in mags if m.id in have):
         stream = rec.select(Kind.MAGNETOMETER, mag.id)
+        told = cal.source.timing.get("magnetometer")
+        if told in CHOICES:                # the fit's time convention, so a time offset means the same here
+            stream = as_instants(stated(stream, Sampling(told)))
         y = stream.xyz * units.from_si(mag.unit)
         t, y, done = remove(cal.effects, mag.id, rec, stream.t, y)
         notes += done

@@ -13,10 +13,13 @@ import os
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import __version__
 from .errors import MagcalError
+
+if TYPE_CHECKING:
+    from .streams import Sampling
 
 #: the per-log status file, written last (atomically): its presence means the log's outputs are complete
 STATUS_FILE = "batch.json"
@@ -43,12 +46,15 @@ class FitOptions:
     mags: tuple[str, ...] = ()                      # (): every magnetometer
     fail_on: tuple[Any, ...] = ()                   # gates.Condition
     strict: bool = False
+    imu_timing: Sampling | None = None              # None: the log format's own (timing.py)
+    mag_timing: Sampling | None = None
 
     def fingerprint(self) -> dict[str, Any]:
         """What batch.json records: outputs fitted with other options (or another magcal) are not up to date."""
         return {"magcal_version": __version__, "method": self.method, "effects": list(self.effects),
                 "outputs": None if self.outputs is None else list(self.outputs), "mags": list(self.mags),
-                "fail_on": [str(c) for c in self.fail_on], "strict": self.strict}
+                "fail_on": [str(c) for c in self.fail_on], "strict": self.strict,
+                **{k: getattr(self, k).value for k in ("imu_timing", "mag_timing") if getattr(self, k) is not None}}
 
 
 @dataclass(frozen=True)

@@ -95,7 +95,8 @@ def _fit(job: Job, report: LogReport) -> None:
     o = job.options
     auto = o.effects == AUTO_EFFECTS
     cfg = Config(method=o.method, mag=",".join(o.mags) or "all", allow_truncated=not o.strict,
-                 effects=() if auto else o.effects, diagnose=auto)
+                 effects=() if auto else o.effects, diagnose=auto, imu_timing=o.imu_timing,
+                 mag_timing=o.mag_timing)
     result = calibrate(job.log, cfg)
     report.format, report.method = result.recording.format, result.calibration.method
     names = list(job.names)

@@ -195,6 +195,8 @@ class Source:
     sha256: str
     start_s: float
     end_s: float
+    #: what each sample was taken to stand for: {"imu", "magnetometer": "instant|preceding|following", "set_by"}
+    timing: dict[str, str] = field(default_factory=dict)
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, Source) and self.__dict__ == other.__dict__

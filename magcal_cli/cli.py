@@ -9,13 +9,16 @@ import traceback
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
 from . import __version__, fitrun, options
 from .config import Config
 from .errors import MagcalError
+
+if TYPE_CHECKING:
+    from .streams import Sampling
 
 F = TypeVar("F", bound=Callable[..., Any])
 MAG_HELP = ("Magnetometer stream id(s) to {what}; repeatable and comma-separated (e.g. --mag 'MAG[0],MAG[1]'), "
@@ -231,13 +234,15 @@ def _effects(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ..
 @click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: _gates(v, "fit"),
               help="Exit 3 when a magnetometer meets a condition, e.g. 'heading_std_deg>1,field_norm_rms_pct>2' "
                    "(METRIC OP NUMBER, comma-separated; see docs/firmware-export.md).")
+@options.timing
 @verbosity
 @click.pass_context
 @handle_errors
 def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...], imu: str | None, method: str,
         outputs: str, start_s: float | None, end_s: float | None, fmt: str | None, strict: bool, as_json: bool,
         force: bool, location: tuple[float, float, float] | None, date: str | None, robust_loss: str,
-        effects: tuple[str, ...], fail_on: tuple[Any, ...]) -> None:
+        effects: tuple[str, ...], fail_on: tuple[Any, ...], imu_timing: Sampling | None,
+        mag_timing: Sampling | None) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from .document import dumps_json
     from .pipeline import calibrate
@@ -249,8 +254,9 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
     _check_outdir(outdir, names + ([auto] if auto else []), force)
     cfg = Config(method=method, mag=",".join(mags) or "all", imu=imu, start_s=start_s, end_s=end_s,
-                 allow_truncated=not strict, location=location, date=date, robust_loss=robust_loss, effects=() if effects == AUTO else effects,
-                 diagnose=effects == AUTO)
+                 allow_truncated=not strict, location=location, date=date, robust_loss=robust_loss,
+                 effects=() if effects == AUTO else effects, diagnose=effects == AUTO, imu_timing=imu_timing,
+                 mag_timing=mag_timing)
     with _progress(ctx) as progress:
         result = calibrate(log, cfg, fmt, progress)
     if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
@@ -578,11 +584,12 @@ def apply_cmd(ctx: click.Context, calibration: Path, log: Path, out: Path, mags:
 @click.option("--json", "as_json", is_flag=True, help="Print the diagnosis and the effects as one JSON document.")
 @click.option("--force", is_flag=True, help="Overwrite an existing diagnosis.json.")
 @click.option("--format", "fmt", default=None, callback=options.log_format, help=FORMAT_HELP)
+@options.timing
 @verbosity
 @click.pass_context
 @handle_errors
 def diagnose_cmd(ctx: click.Context, log: Path, cal_path: Path | None, outdir: Path | None, as_json: bool,
-                 force: bool, fmt: str | None) -> None:
+                 force: bool, fmt: str | None, imu_timing: Sampling | None, mag_timing: Sampling | None) -> None:
     """Find what physics the calibrated model leaves out of LOG, model it, and show the held-out improvement."""
     import json
 
@@ -598,7 +605,7 @@ def diagnose_cmd(ctx: click.Context, log: Path, cal_path: Path | None, outdir: P
     if outdir is not None and target is not None:
         options.refuse_existing((target,), force, ", or choose another -o")
         check_writable(outdir, create=True, hint="Choose another -o")
-    cfg = Config(method="map", mag=mag, imu=imu, diagnose=True)
+    cfg = Config(method="map", mag=mag, imu=imu, diagnose=True, imu_timing=imu_timing, mag_timing=mag_timing)
     with _progress(ctx) as progress:
         result = calibrate(log, cfg, fmt, progress)
     doc = {"log": str(log.resolve()), "diagnosis": result.calibration.diagnosis,
@@ -705,12 +712,14 @@ BATCH_EXIT = ("Exit codes: 0 every log fitted (or up to date); 1 a log could not
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document with one entry per log.")
 @click.option("--force", is_flag=True, help="Overwrite outputs that are not up to date (up-to-date logs are "
                                               "still skipped; remove DIR/<log>/batch.json to refit one).")
+@options.timing
 @verbosity
 @click.pass_context
 @handle_errors
 def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: int | None, scheduler: str | None,
               mags: tuple[str, ...], method: str, effects: tuple[str, ...], outputs: str | None,
-              fail_on: tuple[Any, ...], strict: bool, as_json: bool, force: bool) -> None:
+              fail_on: tuple[Any, ...], strict: bool, as_json: bool, force: bool, imu_timing: Sampling | None,
+              mag_timing: Sampling | None) -> None:
     """Fit many logs (files, folders searched recursively, globs) in parallel, locally or on a Dask cluster.
 
     Each log is fitted as 'magcal fit LOG -o DIR/<name>/' would; logs whose outputs are complete and newer than
@@ -730,7 +739,7 @@ def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: i
 
         require_distributed()                       # before any work: one line naming the extra to install
     names = None if outputs is None else tuple(_parse_outputs(outputs))
-    opts = FitOptions(method, effects, names, mags, fail_on, strict)
+    opts = FitOptions(method, effects, names, mags, fail_on, strict, imu_timing, mag_timing)
     try:
         work = plan(discover(list(inputs), outdir), outdir, opts, force)
     except BatchUsageError as exc:

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .streams import Sampling
 
 METHODS = ("auto", "kok2012", "map")
 
@@ -40,3 +44,5 @@ class Config:
     robust_loss: str = "l2"          # joint MAP: l2, huber or cauchy (outlier-tolerant)
     effects: tuple[str, ...] = ()    # effect plug-ins to model (ids of magcal_cli.effects.EFFECTS); () = base model
     diagnose: bool = False           # --effects auto: the mismatch diagnosis chooses the effects (diagnose/)
+    imu_timing: Sampling | None = None   # what an IMU sample stands for (None: what the log's format says)
+    mag_timing: Sampling | None = None   # the same for the magnetometers (timing.py, docs/timing.md)

@@ -56,7 +56,8 @@ def to_dict(cal: Calibration) -> dict[str, Any]:
     """The whole document as plain data, keys in the order of the schema."""
     doc: dict[str, Any] = {
         "schema": Calibration.SCHEMA, "magcal_version": cal.magcal_version, "created_utc": cal.created_utc,
-        "source": dict(cal.source.__dict__), "method": cal.method, "imu": imu_to_dict(cal.imu),
+        "source": {k: v for k, v in cal.source.__dict__.items() if v or k != "timing"},   # no timing: older
+        "method": cal.method, "imu": imu_to_dict(cal.imu),
         "magnetometers": [mag_to_dict(m) for m in cal.magnetometers],
         "effects": list(cal.effects), "diagnosis": cal.diagnosis, "noise": cal.noise, "notes": list(cal.notes),
     }

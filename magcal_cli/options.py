@@ -7,14 +7,17 @@ A bad value is click's usage error (exit 2) naming the option, the value and wha
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
 if TYPE_CHECKING:
     from .calibration import Calibration
+    from .streams import Sampling
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 #: latitude and longitude ranges of --location (deg)
 LAT_RANGE, LON_RANGE = (-90.0, 90.0), (-180.0, 180.0)
@@ -112,3 +115,26 @@ def log_extension(out: Path) -> None:
         known = ", ".join(sorted(e or "(none: a ROS 2 bag directory)" for e in LOG_WRITERS))
         msg = f"{out}: cannot write a log with extension {out.suffix!r}; use one of {known}"
         raise click.BadParameter(msg, param_hint="OUT")
+
+
+#: --imu-timing and --mag-timing: what a sample stands for (docs/timing.md)
+TIMING_CHOICES = ("instant", "preceding", "following")
+TIMING_HELP = ("What each {what} sample stands for: instant (the value at its stamp), preceding (the mean over the "
+               "interval that ends at its stamp{example}) or following (the mean over the interval that starts at "
+               "it) [default: what the log's format defines, docs/timing.md].")
+
+
+def sampling(_: click.Context, __: click.Parameter, value: str | None) -> Sampling | None:
+    """--imu-timing/--mag-timing as a Sampling, None to take the log format's own."""
+    from .streams import Sampling
+
+    return None if value is None else Sampling.parse(value)
+
+
+def timing(func: F) -> F:
+    """The --imu-timing and --mag-timing options of every command that fits."""
+    for name, what, example in (("--mag-timing", "magnetometer", ""),
+                                ("--imu-timing", "gyro and accelerometer", ": PX4 sensor_combined, delta-angle IMUs")):
+        func = click.option(name, name.strip("-").replace("-", "_"), type=click.Choice(TIMING_CHOICES),
+                            default=None, callback=sampling, help=TIMING_HELP.format(what=what, example=example))(func)
+    return func

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from . import __version__, units
+from . import __version__, timing, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from .config import Config
 from .detect import IMPACT, StillResult, check_signal, detect_still, pooled_std, unmeasured_windows
@@ -154,8 +154,11 @@ def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
                                 f"{np.degrees(np.abs(gyr.xyz).max()):.0f} deg/s): the trajectory is not carried "
                                 "through, and the samples there are not used", {"windows_s": unmeasured}))
     aux = tuple(st for st in aux if len(st) >= 2)
-    return Problem(where, acc.id, acc, gyr, tuple(good), still, aux, onboard_priors(rec, good), unmeasured,
-                   _known_physics(cfg, aux)), findings
+    # still segments and impacts are found on the samples as logged (one IMU time base); the estimators take
+    # them in their own time convention (timing.py)
+    acc, gyr, mags_est, record = timing.for_estimator(acc, gyr, tuple(good), cfg.imu_timing, cfg.mag_timing)
+    return Problem(where, acc.id, acc, gyr, mags_est, still, aux, onboard_priors(rec, good), unmeasured,
+                   _known_physics(cfg, aux), record), findings
 
 
 def onboard_priors(rec: Recording, mags: list[Stream]) -> dict[str, MagPrior]:
@@ -475,7 +478,8 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None =
     t_used = np.concatenate([problem.acc.t, *[m.t for m in problem.mags]])
     digest = sha256(path) if path.exists() else ""
     stored = path.resolve() if path.exists() else path         # absolute: later commands work from any directory
-    source = Source(str(stored), rec.format, digest, float(t_used.min()), float(t_used.max()))
+    source = Source(str(stored), rec.format, digest, float(t_used.min()), float(t_used.max()),
+                    dict(problem.timing))
     findings = chosen + dropped + failed + _findings(rec, problem, result, mags) + _dip_check(mags, ref)
     diagnosis = diagnosis_block(result.diagnosis, streams) if result.diagnosis else None
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,

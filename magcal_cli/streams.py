@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 from types import MappingProxyType
@@ -41,6 +41,23 @@ class Kind(Enum):
         return _SI_UNIT[self]
 
 
+class Sampling(Enum):
+    """What one sample stands for relative to its stamp (timing.py converts; docs/timing.md per format).
+
+    INSTANT: the value at the stamp; PRECEDING: the mean over the interval that ends at the stamp (delta-angle
+    IMUs); FOLLOWING: the mean over the interval that starts at it (magcal 0.1's simulator, no real log).
+    """
+
+    INSTANT = "instant"
+    PRECEDING = "preceding"
+    FOLLOWING = "following"
+
+    @classmethod
+    def parse(cls, text: str) -> Sampling:
+        """The member named `text` (its value, any case)."""
+        return cls(text.strip().lower())
+
+
 _WIDTH = {Kind.MAGNETOMETER: 3, Kind.ACCELEROMETER: 3, Kind.GYROSCOPE: 3, Kind.ATTITUDE: 4, Kind.POSITION: 3}
 _SI_UNIT = {
     Kind.MAGNETOMETER: "tesla", Kind.ACCELEROMETER: "m/s^2", Kind.GYROSCOPE: "rad/s",
@@ -66,6 +83,10 @@ class Stream:
     #: per-axis quantisation noise std (SI) where the log's integer counts were transformed (so the samples no
     #: longer lie on a grid the detector could measure); None: judged from the samples
     resolution: FloatArray | None = None
+    #: what each sample stands for relative to its stamp, as the log's format defines it (timing.py)
+    sampling: Sampling = Sampling.INSTANT
+    #: the averaging window (s) of a PRECEDING/FOLLOWING sample where the log states it; None: the sample spacing
+    window_s: float | None = None
 
     def __post_init__(self) -> None:
         t = np.array(self.t, dtype=np.float64)
@@ -107,8 +128,7 @@ class Stream:
         """The samples with start <= t <= end (either bound may be None)."""
         lo = 0 if start is None else int(np.searchsorted(self.t, start, side="left"))
         hi = self.t.size if end is None else int(np.searchsorted(self.t, end, side="right"))
-        return Stream(self.kind, self.id, self.t[lo:hi], self.values[lo:hi], self.source, self.native_unit,
-                      self.resolution)
+        return replace(self, t=self.t[lo:hi], values=self.values[lo:hi])
 
 
 class Cut(NamedTuple):

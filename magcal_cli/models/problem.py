@@ -14,6 +14,10 @@ from .partial import MagPrior
 class Problem:
     """Streams in SI units on the log's time base, ready for any method; `where` names the log in messages.
 
+    Time convention (timing.for_estimator): gyro sample k is the mean rate over [t_k, t_k+1); accelerometer and
+    magnetometer samples are the values at their stamps. `timing` records what the log's samples were taken to
+    stand for (the document's source.timing).
+
     `aux` holds the log's other channels (current, throttle, temperature, position, ...) that effect terms use.
     `priors` holds what a magnetometer's calibration is held at where the log cannot determine it.
     """
@@ -33,6 +37,8 @@ class Problem:
     #: effects every fit of this problem models, whatever else is chosen: known physics the log measures (a
     #: flight's own acceleration from its GPS), not a hypothesis for the diagnosis to test
     base_effects: tuple[str, ...] = ()
+    #: {"imu", "magnetometer", "set_by"}: the sampling the log's streams were read with (timing.py)
+    timing: Mapping[str, str] = field(default_factory=dict)
 
     def channels(self, kind: Kind) -> tuple[Stream, ...]:
         """The auxiliary streams of one kind, in log order."""

@@ -17,7 +17,7 @@ import numpy.typing as npt
 from .. import so3
 from ..align import clean_time
 from ..errors import LogReadError, UnsupportedFormatError
-from ..streams import Kind, Recording, Stream
+from ..streams import Kind, Recording, Sampling, Stream
 from . import ReadOptions
 
 FloatArray = npt.NDArray[np.float64]
@@ -89,7 +89,8 @@ class BroadReader:
                     notes.append(f"{path.name}#{key}: dropped {int((~fresh).sum())} readings that repeat the "
                                  "previous one exactly (resampled onto the IMU clock)")
                 tt, vv = tt[fresh], vv[fresh]
-            streams.append(Stream(kind, sid, tt, vv, f"{path.name}#{key}", unit))
+            # raw samples of one sensor board on one clock, each the value at its grid time (docs/timing.md)
+            streams.append(Stream(kind, sid, tt, vv, f"{path.name}#{key}", unit, sampling=Sampling.INSTANT))
         if "opt_quat" in data:
             q = np.asarray(data["opt_quat"], dtype=np.float64).reshape(n, 4)
             ok = np.all(np.isfinite(q), axis=1)

@@ -19,7 +19,7 @@ from .. import units
 from ..align import clean_time
 from ..errors import LogReadError, StreamError
 from ..progress import active, current, within
-from ..streams import Cut, Kind, Recording, Stream
+from ..streams import Cut, Kind, Recording, Sampling, Stream
 from . import ReadOptions
 from .checks import drop_held, normalised_field, normalised_note, sensor_checks
 from .cut import mark_cut, refuse_if_strict
@@ -340,6 +340,8 @@ class CsvReader:
             for f in families:
                 cs = by[f]
                 src = f"{path.name}#{', '.join(c.cell for c in cs)}"
-                streams.append(Stream(STREAMS[f][0], sid, t, v[:, col:col + len(cs)], src, cs[0].unit))
+                # a row is one instant (x-io and phone exporters log the samples as read; docs/timing.md)
+                streams.append(Stream(STREAMS[f][0], sid, t, v[:, col:col + len(cs)], src, cs[0].unit,
+                                      sampling=Sampling.INSTANT))
                 col += len(cs)
         return Recording(path, "csv", tuple(streams), t0=t0, notes=tuple(notes))

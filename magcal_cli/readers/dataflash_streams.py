@@ -10,7 +10,7 @@ import numpy as np
 from .. import so3
 from ..align import clean_time
 from ..progress import current
-from ..streams import Kind, Recording, Stream
+from ..streams import Kind, Recording, Sampling, Stream
 from .checks import drop_held, sensor_checks
 from .dataflash_format import FloatArray, IntArray, RawLog, Table
 
@@ -165,6 +165,8 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
             continue
         col = 0
         for kind, unit in zip(p.kinds, p.units, strict=False):
-            streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit, p.resolution))
+            # IMU/GYR/ACC and MAG hold the (filtered) value at the stamp (docs/timing.md)
+            streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit, p.resolution,
+                                  Sampling.INSTANT))
             col += kind.width
     return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes))

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from .. import units
 from ..align import clean_time
-from ..streams import Kind, Recording, Stream
+from ..streams import Kind, Recording, Sampling, Stream
 from . import ReadOptions
 from .checks import drop_held, field_spread, normalised_field, normalised_note, sensor_checks
 
@@ -198,8 +198,9 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
     if group == "imu":
         t, values, checked = sensor_checks((Kind.ACCELEROMETER, Kind.GYROSCOPE), t, values, topic)
         notes += checked
-        return [Stream(Kind.ACCELEROMETER, topic, t, values[:, :3], src, "m/s^2"),
-                Stream(Kind.GYROSCOPE, topic, t, values[:, 3:], src, "rad/s")]
+        # sensor_msgs/Imu and REP 145: the stamp is the time of the measurement (docs/timing.md)
+        return [Stream(Kind.ACCELEROMETER, topic, t, values[:, :3], src, "m/s^2", sampling=Sampling.INSTANT),
+                Stream(Kind.GYROSCOPE, topic, t, values[:, 3:], src, "rad/s", sampling=Sampling.INSTANT)]
     if group == "temperature":
         return [Stream(Kind.TEMPERATURE, topic, t, values, src, "degC")]
     if group == "navsat":
@@ -218,7 +219,7 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
     notes += held + checked
     if normalised_field(values):
         notes.append(normalised_note(topic, values, "T"))
-    return [Stream(Kind.MAGNETOMETER, topic, t, values, src, unit)]
+    return [Stream(Kind.MAGNETOMETER, topic, t, values, src, unit, sampling=Sampling.INSTANT)]
 
 
 def _one(kind: Kind, topic: str, t: FloatArray, v: FloatArray, src: str, unit: str,

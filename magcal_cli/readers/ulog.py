@@ -7,7 +7,7 @@ docs/readers-px4.md; field meanings follow PX4's msg/*.msg definitions.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -17,7 +17,7 @@ import numpy.typing as npt
 from .. import units
 from ..align import clean_time, onto
 from ..errors import LogReadError, StreamError
-from ..streams import Cut, Kind, Recording, Stream
+from ..streams import Cut, Kind, Recording, Sampling, Stream
 from . import ReadOptions
 from .checks import normalised_field, normalised_note, sensor_checks
 from .cut import mark_cut, refuse_if_strict
@@ -54,6 +54,8 @@ class Piece:
     values: FloatArray
     source: str
     unit: str
+    sampling: Sampling = Sampling.INSTANT
+    window_s: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,6 +197,17 @@ def _rate(t_us: IntArray) -> float:
     return (len(t_us) - 1) / span if span > 0 else 0.0
 
 
+def _window(ds: Any, name: str, t_us: IntArray) -> float | None:
+    """The averaging window (s) of sensor_combined's samples where it is shorter than their spacing (a logger
+    that keeps every n-th message), else None (the spacing). Older logs give it in seconds, newer in us."""
+    if name not in ds.data or len(t_us) < 2:
+        return None
+    dt = float(np.median(np.asarray(ds.data[name], dtype=np.float64)))
+    window = dt if dt < 1.0 else dt * 1e-6
+    spacing = float(np.median(np.diff(t_us))) * 1e-6
+    return window if 0.0 < window < 0.9 * spacing else None
+
+
 def _imu_pieces(tp: _Topics, params: dict[str, float]) -> tuple[list[ImuPiece], list[Piece]]:
     """sensor_combined (calibrated, body frame) first, then each sensor_accel[i]/sensor_gyro[i] (raw)."""
     imus: list[ImuPiece] = []
@@ -207,9 +220,12 @@ def _imu_pieces(tp: _Topics, params: dict[str, float]) -> tuple[list[ImuPiece], 
         rel = _field(comb, "accelerometer_timestamp_relative", len(t))
         ok = rel != RELATIVE_TIMESTAMP_INVALID
         src = "sensor_combined"
-        gyr_piece = Piece(Kind.GYROSCOPE, src, t, gyr, tp.source(src, "gyro_rad"), "rad/s")
+        # SensorCombined.msg: "average ... over the last gyro (accelerometer) sampling period", ending at the stamp
+        gyr_piece = Piece(Kind.GYROSCOPE, src, t, gyr, tp.source(src, "gyro_rad"), "rad/s", Sampling.PRECEDING,
+                          _window(comb, "gyro_integral_dt", t))
         acc_piece = Piece(Kind.ACCELEROMETER, src, t[ok] + rel[ok], acc[ok],
-                          tp.source(src, "accelerometer_m_s2"), "m/s^2")
+                          tp.source(src, "accelerometer_m_s2"), "m/s^2", Sampling.PRECEDING,
+                          _window(comb, "accelerometer_integral_dt", t))
         imus.append(ImuPiece(src, gyr_piece, acc_piece))
     gyro_instances = set(tp.instances("sensor_gyro"))
     for i in tp.instances("sensor_accel"):
@@ -432,7 +448,7 @@ def _stream(p: Piece, t0_us: int, notes: list[str]) -> Stream | None:
         return None
     if p.kind is Kind.MAGNETOMETER and normalised_field(values):
         notes.append(normalised_note(p.id, values / units.to_si(p.unit), p.unit))
-    return Stream(p.kind, p.id, t, values, p.source, p.unit)
+    return Stream(p.kind, p.id, t, values, p.source, p.unit, sampling=p.sampling, window_s=p.window_s)
 
 
 def _imu_streams(imu: ImuPiece, t0_us: int, notes: list[str]) -> list[Stream]:
@@ -453,5 +469,4 @@ def _imu_streams(imu: ImuPiece, t0_us: int, notes: list[str]) -> list[Stream]:
         notes.append(f"{imu.id}: {int((~mask).sum())} of {len(gyr)} gyro epochs have no accelerometer "
                      "samples on both sides and were dropped")
     t = gyr.t[mask]
-    return [Stream(Kind.ACCELEROMETER, imu.id, t, values, acc.source, acc.native_unit),
-            Stream(Kind.GYROSCOPE, imu.id, t, gyr.values[mask], gyr.source, gyr.native_unit)]
+    return [replace(acc, t=t, values=values), replace(gyr, t=t, values=gyr.values[mask])]
