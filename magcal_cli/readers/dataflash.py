@@ -22,7 +22,15 @@ from . import ReadOptions
 from .cut import mark_cut, refuse_if_strict
 from .dataflash_binary import parse_binary
 from .dataflash_format import FloatArray, MessageFormat, RawLog, Table
-from .dataflash_mag import Correction, ParamHistory, compass_correction, param_suffix, undo_correction
+from .dataflash_mag import (
+    ROUNDED_EVIDENCE,
+    Correction,
+    ParamHistory,
+    compass_correction,
+    param_suffix,
+    truncation_evidence,
+    undo_correction,
+)
 from .dataflash_streams import Clock, Pending, clock_from, euler_quat, finish, instances, time_of
 from .dataflash_text import looks_like_text, parse_text
 
@@ -214,10 +222,13 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
     params = hist.last()
     out: list[MagReconstruction] = []
     bad_instances: list[str] = []
-    for inst, table in instances(raw, MAG_NAMES, notes=bad_instances, limit=3):
+    found = [(i, tb) for i, tb in instances(raw, MAG_NAMES, notes=bad_instances, limit=3)
+             if tb.fmt.has("MagX", "MagY", "MagZ")]
+    integers = [_cols(tb, ("MagX", "MagY", "MagZ")) for _, tb in found if tb.fmt.char("MagX") in "bBhHiIqQ"]
+    evidence = truncation_evidence(integers) if integers else 0.0
+    truncated = evidence > -np.log(ROUNDED_EVIDENCE)
+    for inst, table in found:
         f = table.fmt
-        if not f.has("MagX", "MagY", "MagZ"):
-            continue
         notes: list[str] = []
         t = time_of(table, clock)
         if f.has("S", "TimeUS"):          # 4.x: S (uint32 us, wraps) is when the sample was taken
@@ -232,12 +243,16 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
         k = _mag_factor(table)
         logged = _cols(table, ("MagX", "MagY", "MagZ"), k)
         field = logged
-        if f.char("MagX") in "bBhHiIqQ":
+        if f.char("MagX") in "bBhHiIqQ" and truncated:
             # AP_Compass logs (int16_t)field: the cast truncates toward zero, so the field was on average half
             # a count further out; left in, it shrinks D by ~0.5 count / |field| (0.2 % at 270 mG)
             field = logged + 0.5 * k * np.sign(logged)
             notes.append(f"MAG[{inst}]: added back half a count ({0.5 * k:g} mG) lost to the firmware's int16 "
                          "truncation toward zero")
+        elif f.char("MagX") in "bBhHiIqQ":
+            notes.append(f"MAG[{inst}]: the logged integers have no dead zone at zero (rounded, not truncated "
+                         f"as AP_Compass's cast does: likelihood ratio {np.exp(-evidence):.3g}); no half count "
+                         "added back")
         ofs = _cols(table, ("OfsX", "OfsY", "OfsZ"), k) if f.has("OfsX", "OfsY", "OfsZ") else None
         mo_cols = next((c for c in (("MOfsX", "MOfsY", "MOfsZ"), ("MOX", "MOY", "MOZ")) if f.has(*c)), None)
         motor = _cols(table, mo_cols, k) if mo_cols else None

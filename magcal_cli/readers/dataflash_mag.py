@@ -109,6 +109,35 @@ def undo_correction(logged: FloatArray, c: Correction) -> FloatArray:
     return y / c.scale[:, None] - c.ofs
 
 
+#: a log's integer field counts as rounded (no half count added back) only when its zero bin favours rounding over
+#: the firmware's truncating cast by at least this likelihood ratio; with less evidence the firmware's cast stands
+ROUNDED_EVIDENCE = 100.0
+#: bins either side of zero the test compares the zero bin with, and the fewest counts it needs there
+ZERO_TEST_BINS, ZERO_TEST_MIN = 3, 30
+
+
+def truncation_evidence(counts: list[FloatArray]) -> float:
+    """ln P(zero bin | truncated) - ln P(zero bin | rounded) for integer logged values (any shapes).
+
+    AP_Compass logs `(int16_t)field`: the cast truncates toward zero, so bin 0 holds (-1, 1), twice the width of
+    any other bin, and bin k > 0 holds [k, k + 1). A log rounded to the nearest count (another firmware, a
+    converter, a simulator) has no such dead zone. A quadratic density is fitted to the bins +-1..+-3 at each
+    hypothesis' bin centres and the zero bin's count scored as Poisson; 0 when there are too few counts to judge.
+    """
+    v = np.rint(np.concatenate([np.asarray(c, dtype=np.float64).ravel() for c in counts]))
+    ks = np.concatenate([-np.arange(ZERO_TEST_BINS, 0, -1), np.arange(1, ZERO_TEST_BINS + 1)]).astype(np.float64)
+    near = np.array([np.count_nonzero(v == k) for k in ks], dtype=np.float64)
+    if near.sum() < ZERO_TEST_MIN:
+        return 0.0
+    zero = float(np.count_nonzero(v == 0))
+    score = []
+    for centres, width in ((ks + 0.5 * np.sign(ks), 2.0), (ks, 1.0)):
+        a, _, c = np.linalg.lstsq(np.stack([np.ones_like(ks), centres, centres**2], axis=1), near, rcond=None)[0]
+        expected = max(width * a + c * width**3 / 12.0, 1e-9)      # the quadratic integrated over the zero bin
+        score.append(zero * np.log(expected) - expected)
+    return float(score[0] - score[1])
+
+
 def param_suffix(instance: int, params: dict[str, float]) -> tuple[str, str | None]:
     """Parameter suffix of a logged MAG instance ("" , "2", "3"), checked against COMPASS_PRIOn_ID.
 
@@ -143,8 +172,8 @@ def compass_correction(hist: ParamHistory, suffix: str, t: FloatArray, logged_of
 
     Offsets come from the PARM history; where the logged OfsX.. disagree by 1 mG or more (int16 truncation
     aside) the logged ones are used (offsets learned in flight are not written as PARM records).
-    Motor offsets come from the logged MO fields, else from COMPASS_MOT times `throttle` (0..1, MOTCT=1) or
-    `current` (A, MOTCT=2) at the sample times.
+    Motor offsets are COMPASS_MOT times `throttle` (0..1, MOTCT=1) or `current` (A, MOTCT=2) at the sample times;
+    where the log has MO fields, the product is used only where it agrees with them to a count (else MO).
     """
     n = t.size
     parts: list[str] = []
@@ -161,19 +190,28 @@ def compass_correction(hist: ParamHistory, suffix: str, t: FloatArray, logged_of
     dia, odi = _vec(hist, "DIA", suffix, t, 0.0), _vec(hist, "ODI", suffix, t, 0.0)
     scale_raw = hist.at(f"COMPASS_SCALE{suffix}", t, 0.0)
     scale = effective_scale(scale_raw)
+    motct = hist.at("COMPASS_MOTCT", t, 0.0)
+    mot = _vec(hist, "MOT", suffix, t, 0.0)
+    zero = np.zeros(n)
+    signal = np.where(motct == 1, zero if throttle is None else throttle,
+                      np.where(motct == 2, zero if current is None else current, 0.0))
+    product = mot * signal[:, None]
     if logged_motor is not None:
         motor, motor_desc = logged_motor, "motor offsets from the logged MO fields"
+        # MO is COMPASS_MOT x throttle or current, logged as int16: where the product agrees with it to within a
+        # count, the product is what the firmware added (its rounding left in would follow the current)
+        exact = np.all(np.abs(product - logged_motor) < 1.0, axis=1) & (signal != 0)
+        if exact.any():
+            motor = np.where(exact[:, None], product, logged_motor)
+            motor_desc = (f"motor offsets COMPASS_MOT{suffix} x {'throttle' if np.all(motct == 1) else 'current'} "
+                          f"where the logged MO fields agree to a count ({int(exact.sum())} of {n} samples), else "
+                          "the logged MO")
         if np.any(logged_motor != 0):
             motor_desc += f" (up to {np.abs(logged_motor).max():.0f} mG)"
         else:
             motor_desc += " (all zero)"
     else:
-        motct = hist.at("COMPASS_MOTCT", t, 0.0)
-        mot = _vec(hist, "MOT", suffix, t, 0.0)
-        zero = np.zeros(n)
-        signal = np.where(motct == 1, zero if throttle is None else throttle,
-                          np.where(motct == 2, zero if current is None else current, 0.0))
-        motor = mot * signal[:, None]
+        motor = product
         motor_desc = ("motor offsets COMPASS_MOT x throttle/current per COMPASS_MOTCT" if np.any(motor != 0)
                       else "no motor offsets (COMPASS_MOTCT=0 or MOT=0)")
     corr = Correction(ofs, iron_matrix(dia, odi), scale, motor, motor_after_matrix)
