@@ -70,7 +70,7 @@ FIRST_GYRO_SLOPE = -0.7
 TRAJECTORY_DAMPING = 1e-9
 #: the gyro variance never drops below this factor (log) of its start value (100x lower std)
 MIN_GYRO_LOG_VARIANCE = float(np.log(1e-4))
-#: with at least this much still data (s) its noise levels are floors and the gyro level is kept
+#: with at least this much still data (s) its noise levels are floors (the white noise at rest)
 MIN_STILL_S = 2.0
 #: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
 REPREINTEGRATE_RAD = 0.01
@@ -272,13 +272,14 @@ def noise_step(step: FloatArray, floor: FloatArray | None, levels: FloatArray, h
     """One noise round's log-variance step (gyro at index 3) from the measured factors `step`: whether it is small
     enough to stop, and the gyro's measured factor (for the secant history)."""
     if floor is not None:
-        # still data measured the sensors' white noise: levels never go below it, and the gyro keeps it
-        # (its residuals in motion mostly hold unmodelled scale and timing errors, see docs/method-map.md)
-        step[3] = 0.0
+        # still data measured the sensors' white noise: no level goes below it. In motion the IMU may be noisier
+        # than at rest (a flight's vibration doubles or triples the gyro's noise), so every level is estimated
         step = np.maximum(step, 2.0 * np.log(floor / levels))
     small = float(np.max(np.abs(step))) < 2.0 * NOISE_TOL
     measured = float(step[3])
-    step[3] = _secant(history, applied, measured) if floor is None else 0.0
+    step[3] = _secant(history, applied, measured)
+    if floor is not None:
+        step[3] = max(step[3], 2.0 * float(np.log(floor[3] / levels[3])))
     # without still data the gyro level is weakly determined: when the other factors misfit (flight, too
     # little rotation) its fixed point runs away toward zero and the trajectory becomes numerically rigid
     step[3] = max(step[3], MIN_GYRO_LOG_VARIANCE - applied)
