@@ -30,7 +30,7 @@ from magcal_cli.logwriters.rosbag import write_bag
 from magcal_cli.models.accel import G
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.readers.dataflash_binary import parse_binary, parse_buffer
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import Kind, Recording, Sampling, Stream
 from magcal_cli.synth import Simulation, draw_truth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -449,7 +449,8 @@ def recording_of(rot: np.ndarray, rate: float, seed: int, mag_step: int = 2, acc
     if normalise:
         y /= np.linalg.norm(y, axis=1, keepdims=True)
     return Recording(Path("x.sim"), "simulation", (
-        Stream(Kind.ACCELEROMETER, "imu", t, acc, "sim", "m/s^2"), Stream(Kind.GYROSCOPE, "imu", t, gyro, "sim", "rad/s"),
+        Stream(Kind.ACCELEROMETER, "imu", t, acc, "sim", "m/s^2"),
+        Stream(Kind.GYROSCOPE, "imu", t, gyro, "sim", "rad/s", sampling=Sampling.FOLLOWING),   # R_k^T R_k+1 / dt
         Stream(Kind.MAGNETOMETER, "mag", t[idx], y, "sim", "tesla")))
 
 

@@ -376,6 +376,11 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
             try:
                 return _fit_map(*args, prior=prior)
             except InsufficientDataError as exc:          # not even that: say why the partial fit failed
+                for level in (1, 2):                      # unless a half turn still gives the offsets
+                    try:
+                        return _fit_map(*args, prior=replace(prior, fallback=level))
+                    except (InsufficientDataError, np.linalg.LinAlgError):
+                        continue
                 raise exc from refused
             except np.linalg.LinAlgError:
                 msg = (f"{problem.where}: {mag.id}: the log's motion determines too little for even a partial "
@@ -420,6 +425,16 @@ def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated,
     return layout, tuple(bound), untestable, full, pre
 
 
+def _with_coverage(problem: Problem, mag: Stream, prior: partial.MagPrior, dip: float | None,
+                   cache: dict[bytes, Preintegrated]) -> partial.MagPrior:
+    """The prior with what the motion shows of the field (`partial.covered`): from the gyro-integrated attitude
+    levelled by the accelerometer, never from the readings about the prior."""
+    ep = epochs_for(problem, mag, 1.0)
+    bias = problem.still.gyr_bias if problem.still.segments else np.zeros(3)
+    pre = _preintegrated(problem, ep, bias, Noise(np.ones(3), np.full(3, 1e-3), np.ones(3)), cache)
+    return partial.covered(prior, pre.delta, ep.acc, dip, ep.mag)
+
+
 def held_out(t: FloatArray, windows: tuple[tuple[float, float], ...]) -> FloatArray | None:
     """Row weights at epochs t: 0 inside the held-out windows, 1 elsewhere (None without windows)."""
     if not windows:
@@ -439,6 +454,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     where = f"{problem.where}: {mag.id}"
     clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
     if prior is not None:
+        prior = _with_coverage(problem, mag, prior, dip_prior, cache)
         intr = map_init.from_prior(clean, prior.D, prior.o)
     elif warm is not None:                # the fit to start from may be a partial one: no ellipsoid needed
         d, o, _ = mag_layout(warm.layout).unpack(warm.theta)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
-from .map_init import despike
+from .. import so3
 from .params import BASE, Layout
 from .solve import Factor, gaussian_factor
 
@@ -49,8 +49,11 @@ PREFERENCE = {"dip": 0, "D": 1, "accelerometer_bias": 2, "gyroscope_bias": 3, "o
 DIRECTION_ERROR = 0.01
 #: the std (relative to the field) beyond which an estimated offset is not determined (observability's fatal limit)
 OFFSET_FATAL = 0.1
-#: the weakest field strength at the Earth's surface (tesla; the WMM's minimum is 22 uT, South Atlantic)
-EARTH_FIELD_MIN = 20e-6
+#: the dip assumed for the field's body directions when the log gives no position for the World Magnetic Model
+DIP_TYPICAL = float(np.deg2rad(60.0))
+#: a vehicle turned through at least this much heading (deg) gets at least its offsets, whatever its prior: the
+#: horizontal field swept half a circle, whose centre the offsets are (issue 25)
+OFFSETS_YAW_DEG = 180.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,8 +65,14 @@ class MagPrior:
     source: str
     rel_std: float
     #: RMS angles (rad, largest first) the field directions spread about their mean along their principal axes
-    #: (`direction_spread`); None when not measured
+    #: (`motion_coverage`); None when not measured
     spread: FloatArray | None = None
+    #: the heading (deg) the vehicle turned through (`motion_coverage`); None when not measured
+    yaw_deg: float | None = None
+    #: the body axis (0-2) the field directions spread least along (a level flight's vertical); None: not measured
+    flat_axis: int | None = None
+    #: after a refused fit, what a half turn still determines: 1 holds D's column along `flat_axis`, 2 all of D
+    fallback: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,26 +166,67 @@ def flown_prior(raw: FloatArray, field: FloatArray, to_si: float, slot: str) -> 
     m, t = coef[:3].T, coef[3]
     if not np.all(np.isfinite(m)) or abs(float(np.linalg.det(m))) < 1e-9:
         return None
-    strength = float(np.median(np.linalg.norm(field[ok], axis=1)))
+    norm = np.linalg.norm(field[ok], axis=1)
+    strength = float(np.median(norm))
+    # a calibration whose corrected field strength varies by 15 % RMS is off by about that much: its doubt is at
+    # least twice its own misfit (a flown calibration that fits gets ONBOARD_REL_STD)
+    misfit = float(np.sqrt(np.mean((norm / strength - 1.0) ** 2))) if strength > 0 else 1.0
     m_inv = np.linalg.inv(m)
     return MagPrior(strength * m_inv * to_si, -m_inv @ t * to_si,
-                    f"the calibration the vehicle flew with ({slot})", ONBOARD_REL_STD)
+                    f"the calibration the vehicle flew with ({slot})", min(max(ONBOARD_REL_STD, 2.0 * misfit), 1.0))
 
 
-def direction_spread(y: FloatArray, d: FloatArray) -> FloatArray:
-    """RMS angles (rad, largest first) of the field directions about their mean along their principal axes, from
-    readings y (N, 3) and a prior D (tesla): centred, the offset drops out, and D^-1 turns field into directions
-    (a D off by 10 % misjudges the angles by 10 %). A D weaker than the weakest Earth field (a sphere fit through a
-    narrow cap, whose curvature the readings hardly show) counts as that field. Isolated spikes are smoothed first
-    (`map_init.despike`)."""
-    ok = np.all(np.isfinite(y), axis=1)
-    if ok.sum() < 3:
-        return np.zeros(3)
-    clean, _ = despike(y[ok])
-    scale = float(np.cbrt(abs(np.linalg.det(d))))
-    x = (clean - clean.mean(axis=0)) @ np.linalg.inv(d).T * min(1.0, scale / EARTH_FIELD_MIN)
-    out: FloatArray = np.sqrt(np.clip(np.linalg.eigvalsh(x.T @ x / len(x)), 0.0, None))[::-1]
-    return out
+def motion_coverage(delta: FloatArray, acc: FloatArray, dip: float | None) -> tuple[FloatArray, float, int]:
+    """What the motion shows of the field: the RMS spread (rad, largest first) of the Earth field's body-frame
+    directions about their mean along their principal axes, the heading (deg) turned through, and the body axis
+    nearest the direction of least spread.
+
+    Judged from the attitude alone, never from the readings (a prior off by more than the field would make any
+    motion look like a narrow cap): the gyro-integrated trajectory (`delta` (K-1, 3, 3), consecutive epochs)
+    levelled by the mean vertical the accelerometer (K, 3) measured along it, and the field at `dip` (rad; the
+    World Magnetic Model's, else DIP_TYPICAL). The heading's origin is arbitrary: the spread of a turn about the
+    vertical does not depend on it.
+    """
+    rel = np.concatenate([np.eye(3)[None], so3.cumulative_product(delta)])          # body k -> body 0
+    up = np.einsum("kij,kj->ki", rel, acc / np.linalg.norm(acc, axis=1, keepdims=True))
+    v = up.mean(axis=0)
+    v = v / (np.linalg.norm(v) or 1.0)
+    axis = np.cross(v, [0.0, 0.0, -1.0])                        # body-0's vertical onto NED up
+    s, c = float(np.linalg.norm(axis)), float(-v[2])
+    level = so3.exp(axis / s * np.arctan2(s, c)) if s > 1e-12 else np.diag([1.0, -1.0, -1.0]) if c < 0 else np.eye(3)
+    rot = level @ rel
+    d = DIP_TYPICAL if dip is None else dip
+    m_b = np.einsum("kji,j->ki", rot, [np.cos(d), 0.0, np.sin(d)])
+    x = m_b - m_b.mean(axis=0)
+    var, axes = np.linalg.eigh(x.T @ x / len(x))
+    spread: FloatArray = np.sqrt(np.clip(var, 0.0, None))[::-1]
+    heading = np.unwrap(np.arctan2(rot[:, 1, 0], rot[:, 0, 0]))
+    return spread, float(np.degrees(np.ptp(heading))), int(np.argmax(np.abs(axes[:, 0])))
+
+
+#: a prior whose field strength differs from the one the motion shows by more than this (relative, or 3 of its
+#: stds) is no calibration of this sensor (an uncalibrated compass's 'identity' through its hard iron)
+SCALE_MISMATCH = 0.3
+
+
+def covered(prior: MagPrior, delta: FloatArray, acc: FloatArray, dip: float | None, y: FloatArray) -> MagPrior:
+    """The prior with the motion's coverage (`motion_coverage`), its D rescaled when its strength is not the one
+    the readings (N, 3) show for that motion: the readings' spread about their own mean over the unit field's
+    (two largest principal spreads), which no prior enters."""
+    spread, yaw, flat = motion_coverage(delta, acc, dip)
+    x = y - y.mean(axis=0)
+    seen = np.sqrt(np.clip(np.linalg.eigvalsh(x.T @ x / len(x)), 0.0, None))[::-1]
+    out = replace(prior, spread=spread, yaw_deg=yaw, flat_axis=flat)
+    if spread[1] <= 0.0:
+        return out
+    strength = float(np.sqrt(seen[0] * seen[1] / (spread[0] * spread[1])))
+    held = float(np.cbrt(abs(np.linalg.det(prior.D))))
+    if abs(held / strength - 1.0) <= max(SCALE_MISMATCH, 3.0 * prior.rel_std):
+        return out
+    # no calibration of this sensor: its offsets are where the readings centre, its scale what the motion shows
+    return replace(out, D=prior.D * (strength / held), o=sphere_prior(y).o, rel_std=max(prior.rel_std, SPHERE_REL_STD),
+                   source=f"the centre of the readings and {prior.source} rescaled by {strength / held:.2f} to the "
+                          "field strength the motion shows (the flown calibration does not fit this sensor)")
 
 
 def cap_needs(rel_std: float) -> tuple[float, float]:
@@ -199,20 +249,30 @@ def cap_pins(prior: MagPrior) -> tuple[IntArray, str]:
     plane, offsets = cap_needs(prior.rel_std)
     s1, s2 = np.degrees(prior.spread[:2])
     arc = float(np.sqrt(12.0))           # a uniform sweep through an arc of angle a spreads a / sqrt(12) RMS
-    if prior.spread[0] < offsets:
+    turned = prior.yaw_deg is not None and prior.yaw_deg >= OFFSETS_YAW_DEG
+    if prior.fallback and turned:
+        column = prior.fallback == 1 and prior.flat_axis is not None
+        axis = 0 if prior.flat_axis is None else prior.flat_axis
+        cols = BASE.cols("D")[3 * axis:3 * axis + 3] if column else BASE.cols("D")
+        what = f"D's column along body axis {'xyz'[axis]}" if column else "D"
+        return cols, (f"the full calibration could not be determined; the vehicle turned through {prior.yaw_deg:.0f} "
+                      f"deg of heading, so the offsets are estimated with {what} held")
+    if prior.spread[0] < offsets and not turned:
         return BASE.cols("D", "o"), (
             f"the field directions moved through an arc of only {arc * s1:.0f} deg ({s1:.1f} deg RMS about their "
             f"mean); the offsets need {arc * np.degrees(offsets):.0f} deg: turn the vehicle through at least that "
             "about an axis away from the field, e.g. a full turn about the vertical")
-    if prior.spread[1] < plane and prior.rel_std >= SPHERE_REL_STD:
+    if prior.spread[1] < plane and prior.rel_std >= SPHERE_REL_STD and not turned:
         return BASE.cols("D", "o"), (
             f"the field directions stayed in a narrow cap ({s1:.1f} x {s2:.1f} deg RMS): the offsets alone would need D "
             f"from the calibration the vehicle flew with, and a sphere through such a cap is none (a plane of D needs "
             f"{np.degrees(plane):.0f} deg RMS across two directions)")
-    if prior.spread[1] < plane:
+    if prior.spread[1] < plane or prior.spread[0] < offsets:
+        turn = f"; the vehicle turned through {prior.yaw_deg:.0f} deg of heading, so the offsets are estimated" \
+            if turned else ""
         return BASE.cols("D"), (
             f"the field directions stayed in a narrow cap ({s1:.1f} x {s2:.1f} deg RMS), which cannot determine D "
-            f"(that needs {np.degrees(plane):.0f} deg RMS across two directions)")
+            f"(that needs {np.degrees(plane):.0f} deg RMS across two directions){turn}")
     return np.zeros(0, np.int64), ""
 
 
@@ -300,7 +360,6 @@ def choose(info: FloatArray, prior_std: FloatArray, already: IntArray | None = N
 
 
 def priors_by_id(priors: Mapping[str, MagPrior], mag_id: str, y: FloatArray) -> MagPrior:
-    """The vehicle's own calibration of this magnetometer where the log has one, else a sphere fit; with the spread
-    of the readings' field directions measured through it."""
-    prior = priors.get(mag_id) or sphere_prior(y)
-    return replace(prior, spread=direction_spread(y, prior.D))
+    """The vehicle's own calibration of this magnetometer where the log has one, else a sphere fit to the readings
+    (N, 3) tesla; the motion's coverage is measured by the fit (`motion_coverage`)."""
+    return priors.get(mag_id) or sphere_prior(y)

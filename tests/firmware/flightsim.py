@@ -15,7 +15,7 @@ import numpy as np
 from magcal_cli import so3
 from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.firmware.split import heading_errors_deg
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import Kind, Recording, Sampling, Stream
 
 
 @dataclass
@@ -79,7 +79,7 @@ def flight(seed: int = 0, n: int = 1500, rate: float = 10.0, dip_deg: float = 65
         Stream(Kind.ATTITUDE, "ATT", t, so3.as_quat(R), "sim#ATT", "quaternion wxyz"),
         Stream(Kind.BATTERY_CURRENT, "BAT[0]", t, current, "sim#BAT.Curr", "A"),
         Stream(Kind.ACCELEROMETER, "IMU[0]", t, np.einsum("nji,j->ni", R, [0, 0, -9.81]), "sim#IMU", "m/s^2"),
-        Stream(Kind.GYROSCOPE, "IMU[0]", t, gyro, "sim#IMU", "rad/s"),
+        Stream(Kind.GYROSCOPE, "IMU[0]", t, gyro, "sim#IMU", "rad/s", sampling=Sampling.FOLLOWING),  # R_k^T R_k+1
     ]
     p = {f"COMPASS_OFS_{a}": float(v) for a, v in zip("XYZ", ofs, strict=True)}
     p |= {f"COMPASS_DIA_{a}": float(M[i, i]) for i, a in enumerate("XYZ")}

@@ -11,7 +11,7 @@ from magcal_cli.config import Config
 from magcal_cli.models.accel import G
 from magcal_cli.models.problem import Problem
 from magcal_cli.pipeline import select_problem
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import Kind, Recording, Sampling, Stream
 from magcal_cli.synth import Truth, draw_truth
 
 
@@ -39,8 +39,9 @@ def record(rot: np.ndarray, rate: float, seed: int, mag_step: int = 1, mag_offse
     acc = -G * rot[:-1, 2, :] + tr.accel_bias + sd["accelerometer"] * rng.standard_normal((n, 3))
     idx = np.arange(0, n - 1, mag_step)
     r_m = rot[idx] @ so3.exp(mag_offset * inc[idx])
+    # the gyro sample is the mean rate over [t_k, t_k+1) (the constant-rate model above): say so
     streams = [Stream(Kind.ACCELEROMETER, "imu", t, acc, "sim#imu", "m/s^2"),
-               Stream(Kind.GYROSCOPE, "imu", t, gyro, "sim#imu", "rad/s")]
+               Stream(Kind.GYROSCOPE, "imu", t, gyro, "sim#imu", "rad/s", sampling=Sampling.FOLLOWING)]
     for i, m in enumerate(truths):
         m_n = np.array([np.cos(m.dip), 0.0, np.sin(m.dip)])
         noise = sd["magnetometer"] * rng.standard_normal((idx.size, 3))
