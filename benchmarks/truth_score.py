@@ -1,0 +1,71 @@
+"""Score a calibration document against a truth document (calibration-file.md shape): z = error / reported std.
+
+Used by `tests/test_independent.py` and the benchmarks that fit simulated logs. Magnetometers are matched by id or
+by the truth's `aliases`; the IMU by id (or the truth's `imus` list); D and o in the log's unit, dip in degrees.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+
+
+class Z(NamedTuple):
+    """One estimate against its truth: where, what, error / std."""
+
+    sensor: str
+    name: str
+    z: float
+
+
+def _by_alias(truth: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for m in truth.get("magnetometers", []):
+        for name in (m["id"], *m.get("aliases", [])):
+            out[name] = m
+    return out
+
+
+def z_scores(doc: dict[str, Any], truth: dict[str, Any]) -> list[Z]:
+    """Every estimate of D, o, dip and the IMU biases as an error over its reported std (held entries skipped)."""
+    out: list[Z] = []
+    mags = _by_alias(truth)
+    for m in doc.get("magnetometers", []):
+        t = mags.get(m["id"])
+        if t is None:
+            continue
+        held = {h["parameter"] for h in m.get("held", [])}
+        for key in ("D", "o"):
+            err = (np.asarray(m[key], dtype=float) - np.asarray(t[key], dtype=float)).ravel()
+            std = np.asarray(m["std"][key], dtype=float).ravel()
+            names = [f"{key}.{i}{j}" for i in range(3) for j in range(3)] if key == "D" else \
+                [f"o.{a}" for a in "xyz"]
+            out += [Z(m["id"], n, float(e / s)) for n, e, s in zip(names, err, std, strict=True)
+                    if n not in held and s > 0]
+        if "dip" not in held and m["std"].get("dip_deg"):
+            out.append(Z(m["id"], "dip", (m["dip_deg"] - t["dip_deg"]) / m["std"]["dip_deg"]))
+    imus = {i["id"]: i for i in truth.get("imus", [])}
+    imu = doc.get("imu") or {}
+    ti = imus.get(imu.get("id"), truth.get("imu"))
+    for key in ("accelerometer_bias", "gyroscope_bias"):
+        if imu.get(key) is None or ti is None or imu.get("std", {}).get(key) is None:
+            continue
+        err = np.asarray(imu[key], dtype=float) - np.asarray(ti[key], dtype=float)
+        std = np.asarray(imu["std"][key], dtype=float)
+        out += [Z(imu["id"], f"{key}.{a}", float(e / s)) for a, e, s in zip("xyz", err, std, strict=True) if s > 0]
+    return out
+
+
+def covers(entry: dict[str, Any], truth_entry: dict[str, Any]) -> dict[str, bool]:
+    """Whether each scalar of the truth's effect parameters lies inside the entry's ci95 (component by component)."""
+    out: dict[str, bool] = {}
+    for name, value in truth_entry.get("params", {}).items():
+        ci = entry.get("ci95", {}).get(name)
+        if ci is None or isinstance(value, str):
+            continue
+        lo_hi = np.asarray(ci, dtype=float).reshape(-1, 2)
+        v = np.atleast_1d(np.asarray(value, dtype=float))
+        for i, (x, (lo, hi)) in enumerate(zip(v, lo_hi, strict=True)):
+            out[f"{name}[{i}]" if v.size > 1 else name] = bool(lo <= x <= hi)
+    return out
