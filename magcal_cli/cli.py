@@ -388,7 +388,13 @@ def _effect_help() -> str:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the truth, trajectory and noise.")
 @click.option("--duration", type=float, default=None, help="Length in seconds [default: the scenario's own].")
 @click.option("--rate", type=float, default=None, help="IMU rate in Hz [default: paper 80, handheld 100].")
-@click.option("--mag-rate", type=float, default=None, help="Magnetometer rate in Hz [default: paper 80, handheld 50].")
+@click.option("--mag-rate", type=float, default=None,
+              help="Magnetometer rate in Hz, any positive rate (a .csv needs one that divides --rate) "
+                   "[default: paper 80, handheld 50].")
+@click.option("--mag-phase", type=float, default=None, metavar="SECONDS",
+              help="Time of the first magnetometer stamp after the first IMU stamp, >= 0 and below one "
+                   "magnetometer period [default: drawn from --seed in 0-5 ms, as real boards stamp it; 0 for a "
+                   ".csv, which holds one row per IMU sample].")
 @click.option("--effect", "effects", multiple=True, metavar="ID[:key=value,...]", callback=_parse_effects,
               help=_effect_help())
 @click.option("--truth", "truth_path", type=click.Path(path_type=Path), default=None,
@@ -398,14 +404,17 @@ def _effect_help() -> str:
 @click.pass_context
 @handle_errors
 def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: float | None, rate: float | None,
-             mag_rate: float | None, effects: tuple[Any, ...], truth_path: Path | None, force: bool) -> None:
+             mag_rate: float | None, mag_phase: float | None, effects: tuple[Any, ...], truth_path: Path | None,
+             force: bool) -> None:
     """Write a synthetic log (format from OUT's extension) and its truth as a calibration document.
 
-    The truth lists the injected effects in the log's magnetometer unit and with the reader's channel ids.
+    The IMU samples the way OUT's format defines (instantaneous, or the mean over the last IMU period in a .ulg);
+    the magnetometer has its own rate and phase. The truth lists the injected effects in the log's magnetometer
+    unit and with the reader's channel ids.
     """
     from .atomic import check_writable, write_text
     from .document import dumps_json
-    from .logwriters import write_log
+    from .logwriters import imu_sampling, write_log
     from .pipeline import utc_now
     from .readers import open_recording
     from .synth import simulate as run_simulation
@@ -413,17 +422,42 @@ def simulate(ctx: click.Context, out: Path, scenario: str, seed: int, duration: 
 
     truth_path = truth_path or out.with_name(out.name + ".truth.json")
     options.log_extension(out)
+    mag_phase = _mag_phase(out, scenario, rate, mag_rate, mag_phase)
     options.refuse_existing((out, truth_path), force)
     for p in (out, truth_path):
         check_writable(p.parent, hint="Choose another path")
     _stderr(ctx, f"simulating {scenario} (seed {seed})" + (f" with {', '.join(e.id for e in effects)}"
                                                              if effects else ""))
-    sim = run_simulation(scenario, seed, rate, mag_rate, duration, effects=effects)
+    sim = run_simulation(scenario, seed, rate, mag_rate, duration, effects=effects, imu_sampling=imu_sampling(out),
+                         mag_phase_s=mag_phase)
     write_log(sim, out)
     written = open_recording(out)                       # the truth uses the ids and unit readers report
     write_text(truth_path, dumps_json(truth_calibration(sim, written, __version__, utc_now())))
     click.echo(f"wrote {out}")
     click.echo(f"wrote {truth_path}")
+
+
+def _mag_phase(out: Path, scenario: str, rate: float | None, mag_rate: float | None,
+               phase: float | None) -> float | None:
+    """--mag-phase checked (a usage error outside [0, 1/mag-rate)); a .csv, whose rows are the IMU samples, takes
+    phase 0 and needs a magnetometer rate that divides the IMU rate."""
+    from .synth import rates
+
+    rate_hz, mag_hz = rates(scenario, rate, mag_rate)
+    if phase is not None and not (0.0 <= phase < 1.0 / mag_hz if mag_hz > 0 else phase >= 0.0):
+        msg = f"must be >= 0 s and below one magnetometer period (1/{mag_hz:g} Hz = {1.0 / mag_hz:g} s), got {phase:g}"
+        raise click.BadParameter(msg, param_hint="--mag-phase")
+    if out.suffix.lower() != ".csv":
+        return phase
+    if phase:
+        msg = f"{out}: a .csv log holds one row per IMU sample, so its magnetometer has phase 0; drop --mag-phase"
+        raise click.BadParameter(msg, param_hint="--mag-phase")
+    ratio = rate_hz / mag_hz if mag_hz > 0 else 0.0
+    if ratio < 1.0 or abs(ratio - round(ratio)) > 1e-9:
+        msg = (f"{out}: a .csv log holds one row per IMU sample, so the magnetometer rate must divide the IMU rate "
+               f"{rate_hz:g} Hz; got {mag_hz:g} Hz")
+        raise click.BadParameter(msg, param_hint="--mag-rate")
+    return 0.0
 
 
 @cli.command("inspect", epilog=EXIT_CODES)

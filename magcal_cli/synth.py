@@ -1,10 +1,13 @@
 """Synthetic recordings with known truth: the `paper` (Huang et al. 2025), `handheld`, `multirotor`, `rover` scenarios.
 
-Truth and noise are drawn as in methods.md section 5 (the authors' simulate/simulate.m), in NED.
-Gyro samples are exact constant-rate increments, y_g,k = Log(R_k^T R_k+1)/dt + b_g + noise, so they agree
-with preintegration; accelerometers see y_a = R^T (a_n - g_n) + b_a + noise, with a_n = 0 (pure rotation) in
-paper and handheld and the vehicle's own translation in multirotor and rover (synth_scenarios.py), which
-then also log their GNSS position and list it as the nongravity_acceleration effect in the truth.
+Truth and noise are drawn as in methods.md section 5 (the authors' simulate/simulate.m), in NED. The trajectory
+is a continuous-time truth (synth_motion.py: attitude knots at OVERSAMPLE times the IMU rate, C1 in between;
+a translation whose acceleration is continuous), and every sensor samples it as real sensors do, at its own
+stamps (synth_sampling.py): IMU sample k at t_k = k / rate is the instantaneous body rate and specific force
+R^T (a_n - g_n) (Sampling.INSTANT) or their means over [t_k - 1/rate, t_k] (Sampling.PRECEDING, a delta-angle
+IMU), plus bias and noise; the magnetometer reads D R(t_j)^T m_n + o + noise at its own stamps
+t_j = phase + j / mag_rate. a_n = 0 (pure rotation) in paper and handheld; multirotor and rover carry their own
+translation (synth_scenarios.py), log their GNSS position and list it as the nongravity_acceleration effect.
 `effects` adds physics the base model leaves out (synth_effects.py, synth_inject.py); they draw from their
 own generators, so a simulation with effects has the same trajectory and noise as one without.
 """
@@ -22,11 +25,23 @@ from .calibration import Calibration, ImuCalibration, MagCalibration, Source
 from .errors import MagcalError
 from .models.accel import G
 from .models.params import BASE, MAG
-from .streams import Kind, Recording, Stream
+from .streams import Kind, Recording, Sampling, Stream
 from .synth_effects import EffectSpec
 from .synth_inject import Base, InjectedEffect, inject, truth_entry
-from .synth_physics import POWER_PROFILES, Motion
-from .synth_scenarios import MIN_DURATION, min_jerk, multirotor, rover
+from .synth_motion import OVERSAMPLE, Trajectory
+from .synth_physics import POWER_PROFILES
+from .synth_rotation import handheld, paper
+from .synth_rotation import paper_trajectory as paper_trajectory  # re-exported: tests build records from it
+from .synth_sampling import (
+    check_phase,
+    check_rates,
+    check_sampling,
+    draw_phase,
+    imu_stamps,
+    mag_stamps,
+    sample_imu,
+)
+from .synth_scenarios import MIN_DURATION, Scenario, multirotor, rover
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -45,8 +60,6 @@ COMPASS_NOISE_FACTOR = 7.0
 PAPER_FIELD = 27e-6
 #: ROS time of the first sample, so that simulated logs carry realistic absolute stamps
 T0_ROS = 1_763_700_000.0
-#: a level ROS (FLU) body in NED: x north, y west, z up
-FLU_LEVEL = np.diag([1.0, -1.0, -1.0])
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,8 +98,9 @@ class Truth:
 
 @dataclass(frozen=True, eq=False)
 class Simulation:
-    """A simulated recording, its truth, the true trajectory at the IMU epochs, the still intervals (s) and the
-    injected effects (SI parameters)."""
+    """A simulated recording, its truth, the true attitude at the IMU stamps (N, 3, 3), the still intervals (s),
+    the injected effects (SI parameters), how the IMU sampled, the magnetometer's phase (s), the fine grid's
+    knots per IMU period and the continuous-time attitude R(t) itself (None only for hand-built simulations)."""
 
     recording: Recording
     truth: Truth
@@ -95,6 +109,10 @@ class Simulation:
     scenario: str
     seed: int
     effects: tuple[InjectedEffect, ...] = ()
+    imu_sampling: Sampling = Sampling.INSTANT
+    mag_phase_s: float = 0.0
+    oversample: int = OVERSAMPLE
+    trajectory: Trajectory | None = None
 
 
 def truth_calibration(sim: Simulation, log: Recording, version: str, created_utc: str) -> Calibration:
@@ -114,7 +132,8 @@ def truth_calibration(sim: Simulation, log: Recording, version: str, created_utc
     imu = ImuCalibration(imu_id, tr.accel_bias, tr.gyro_bias, np.zeros(3), np.zeros(3))
     source = Source(str(log.path), log.format, "", 0.0, float(acc_sim.t[-1]))
     sim_info = {"scenario": sim.scenario, "seed": sim.seed, "rate_hz": acc_sim.rate_hz,
-                "mag_rate_hz": mag_sim.rate_hz, "still_intervals_s": [list(s) for s in sim.still]}
+                "mag_rate_hz": mag_sim.rate_hz, "still_intervals_s": [list(s) for s in sim.still],
+                "imu_sampling": sim.imu_sampling.value, "mag_phase_s": sim.mag_phase_s, "oversample": sim.oversample}
     noise = {f"{k}_std": [v] * 3 for k, v in tr.noise_std.items()} | {"source": "simulation (per-sample std, SI)"}
     effects = tuple(truth_entry(e, log, imu_id) for e in sim.effects)
     return Calibration(source, "truth", imu, (cal,), version, created_utc, noise, effects,
@@ -143,81 +162,30 @@ def draw_truth(rng: np.random.Generator, rate: float, mag_rate: float) -> Truth:
     return Truth(d, mag_bias, dip, acc_bias, gyro_bias, noise)
 
 
-def paper_trajectory(rng: np.random.Generator, rate: float, duration: float | None) -> FloatArray:
-    """Rotations at v + 0.05 randn(3) rad/s for 2 pi/|v| s each, v in 0.1 {x, y, z, x+y, x+z, y+z}, from I."""
-    axes = 0.1 * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1]], dtype=float)
-    spans = 2.0 * np.pi / np.linalg.norm(axes, axis=1)
-    if duration is not None:
-        spans = np.full(6, duration / 6.0)
-    counts = np.ceil(spans * rate).astype(int)
-    omega = np.repeat(axes, counts, axis=0) + 0.05 * rng.standard_normal((counts.sum(), 3))
-    steps = so3.exp(omega / rate)
-    return np.concatenate([np.eye(3)[None], so3.cumulative_product(steps)])
-
-
-def _pose_with_up(up_body: FloatArray, yaw: float) -> FloatArray:
-    """A body->NED rotation that maps the body vector `up_body` to up, then turned by `yaw` about down."""
-    up = up_body / np.linalg.norm(up_body)
-    axis = np.cross(up, [0.0, 0.0, -1.0])
-    s, c = float(np.linalg.norm(axis)), float(-up[2])
-    if s < 1e-9:
-        align = np.eye(3) if c > 0 else so3.exp([np.pi, 0.0, 0.0])
-    else:
-        align = so3.exp(axis / s * np.arctan2(s, c))
-    return so3.exp([0.0, 0.0, yaw]) @ align
-
-
-def handheld_trajectory(rng: np.random.Generator, rate: float,
-                        duration: float | None) -> tuple[FloatArray, tuple[tuple[float, float], ...]]:
-    """10 s still, then moves about varying axes between >= 12 still poses of 2-4 s, then 10 s still.
-
-    The poses point the body's up direction at the 6 faces and 8 corners of a cube (plus random ones),
-    each with a random heading, in random order.
-    """
-    n_poses = 16 if duration is None else max(12, int((duration - 20.0) / 6.0))
-    ups = np.concatenate([np.eye(3), -np.eye(3), np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T])
-    extra = rng.standard_normal((max(0, n_poses - len(ups)), 3))
-    ups = np.concatenate([ups, extra])[rng.permutation(max(n_poses, len(ups)))][:n_poses]
-    start = FLU_LEVEL @ so3.exp([0.0, 0.0, rng.uniform(-np.pi, np.pi)])
-    poses = [start] + [_pose_with_up(u_, rng.uniform(-np.pi, np.pi)) for u_ in ups] + [start]
-    holds = [10.0] + list(rng.uniform(2.0, 4.0, n_poses)) + [10.0]
-    pieces, still, t = [], [], 0.0
-    for k, (pose, hold) in enumerate(zip(poses, holds, strict=True)):
-        n = int(round(hold * rate))
-        pieces.append(np.broadcast_to(pose, (n, 3, 3)))
-        still.append((t, t + (n - 1) / rate))
-        t += n / rate
-        if k + 1 < len(poses):
-            n_move = int(round(rng.uniform(2.0, 3.5) * rate))
-            s = (np.arange(1, n_move + 1) / (n_move + 1))[:, None]
-            phi = so3.log(pose.T @ poses[k + 1])
-            wobble = rng.standard_normal(3) * 0.4
-            pieces.append(pose @ so3.exp(min_jerk(s) * phi) @ so3.exp(np.sin(np.pi * min_jerk(s)) * wobble))
-            t += n_move / rate
-    return np.concatenate(pieces), tuple(still)
-
-
-def _trajectory(scenario: str, rng: np.random.Generator, rate: float, duration: float | None,
-                trajectory: FloatArray | None) -> tuple[FloatArray, Motion | None, tuple[tuple[float, float], ...]]:
-    """Rotations (N+1, 3, 3), translation (None: pure rotation) and still intervals of the scenario or `trajectory`."""
+def _scenario(scenario: str, rng: np.random.Generator, rate: float, duration: float | None,
+              trajectory: FloatArray | None) -> Scenario:
+    """The continuous-time truth of the scenario, or of `trajectory` (knots at the IMU rate; no translation)."""
     if trajectory is not None:
         rot = np.asarray(trajectory, dtype=np.float64)
         if rot.ndim != 3 or rot.shape[1:] != (3, 3) or len(rot) < 3:
             msg = f"simulate: trajectory must be (N+1, 3, 3) rotations with N >= 2, got {rot.shape}"
             raise MagcalError(msg)
-        return rot, None, ()
-    if scenario == "paper":
-        return paper_trajectory(rng, rate, duration), None, ()
-    if scenario == "handheld":
-        rot, still = handheld_trajectory(rng, rate, duration)
-        return rot, None, still
+        return Scenario(Trajectory.from_knots(rot, 1.0 / rate), None, ())
+    if scenario in ("paper", "handheld"):
+        return (paper if scenario == "paper" else handheld)(rng, rate, duration)
     length = DEFAULT_DURATION[scenario] if duration is None else duration
     if not length >= MIN_DURATION[scenario]:
         msg = (f"simulate: the {scenario} scenario needs --duration >= {MIN_DURATION[scenario]:g} s "
                f"(its still, start and stop phases alone take most of that), got {length:g}")
         raise MagcalError(msg)
-    made = (multirotor if scenario == "multirotor" else rover)(rng, rate, length)
-    return made.rotations, made.motion, made.still
+    return (multirotor if scenario == "multirotor" else rover)(rng, rate, length)
+
+
+def rates(scenario: str, rate: float | None, mag_rate: float | None) -> tuple[float, float]:
+    """The IMU and magnetometer rates (Hz) a simulation uses: given ones, else the scenario's (DEFAULT_RATES;
+    the magnetometer never faster than the IMU by default)."""
+    rate = rate or DEFAULT_RATES[scenario][0]
+    return rate, mag_rate or min(DEFAULT_RATES[scenario][1], rate)
 
 
 def at_home(drawn: Truth) -> Truth:
@@ -237,14 +205,17 @@ def at_home(drawn: Truth) -> Truth:
 def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: float | None = None,
              duration: float | None = None, truth: Truth | None = None, effects: tuple[EffectSpec, ...] = (),
              noise_scale: float = 1.0, trajectory: FloatArray | None = None,
-             power_profile: str = "flight") -> Simulation:
+             power_profile: str = "flight", imu_sampling: Sampling = Sampling.INSTANT,
+             mag_phase_s: float | None = None) -> Simulation:
     """Simulate one recording (IMU stream `/imu/data`, magnetometer `/imu/mag`) with seeded truth.
 
     `truth` replaces the drawn calibration (its noise_std is still set from the rates). `effects` are injected
     (auxiliary channels join the recording); `noise_scale` multiplies every noise std (0: noise-free);
-    `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate replaces the scenario's rotations and
-    translation (then there is none). `power_profile`
-    (synth_physics.POWER_PROFILES) shapes the throttle and current of the power effects (default "flight").
+    `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate (the knots of the C1 truth) replaces the
+    scenario's rotations and translation (then there is none). `power_profile` (synth_physics.POWER_PROFILES)
+    shapes the throttle and current of the power effects (default "flight"). `imu_sampling` says what an IMU
+    sample stands for (INSTANT or PRECEDING, synth_sampling.py); `mag_phase_s` is the magnetometer's first
+    stamp, 0 <= phase < 1/mag_rate (default: drawn from the seed in [0, min(5 ms, 1/mag_rate))).
     """
     if scenario not in SCENARIOS:
         msg = f"simulate: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}"
@@ -255,12 +226,11 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     if not np.isfinite(noise_scale) or noise_scale < 0:
         msg = f"simulate: noise_scale must be a finite number >= 0, got {noise_scale}"
         raise MagcalError(msg)
-    rate = rate or DEFAULT_RATES[scenario][0]
-    mag_rate = mag_rate or min(DEFAULT_RATES[scenario][1], rate)
-    ratio = rate / mag_rate
-    if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
-        msg = f"simulate: --rate {rate:g} must be a whole multiple of --mag-rate {mag_rate:g}"
-        raise MagcalError(msg)
+    check_sampling(imu_sampling)
+    rate, mag_rate = rates(scenario, rate, mag_rate)
+    check_rates(rate, mag_rate)
+    phase = draw_phase(seed, mag_rate) if mag_phase_s is None else float(mag_phase_s)
+    check_phase(phase, mag_rate)
     rng = np.random.default_rng(seed)
     drawn = draw_truth(rng, rate, mag_rate)
     if noise_scale != 1.0:
@@ -271,35 +241,30 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
         # the paper scenario keeps methods.md's draw (27 uT, dip 72 +- 5 deg) for the replication
         drawn = at_home(drawn)
     truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
-    rot, motion, still = _trajectory(scenario, rng, rate, duration, trajectory)
-    n = rot.shape[0] - 1                    # gyro k covers [t_k, t_k+1], so keep N+1 rotations
-    t = np.arange(n) / rate
+    made = _scenario(scenario, rng, rate, duration, trajectory)
+    t = imu_stamps(round(made.trajectory.end * rate), rate)     # the truth runs one IMU period past the last
+    t_mag = mag_stamps(phase, mag_rate, float(t[-1]))
     sd = truth.noise_std
-    omega = so3.log(rot[:-1].transpose(0, 2, 1) @ rot[1:]) * rate
-    noise_g = sd["gyroscope"] * rng.standard_normal((n, 3))
-    knots, rot = rot, rot[:-1]
-    force = -np.einsum("nji,j->ni", rot, np.array([0.0, 0.0, G]))
-    noise_a = sd["accelerometer"] * rng.standard_normal((n, 3))
-    step = int(round(ratio))
-    m_n = truth.m_n
-    mb = np.einsum("nji,j->ni", rot[::step], m_n)
-    noise_m = sd["magnetometer"] * rng.standard_normal(mb.shape)
+    noise_g = sd["gyroscope"] * rng.standard_normal((len(t), 3))
+    noise_a = sd["accelerometer"] * rng.standard_normal((len(t), 3))
+    noise_m = sd["magnetometer"] * rng.standard_normal((len(t_mag), 3))
     src = f"simulate:{scenario}:seed={seed}"
-    done = inject(tuple(effects), Base(knots, rate, step, m_n, truth.field_strength, seed, noise_scale, src,
-                                       power_profile, motion), omega, force)
-    gyro = done.omega + truth.gyro_bias
-    gyro += noise_g
-    acc = done.force + truth.accel_bias
-    acc += noise_a
-    mag = (mb if done.mag_body is None else done.mag_body) @ truth.D.T + truth.o
-    if done.mag_extra is not None:
-        mag = mag + done.mag_extra
-    mag = mag + noise_m
+    done = inject(tuple(effects), Base(made.trajectory, t, t_mag, np.array([0.0, 0.0, G]), truth.m_n,
+                                       truth.field_strength, seed, noise_scale, src, power_profile, made.motion))
+    gyro, acc = sample_imu(done, t, rate, imu_sampling)
+    gyro += truth.gyro_bias + noise_g
+    acc += truth.accel_bias + noise_a
+    mag = done.field(t_mag) @ truth.D.T + truth.o + done.extra(t_mag) + noise_m
+    window = None if imu_sampling is Sampling.INSTANT else 1.0 / rate
     streams = (
-        Stream(Kind.ACCELEROMETER, "/imu/data", t, acc, f"{src}#/imu/data", "m/s^2"),
-        Stream(Kind.GYROSCOPE, "/imu/data", t, gyro, f"{src}#/imu/data", "rad/s"),
-        Stream(Kind.MAGNETOMETER, "/imu/mag", t[::step], mag, f"{src}#/imu/mag", "tesla"),
+        Stream(Kind.ACCELEROMETER, "/imu/data", t, acc, f"{src}#/imu/data", "m/s^2", sampling=imu_sampling,
+               window_s=window),
+        Stream(Kind.GYROSCOPE, "/imu/data", t, gyro, f"{src}#/imu/data", "rad/s", sampling=imu_sampling,
+               window_s=window),
+        Stream(Kind.MAGNETOMETER, "/imu/mag", t_mag, mag, f"{src}#/imu/mag", "tesla"),
         *done.streams,
     )
     rec = Recording(Path(f"{scenario}-{seed}.sim"), "simulation", streams, t0=T0_ROS)
-    return Simulation(rec, truth, rot, still, scenario, seed, done.effects)
+    oversample = 1 if trajectory is not None else OVERSAMPLE
+    return Simulation(rec, truth, made.trajectory.at(t), made.still, scenario, seed, done.effects, imu_sampling,
+                      phase, oversample, made.trajectory)

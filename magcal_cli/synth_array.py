@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from .streams import Kind, Recording
+from .streams import Kind, Recording, Sampling
 from .synth import Truth, at_home, draw_truth, simulate
 
 FloatArray = npt.NDArray[np.float64]
@@ -23,9 +23,9 @@ FloatArray = npt.NDArray[np.float64]
 
 @dataclass(frozen=True, eq=False)
 class ArraySimulation:
-    """A recording with one IMU (`/imu/data`) and magnetometers `/mag/0` ... `/mag/{n-1}`, the truth of each (same
-    dip, declination and IMU biases; noise_std["magnetometer"] is that magnetometer's), the true rotations at the
-    IMU epochs, the scenario and the seed."""
+    """A recording with one IMU (`/imu/data`) and magnetometers `/mag/0` ... `/mag/{n-1}` (all at the stamps of
+    `simulate`'s magnetometer), the truth of each (same dip, declination and IMU biases; noise_std["magnetometer"]
+    is that magnetometer's), the true rotations at the IMU stamps, the scenario and the seed."""
 
     recording: Recording
     truths: tuple[Truth, ...]
@@ -40,19 +40,19 @@ def mag_id(i: int) -> str:
 
 
 def simulate_array(scenario: str, seed: int, n_mags: int, rate: float | None = None, mag_rate: float | None = None,
-                   duration: float | None = None, noise_factors: Sequence[float] = ()) -> ArraySimulation:
-    """`n_mags` magnetometers on the IMU of `simulate(scenario, seed, rate, mag_rate, duration)`; magnetometer i's
-    noise std is multiplied by noise_factors[i] (1 where not given)."""
+                   duration: float | None = None, noise_factors: Sequence[float] = (),
+                   imu_sampling: Sampling = Sampling.INSTANT, mag_phase_s: float | None = None) -> ArraySimulation:
+    """`n_mags` magnetometers on the IMU of `simulate(scenario, seed, rate, mag_rate, duration, imu_sampling=...,
+    mag_phase_s=...)`; magnetometer i's noise std is multiplied by noise_factors[i] (1 where not given)."""
     if n_mags < 1:
         msg = f"simulate_array: n_mags must be >= 1, got {n_mags}"
         raise ValueError(msg)
-    sim = simulate(scenario, seed, rate, mag_rate, duration)
+    sim = simulate(scenario, seed, rate, mag_rate, duration, imu_sampling=imu_sampling, mag_phase_s=mag_phase_s)
     base = sim.truth
     first = sim.recording.select(Kind.MAGNETOMETER)
     imu = [s for s in sim.recording.streams if s.kind is not Kind.MAGNETOMETER]
-    acc_t = sim.recording.select(Kind.ACCELEROMETER).t
-    rot = sim.rotations[np.searchsorted(acc_t, first.t)]
-    m_b = np.einsum("kji,j->ki", rot, base.m_n)
+    assert sim.trajectory is not None                      # simulate always returns its continuous truth
+    m_b = np.einsum("kji,j->ki", sim.trajectory.at(first.t), base.m_n)     # the field at the readings' own stamps
     rng = np.random.default_rng([seed, n_mags, 14])
     factors = [float(f) for f in noise_factors] + [1.0] * max(0, n_mags - len(noise_factors))
     sd = base.noise_std["magnetometer"]

@@ -1,27 +1,32 @@
-"""Injecting effects into a simulation: the physics of each effect and the auxiliary channels it needs.
+"""Injecting effects into a simulation: the physics of each effect in continuous time and the channels it needs.
 
-`inject` takes the true body rates and specific forces at the IMU epochs and returns them with the IMU
-effects applied, the magnetometer's body-frame unit field and additive terms at the sensing times, the
-streams to log (battery current and voltage, throttle, temperature, position, all noisy like real sensors
-unless the noise is scaled to zero) and the injected effects in SI. The magnetometer sample stamped t_j
-senses everything at t_j - tau_s (time_offset), including the current and the external field.
+`inject` returns what ideal sensors measure with the effects in, as functions of time (`Injected`): the gyro's
+and accelerometer's instantaneous inputs (translation, lever arm and scale factors act on the instantaneous
+quantity, before any averaging a sensor does; synth_sampling.py samples them) and, for a magnetometer reading
+stamped t, the body-frame unit field and the additive terms it senses at t - tau_s (time_offset): attitude,
+current, throttle, temperature and external field alike. It also returns the streams to log (battery current
+and voltage, throttle and temperature at the magnetometer stamps, position at 10 Hz; noisy like real sensors
+unless the noise is scaled to zero) and the injected effects in SI, with their signals at the stamps.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from . import so3, units
 from . import synth_physics as phys
-from . import units
 from .streams import Kind, Recording, Stream
 from .synth_effects import EFFECTS, EffectSpec, check_unique
+from .synth_motion import Motion, Trajectory
 
 FloatArray = npt.NDArray[np.float64]
+#: an additive magnetometer term (M, 3) tesla as a function of the sensing time (s)
+Term = Callable[[FloatArray], FloatArray]
 
 #: stream ids of the auxiliary channels (ROS topics; the other formats have their own names)
 CURRENT_ID, THROTTLE_ID = "/battery", "/mavros/target_actuator_control"
@@ -38,8 +43,9 @@ SEED_TAG = 0x5EFFEC7
 class InjectedEffect:
     """An effect in the simulation: SI parameters (truth names), channel kinds logged, signals for tests.
 
-    `signals` holds e.g. "term" (the added magnetometer term, tesla, at the magnetometer epochs), "a_n"
-    (NED acceleration at the IMU epochs) or "omega"/"omega_dot" (the lever arm's rates).
+    `signals` hold instantaneous values at the stamps, e.g. "term" (the added magnetometer term, tesla, at the
+    magnetometer stamps), "a_n"/"p_n" (NED acceleration and position at the IMU stamps) or "omega"/"omega_dot"
+    (the lever arm's rates at the IMU stamps).
     """
 
     id: str
@@ -55,31 +61,92 @@ class InjectedEffect:
 
 @dataclass(frozen=True, eq=False)
 class Base:
-    """What the effects act on: knots (N+1, 3, 3) body->NED at `rate` Hz, one magnetometer sample per `step`,
-    and the scenario's translation if it has one."""
+    """What the effects act on: the true attitude (body->NED) and the scenario's translation (None: a pure
+    rotation), both functions of time; the IMU and magnetometer stamps (s); gravity g_n (m/s^2) and the field."""
 
-    knots: FloatArray
-    rate: float
-    step: int
+    trajectory: Trajectory
+    t_imu: FloatArray
+    t_mag: FloatArray
+    g_n: FloatArray
     m_n: FloatArray
     field_strength: float
     seed: int
     noise_scale: float
     source: str
     power_profile: str = "flight"
-    motion: phys.Motion | None = None       # the scenario's own translation (multirotor, rover)
+    motion: Motion | None = None
 
 
 @dataclass(frozen=True, eq=False)
 class Injected:
-    """The measurements' true parts with the effects in; None where the base simulation's stands unchanged."""
+    """The sensors' true inputs with the effects in, as functions of time (s) (`ImuTruth` for synth_sampling),
+    plus the logged channels and the injected effects.
 
-    omega: FloatArray
-    force: FloatArray
-    mag_body: FloatArray | None
-    mag_extra: FloatArray | None
-    streams: tuple[Stream, ...]
-    effects: tuple[InjectedEffect, ...]
+    `moves` sum to the NED acceleration; gains are 1 + s of the scale factors; `disturbance` is (b_rel (3,),
+    windows (K, 2) s); `terms` are the magnetometer's additive terms as functions of the sensing time.
+    """
+
+    trajectory: Trajectory
+    g_n: FloatArray
+    m_n: FloatArray
+    moves: tuple[Motion | phys.Path, ...]
+    lever_arm: FloatArray | None
+    gyro_gain: FloatArray
+    accel_gain: FloatArray
+    tau: float
+    disturbance: tuple[FloatArray, FloatArray] | None
+    terms: tuple[Term, ...]
+    streams: tuple[Stream, ...] = ()
+    effects: tuple[InjectedEffect, ...] = ()
+
+    def nav_acceleration(self, t: FloatArray) -> FloatArray:
+        """a_n (M, 3) m/s^2: the sum of the translations."""
+        out = np.zeros((len(t), 3))
+        for move in self.moves:
+            out += move.acceleration(t)
+        return out
+
+    def lever(self, t: FloatArray) -> FloatArray:
+        """w' x r + w x (w x r) (M, 3) m/s^2, the lever arm's specific force (zero without one)."""
+        if self.lever_arm is None:
+            return np.zeros((len(t), 3))
+        w, w_dot = self.trajectory.rate_and_acceleration(t)
+        out: FloatArray = np.cross(w_dot, self.lever_arm) + np.cross(w, np.cross(w, self.lever_arm))
+        return out
+
+    def rate(self, t: FloatArray) -> FloatArray:
+        """(I + diag(s)) w(t): an ideal gyro's instantaneous reading (M, 3) rad/s."""
+        return self.gyro_gain * self.trajectory.rate(t)
+
+    def mean_rate(self, t0: FloatArray, t1: FloatArray) -> FloatArray:
+        """(I + diag(s)) Log(R(t0)^T R(t1)) / (t1 - t0): the mean rate over [t0, t1] as an integrating gyro
+        reports it (the scale acts on the rate before it is integrated; to first order in s the same)."""
+        rel = np.swapaxes(self.trajectory.at(t0), -1, -2) @ self.trajectory.at(t1)
+        return self.gyro_gain * so3.log(rel) / (t1 - t0)[:, None]
+
+    def force(self, t: FloatArray) -> FloatArray:
+        """(I + diag(s)) (R^T (a_n - g_n) + lever arm term): an ideal accelerometer's instantaneous reading."""
+        f = _body(self.trajectory.at(t), self.nav_acceleration(t) - self.g_n) + self.lever(t)
+        return self.accel_gain * f
+
+    def disturbance_n(self, sensed: FloatArray) -> FloatArray:
+        """The external field (M, 3) NED, in units of the Earth field, at sensing times."""
+        if self.disturbance is None:
+            return np.zeros((len(sensed), 3))
+        b_rel, windows = self.disturbance
+        return phys.window(sensed, windows)[:, None] * b_rel
+
+    def field(self, t: FloatArray) -> FloatArray:
+        """The body-frame unit field (M, 3) of readings stamped t: R(t - tau)^T (m_n + disturbance)."""
+        sensed = t - self.tau
+        return _body(self.trajectory.at(sensed), self.m_n + self.disturbance_n(sensed))
+
+    def extra(self, t: FloatArray) -> FloatArray:
+        """The additive terms (M, 3) tesla of readings stamped t, sensed at t - tau."""
+        out = np.zeros((len(t), 3))
+        for term in self.terms:
+            out += term(t - self.tau)
+        return out
 
 
 def _rng(seed: int, k: int) -> np.random.Generator:
@@ -87,21 +154,22 @@ def _rng(seed: int, k: int) -> np.random.Generator:
     return np.random.default_rng([seed, SEED_TAG, k])
 
 
-def _body(rot: FloatArray, v_n: FloatArray) -> FloatArray:
-    """R^T v for (N, 3, 3) rotations and (N, 3) nav-frame vectors."""
-    out: FloatArray = np.einsum("nji,nj->ni", rot, v_n)
+def _body(rot: FloatArray, v_n: npt.ArrayLike) -> FloatArray:
+    """R^T v for (N, 3, 3) rotations and (N, 3) or (3,) nav-frame vectors."""
+    out: FloatArray = np.einsum("nji,nj->ni", rot, np.broadcast_to(v_n, (len(rot), 3)))
     return out
 
 
-def _translation(q: dict[str, Any] | None, base: Base, t: FloatArray, force: FloatArray,
-                 streams: list[Stream], effects: list[InjectedEffect]) -> FloatArray:
-    """f += R^T a_n for the scenario's translation plus the effect's sway; the summed path is logged as GNSS
-    positions unless the effect says source "none". Either alone is one nongravity_acceleration effect."""
-    moves: list[phys.Motion | phys.Path] = [] if base.motion is None else [base.motion]
+def _translation(q: dict[str, Any] | None, base: Base, streams: list[Stream],
+                 effects: list[InjectedEffect]) -> tuple[Motion | phys.Path, ...]:
+    """The scenario's translation plus the effect's sway; the summed path is logged as GNSS positions unless the
+    effect says source "none". Either alone is one nongravity_acceleration effect."""
+    t = base.t_imu
+    moves: list[Motion | phys.Path] = [] if base.motion is None else [base.motion]
     if q is not None:
         moves.append(phys.path(_rng(base.seed, 2), t, q["sigma_a"]))
     if not moves:
-        return force
+        return ()
     source = "gps" if q is None else str(q["source"])
     delay = 0.0 if q is None else float(q.get("delay_s", 0.0))      # the fix stamped t was taken at t - delay
     t_pos = np.arange(0.0, t[-1] + 1e-9, 1.0 / POSITION_RATE_HZ)
@@ -119,110 +187,97 @@ def _translation(q: dict[str, Any] | None, base: Base, t: FloatArray, force: Flo
                                   {"sigma_a": float(np.sqrt(np.mean(a_n**2))), "source": source,
                                    "delay_s": delay},
                                   channels, {"a_n": a_n, "p_n": p_n}))
-    return force + _body(base.knots[:-1], a_n)                # f = R^T (a_n - g_n)
-
-
-def _imu(p: dict[str, dict[str, Any]], base: Base, t: FloatArray, omega: FloatArray, force: FloatArray,
-         streams: list[Stream], effects: list[InjectedEffect]) -> tuple[FloatArray, FloatArray]:
-    """Translation, lever arm, then the scale factors, which act on the whole measured quantity."""
-    force = _translation(p.get("nongravity_acceleration"), base, t, force, streams, effects)
-    if "lever_arm" in p:
-        r = np.array(p["lever_arm"]["r_m"])
-        w, w_dot = phys.Trajectory.from_knots(base.knots, 1.0 / base.rate).rate_and_acceleration(t)
-        term = np.cross(w_dot, r) + np.cross(w, np.cross(w, r))
-        force = force + term
-        effects.append(InjectedEffect("lever_arm", {"r_m": r}, (), {"term": term, "omega": w, "omega_dot": w_dot}))
-    if "accel_scale" in p:
-        s = np.array(p["accel_scale"]["s"])
-        force = force * (1.0 + s)
-        effects.append(InjectedEffect("accel_scale", {"s": s}, (), {}))
-    if "gyro_scale" in p:
-        s = np.array(p["gyro_scale"]["s"])
-        omega = omega * (1.0 + s)
-        effects.append(InjectedEffect("gyro_scale", {"s": s}, (), {}))
-    return omega, force
+    return tuple(moves)
 
 
 def _aux(kind: Kind, sid: str, t: FloatArray, v: FloatArray, unit: str, base: Base) -> Stream:
     return Stream(kind, sid, t, v, f"{base.source}#{sid}", unit)
 
 
-def _mag(p: dict[str, dict[str, Any]], base: Base, t_mag: FloatArray, duration: float,
-         streams: list[Stream], effects: list[InjectedEffect]) -> tuple[FloatArray | None, FloatArray | None]:
-    """The body-frame unit field and the additive terms (tesla) sensed at t_mag - tau_s."""
+def _power_terms(p: dict[str, dict[str, Any]], base: Base, sensed: FloatArray, duration: float,
+                 streams: list[Stream], effects: list[InjectedEffect]) -> list[Term]:
+    """current_interference c I(t) and throttle_interference c u(t)^p, and the three power channels they log."""
+    if "current_interference" not in p and "throttle_interference" not in p:
+        return []
+    pw = phys.power(_rng(base.seed, 1), duration, base.power_profile)
+    t_mag, noise, ns = base.t_mag, _rng(base.seed, 4), base.noise_scale
+    n = len(t_mag)
+    current = pw.current(t_mag) + ns * AUX_NOISE["current"] * noise.standard_normal(n)
+    voltage = pw.voltage(t_mag) + ns * AUX_NOISE["voltage"] * noise.standard_normal(n)
+    streams += [_aux(Kind.BATTERY_CURRENT, CURRENT_ID, t_mag, current, "A", base),
+                _aux(Kind.BATTERY_VOLTAGE, CURRENT_ID, t_mag, voltage, "V", base),
+                _aux(Kind.THROTTLE, THROTTLE_ID, t_mag, pw.throttle(t_mag), "1", base)]
+    terms: list[Term] = []
+    if "current_interference" in p:
+        c = np.array(p["current_interference"]["c"])
+        terms.append(lambda s: pw.current(s)[:, None] * c)
+        effects.append(InjectedEffect("current_interference", {"c": c}, (Kind.BATTERY_CURRENT,),
+                                      {"term": terms[-1](sensed)}))
+    if "throttle_interference" in p:
+        ct, expo = np.array(p["throttle_interference"]["c"]), float(p["throttle_interference"]["p"])
+        terms.append(lambda s: pw.throttle(s)[:, None] ** expo * ct)
+        effects.append(InjectedEffect("throttle_interference", {"c": ct, "p": expo}, (Kind.THROTTLE,),
+                                      {"term": terms[-1](sensed)}))
+    return terms
+
+
+def _mag(p: dict[str, dict[str, Any]], base: Base, duration: float, streams: list[Stream],
+         effects: list[InjectedEffect]) -> tuple[float, tuple[FloatArray, FloatArray] | None, tuple[Term, ...]]:
+    """time_offset's tau_s, transient_disturbance's (b_rel, windows) and the additive terms, with their entries."""
     tau = float(p.get("time_offset", {}).get("tau_s", 0.0))
-    sensed = t_mag - tau
-    noise = _rng(base.seed, 4)
-    ns = base.noise_scale
-    mag_body = None
-    if "time_offset" in p or "transient_disturbance" in p:
-        if "time_offset" in p:
-            rot = phys.Trajectory.from_knots(base.knots, 1.0 / base.rate).at(sensed)
-            effects.append(InjectedEffect("time_offset", {"tau_s": tau}, (), {"rotations": rot}))
-        else:
-            rot = base.knots[:-1][::base.step]
-        nav = np.broadcast_to(base.m_n, (len(t_mag), 3))
-        if "transient_disturbance" in p:
-            q = p["transient_disturbance"]
-            b_rel, wins = np.array(q["b_rel"]), np.array(q["windows_s"], dtype=np.float64)
-            d = phys.window(sensed, wins)[:, None] * b_rel
-            nav = nav + d
-            effects.append(InjectedEffect("transient_disturbance",
-                                          {"windows_s": wins, "b_n": b_rel * base.field_strength}, (),
-                                          {"d_n": d, "term_body": _body(rot, d)}))
-        mag_body = _body(rot, nav)
-    terms: list[FloatArray] = []
-    if "current_interference" in p or "throttle_interference" in p:
-        pw = phys.power(_rng(base.seed, 1), duration, base.power_profile)
-        n = len(t_mag)
-        current = pw.current(t_mag) + ns * AUX_NOISE["current"] * noise.standard_normal(n)
-        voltage = pw.voltage(t_mag) + ns * AUX_NOISE["voltage"] * noise.standard_normal(n)
-        streams += [_aux(Kind.BATTERY_CURRENT, CURRENT_ID, t_mag, current, "A", base),
-                    _aux(Kind.BATTERY_VOLTAGE, CURRENT_ID, t_mag, voltage, "V", base),
-                    _aux(Kind.THROTTLE, THROTTLE_ID, t_mag, pw.throttle(t_mag), "1", base)]
-        if "current_interference" in p:
-            c = np.array(p["current_interference"]["c"])
-            term = pw.current(sensed)[:, None] * c
-            terms.append(term)
-            effects.append(InjectedEffect("current_interference", {"c": c}, (Kind.BATTERY_CURRENT,),
-                                          {"term": term}))
-        if "throttle_interference" in p:
-            c, expo = np.array(p["throttle_interference"]["c"]), float(p["throttle_interference"]["p"])
-            term = pw.throttle(sensed)[:, None] ** expo * c
-            terms.append(term)
-            effects.append(InjectedEffect("throttle_interference", {"c": c, "p": expo}, (Kind.THROTTLE,),
-                                          {"term": term}))
+    sensed = base.t_mag - tau
+    rot = base.trajectory.at(sensed) if "time_offset" in p or "transient_disturbance" in p else None
+    if "time_offset" in p and rot is not None:
+        effects.append(InjectedEffect("time_offset", {"tau_s": tau}, (), {"rotations": rot}))
+    disturbance = None
+    if "transient_disturbance" in p and rot is not None:
+        q = p["transient_disturbance"]
+        b_rel, wins = np.array(q["b_rel"]), np.array(q["windows_s"], dtype=np.float64)
+        disturbance = (b_rel, wins)
+        d = phys.window(sensed, wins)[:, None] * b_rel
+        effects.append(InjectedEffect("transient_disturbance", {"windows_s": wins, "b_n": b_rel * base.field_strength},
+                                      (), {"d_n": d, "term_body": _body(rot, d)}))
+    terms = _power_terms(p, base, sensed, duration, streams, effects)
     if "temperature_drift" in p:
         k, t_ref = np.array(p["temperature_drift"]["k"]), float(p["temperature_drift"]["T0"])
         temp = phys.temperature(duration)
-        logged = temp(t_mag) + ns * AUX_NOISE["temperature"] * _rng(base.seed, 5).standard_normal(len(t_mag))
-        streams.append(_aux(Kind.TEMPERATURE, TEMPERATURE_ID, t_mag, logged, "degC", base))
-        term = (temp(sensed) - t_ref)[:, None] * k
-        terms.append(term)
+        noise = base.noise_scale * AUX_NOISE["temperature"] * _rng(base.seed, 5).standard_normal(len(base.t_mag))
+        streams.append(_aux(Kind.TEMPERATURE, TEMPERATURE_ID, base.t_mag, temp(base.t_mag) + noise, "degC", base))
+        terms.append(lambda s: (temp(s) - t_ref)[:, None] * k)
         effects.append(InjectedEffect("temperature_drift", {"k": k, "T0": t_ref}, (Kind.TEMPERATURE,),
-                                      {"term": term}))
-    extra = None
-    if terms:
-        extra = terms[0]
-        for term in terms[1:]:
-            extra = extra + term
-    return mag_body, extra
+                                      {"term": terms[-1](sensed)}))
+    return tau, disturbance, tuple(terms)
 
 
-def inject(specs: tuple[EffectSpec, ...], base: Base, omega: FloatArray, force: FloatArray) -> Injected:
-    """Apply `specs` to the true body rates (N, 3) and specific forces (N, 3) at the IMU epochs."""
+def _gain(p: dict[str, dict[str, Any]], eid: str, effects: list[InjectedEffect]) -> FloatArray:
+    """1 + s of a scale-factor effect (ones when it is not injected)."""
+    if eid not in p:
+        return np.ones(3)
+    s = np.array(p[eid]["s"])
+    effects.append(InjectedEffect(eid, {"s": s}, (), {}))
+    return 1.0 + s
+
+
+def inject(specs: tuple[EffectSpec, ...], base: Base) -> Injected:
+    """The sensors' inputs with `specs` applied, as functions of time; signals and channels at the stamps."""
     check_unique(specs)
-    n = len(base.knots) - 1
-    t = np.arange(n) / base.rate
-    duration = float(t[-1]) if n else 0.0
+    t = base.t_imu
+    duration = float(t[-1]) if len(t) else 0.0
     p = {s.id: s.resolved(duration) for s in specs}
     streams: list[Stream] = []
     effects: list[InjectedEffect] = []
-    omega, force = _imu(p, base, t, omega, force, streams, effects)
-    mag_body, extra = _mag(p, base, t[::base.step], duration, streams, effects)
+    moves = _translation(p.get("nongravity_acceleration"), base, streams, effects)
+    lever = np.array(p["lever_arm"]["r_m"]) if "lever_arm" in p else None
+    tau, disturbance, terms = _mag(p, base, duration, streams, effects)
+    done = Injected(base.trajectory, base.g_n, base.m_n, moves, lever, _gain(p, "gyro_scale", effects),
+                    _gain(p, "accel_scale", effects), tau, disturbance, terms)
+    if lever is not None:
+        w, w_dot = base.trajectory.rate_and_acceleration(t)
+        effects.append(InjectedEffect("lever_arm", {"r_m": lever}, (),
+                                      {"term": done.lever(t), "omega": w, "omega_dot": w_dot}))
     order = list(EFFECTS)
     effects.sort(key=lambda e: order.index(e.id))
-    return Injected(omega, force, mag_body, extra, tuple(streams), tuple(effects))
+    return replace(done, streams=tuple(streams), effects=tuple(effects))
 
 
 def _json(value: Any, factor: float) -> Any:

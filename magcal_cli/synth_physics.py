@@ -1,11 +1,7 @@
-"""Continuous-time truth behind the injected effects: the rotation between IMU epochs and the auxiliary signals.
+"""The simulator's auxiliary truth as functions of time: power system, warm-up, sway, geodesy and windows.
 
-Built from the simulated trajectory and seeded generators only; no estimator's equations are reused. The true
-attitude between the IMU epochs t_k = k dt is R(t) = R_k Exp(p_k(s)), s = (t - t_k) / dt, with p_k the cubic
-Hermite curve in the chart at R_k that meets R_k+1 and has the knot body rates w_k, w_k+1 at its ends. It
-passes through every R_k, so the simulated gyro (the rotation vector of R_k^T R_k+1 over dt, what an ideal
-delta-angle gyro reports) still integrates exactly to the trajectory; for a constant-rate rotation it is the
-geodesic. Before t_0 and after t_N it continues at the end rates.
+Built from seeded generators only; no estimator's equations are reused. The attitude and the scenario's own
+translation are in synth_motion.py.
 """
 
 from __future__ import annotations
@@ -14,8 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-
-from . import so3
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -27,61 +21,6 @@ HOME = (47.397742, 8.545594, 488.0)
 SIGNAL_RATE_HZ = 200.0
 #: seconds the signal grids extend beyond the log at both ends (room for a time offset)
 MARGIN_S = 2.0
-
-
-@dataclass(frozen=True, eq=False)
-class Trajectory:
-    """The true attitude as a function of time: knots R_k (N+1, 3, 3) body->NED every dt s, knot body rates."""
-
-    knots: FloatArray
-    dt: float
-    rates: FloatArray
-
-    @classmethod
-    def from_knots(cls, knots: FloatArray, dt: float) -> Trajectory:
-        """Knot rates w_k = (xi_k-1 + xi_k) / (2 dt), xi_k = Log(R_k^T R_k+1) (one-sided at the two ends).
-
-        Log(R_k^T R_k-1) = -xi_k-1 exactly (a rotation fixes its own axis), so this is the central difference
-        in the chart at R_k.
-        """
-        xi = so3.log(np.swapaxes(knots[:-1], -1, -2) @ knots[1:])
-        rates = np.empty((len(knots), 3))
-        rates[0], rates[-1] = xi[0] / dt, xi[-1] / dt
-        rates[1:-1] = (xi[:-1] + xi[1:]) / (2.0 * dt)
-        return cls(knots, dt, rates)
-
-    def at(self, t: npt.ArrayLike) -> FloatArray:
-        """R(t) of (M,) times in seconds (t = 0 is the first knot)."""
-        t = np.asarray(t, dtype=np.float64)
-        n = len(self.knots) - 1
-        x = t / self.dt
-        k = np.clip(np.floor(x).astype(np.int64), 0, n - 1)
-        s = (x - k)[:, None]
-        r0, r1 = self.knots[k], self.knots[k + 1]
-        xi = so3.log(np.swapaxes(r0, -1, -2) @ r1)
-        m0 = self.dt * self.rates[k]
-        m1 = self.dt * np.einsum("nij,nj->ni", so3.right_jacobian_inv(xi), self.rates[k + 1])
-        h10, h01, h11 = s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2   # cubic Hermite basis
-        out: FloatArray = r0 @ so3.exp(h10 * m0 + h01 * xi + h11 * m1)
-        before, after = x < 0, x > n
-        if before.any():
-            out[before] = self.knots[0] @ so3.exp(self.rates[0] * t[before, None])
-        if after.any():
-            out[after] = self.knots[-1] @ so3.exp(self.rates[-1] * (t[after, None] - n * self.dt))
-        return out
-
-    def rate_and_acceleration(self, t: npt.ArrayLike, h: float | None = None) -> tuple[FloatArray, FloatArray]:
-        """Body rate w (M, 3) rad/s and its derivative (M, 3) rad/s^2 at `t`, by central differences of step h.
-
-        In the chart at R(t), psi(tau) = Log(R(t)^T R(t + tau)): w = psi'(0) and, because J_r(psi) psi' has no
-        first-order term in psi at psi = 0, w' = psi''(0). Default h = dt / 10 (a fine grid at ten times the
-        IMU rate); where w' jumps (at the knots) this is the mean of its two one-sided values.
-        """
-        t = np.asarray(t, dtype=np.float64)
-        h = self.dt / 10.0 if h is None else h
-        r0t = np.swapaxes(self.at(t), -1, -2)
-        plus, minus = so3.log(r0t @ self.at(t + h)), so3.log(r0t @ self.at(t - h))
-        return (plus - minus) / (2.0 * h), (plus + minus) / h**2
 
 
 @dataclass(frozen=True, eq=False)
@@ -205,45 +144,6 @@ class Path:
         w = 2 * np.pi * self.freq_hz
         arg = w * np.asarray(t, dtype=np.float64)[:, None] + self.phase
         out: FloatArray = (-np.sin(arg) * w**2) @ self.amplitude
-        return out
-
-
-@dataclass(frozen=True, eq=False)
-class Motion:
-    """A scenario's translation in NED: acceleration a_k (N, 3) m/s^2 held over [k dt, (k+1) dt) (the interval
-    gyro sample k covers), velocity v (N+1, 3) m/s and position p (N+1, 3) m at the knots, integrated exactly
-    from it; in between the position is the quadratic p_k + v_k s + a_k s^2 / 2."""
-
-    dt: float
-    a: FloatArray
-    v: FloatArray
-    p: FloatArray
-
-    @classmethod
-    def from_acceleration(cls, a: FloatArray, dt: float, v0: npt.ArrayLike = (0.0, 0.0, 0.0)) -> Motion:
-        """Integrate a_k from rest at the origin (or at velocity v0): v_k+1 = v_k + a_k dt,
-        p_k+1 = p_k + v_k dt + a_k dt^2 / 2."""
-        a = np.asarray(a, dtype=np.float64)
-        v = np.concatenate([np.asarray(v0, dtype=np.float64)[None], a * dt]).cumsum(axis=0)
-        p = np.concatenate([np.zeros((1, 3)), v[:-1] * dt + a * (0.5 * dt * dt)]).cumsum(axis=0)
-        return cls(dt, a, v, p)
-
-    def _split(self, t: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], FloatArray]:
-        """Interval index k (clipped to the log) and the time since its start (s), (M, 1)."""
-        t = np.asarray(t, dtype=np.float64)
-        # + 1e-9: an IMU epoch k / rate divided by dt may round to just below k
-        k = np.clip(np.floor(t / self.dt + 1e-9).astype(np.int64), 0, len(self.a) - 1)
-        return k, (t - k * self.dt)[:, None]
-
-    def position(self, t: npt.ArrayLike) -> FloatArray:
-        """(M, 3) NED position (m) at `t` (s): the piecewise quadratic."""
-        k, s = self._split(t)
-        out: FloatArray = self.p[k] + self.v[k] * s + 0.5 * self.a[k] * s * s
-        return out
-
-    def acceleration(self, t: npt.ArrayLike) -> FloatArray:
-        """(M, 3) NED acceleration (m/s^2) at `t` (s): a_k of the interval holding t."""
-        out: FloatArray = self.a[self._split(t)[0]]
         return out
 
 

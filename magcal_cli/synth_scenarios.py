@@ -1,12 +1,14 @@
 """The `multirotor` and `rover` scenarios: attitude plus a translation that the attitude makes physical.
 
 Conventions: NED navigation frame, FRD body axes (x forward, y right, z down, as PX4 and ArduPilot log them),
-R = Rz(yaw) Ry(pitch) Rx(roll) body->NED. The translation is a `Motion`: NED acceleration a_k held over the
-interval [t_k, t_k+1) that gyro sample k covers, velocity and position integrated exactly from it, so the
-accelerometer's f_k = R_k^T (a_k - g_n) is the double derivative of the logged position. A multirotor's
-acceleration comes from its thrust axis: a_n = R (-k v_b,x, -k v_b,y, -T) + g_n (rotor drag k, thrust T per
-unit mass), so in a steady turn the accelerometer's "down" is the thrust axis, not gravity. A rover moves along
-its body x axis over uneven ground: v_n = v R e_x, so a_n = v' R e_x + v R (w x e_x) (centripetal v w).
+R = Rz(yaw) Ry(pitch) Rx(roll) body->NED. Both return their truth on the fine grid (synth_motion.py): attitude
+knots at OVERSAMPLE times the IMU rate and a `Motion`, a continuous NED acceleration whose double integral is
+the logged position, so the accelerometer's f(t) = R(t)^T (a_n(t) - g_n) and the position agree at every
+instant. A multirotor's acceleration comes from its thrust axis: a_n = R (-k v_b,x, -k v_b,y, -T) + g_n (rotor
+drag k, thrust T per unit mass), so in a steady turn the accelerometer's "down" is the thrust axis, not
+gravity; its controller runs at the IMU rate (it integrates its state step by step) and its attitude and
+acceleration are spread smoothly onto the fine grid. A rover moves along its body x axis over uneven ground:
+v_n = v R e_x, so a_n = v' R e_x + v R (w x e_x) (centripetal v w); it is generated on the fine grid directly.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy.typing as npt
 
 from . import so3
 from .models.accel import G
-from .synth_physics import Motion
+from .synth_motion import OVERSAMPLE, Motion, Trajectory, fine_times, smooth
 
 FloatArray = npt.NDArray[np.float64]
 Intervals = tuple[tuple[float, float], ...]
@@ -41,10 +43,14 @@ PARK_S, CRUISE_MPS, RADIUS_M, STOP_RAMP_S, STOP_HOLD_S = 10.0, (2.5, 4.0), (6.0,
 
 
 class Scenario(NamedTuple):
-    """A scenario's truth: rotations (N+1, 3, 3) body->NED at the IMU rate, its translation, still intervals (s)."""
+    """A scenario's truth: the attitude, its translation (None: a pure rotation) and still intervals (s).
 
-    rotations: FloatArray
-    motion: Motion
+    A still interval runs from the first to the last IMU stamp of a span in which the body is at rest, with one
+    IMU period of margin where the smoothing onto the fine grid reaches into the span from a move.
+    """
+
+    trajectory: Trajectory
+    motion: Motion | None
     still: Intervals
 
 
@@ -68,12 +74,17 @@ def plateau(s: npt.ArrayLike, ramp: float = 0.15) -> FloatArray:
     return out
 
 
-def band(rng: np.random.Generator, n: int, fs: float, lo: float, hi: float, std: float) -> FloatArray:
-    """n samples at fs Hz of Gaussian noise band-limited to lo..hi Hz (flat spectrum, random phases), scaled to std."""
+def band(rng: np.random.Generator, n: int, fs: float, lo: float, hi: float, std: float,
+         oversample: int = 1) -> FloatArray:
+    """n samples at fs Hz of Gaussian noise band-limited to lo..hi Hz (flat spectrum, random phases), scaled to std.
+
+    With `oversample` the same draw comes at fs * oversample Hz ((n - 1) * oversample + 1 samples): the
+    band-limited signal between the samples, exactly (its spectrum zero-padded), equal to them at every fs sample.
+    """
     f = np.fft.rfftfreq(n, 1.0 / fs)
     spec = (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) * ((f >= lo) & (f <= hi))
-    x = np.fft.irfft(spec, n)
-    sd = float(np.std(x))
+    sd = float(np.std(np.fft.irfft(spec, n)))
+    x = np.fft.irfft(spec, n * oversample)[:(n - 1) * oversample + 1] * oversample
     out: FloatArray = x * (std / sd) if sd > 0 else x
     return out
 
@@ -85,7 +96,7 @@ def _soft(x: FloatArray, limit: float) -> FloatArray:
 
 
 def _still(a: float, b: float, rate: float) -> tuple[float, float]:
-    """First and last IMU epochs whose whole gyro interval [t_k, t_k+1] lies in [a, b]."""
+    """First and last IMU stamps in [a, b], keeping one IMU period of margin at the end."""
     return math.ceil(a * rate - 1e-9) / rate, (math.floor(b * rate + 1e-9) - 1) / rate
 
 
@@ -214,9 +225,14 @@ def multirotor(rng: np.random.Generator, rate: float, duration: float) -> Scenar
             p[i] += v[i] * dt + 0.5 * a[i] * dt * dt
             v[i] += a[i] * dt
         acc[k] = a
-    rot = so3.from_rpy(np.column_stack([rolls, pitches, yaw]))
     still = (_still(0.0, t_to, rate), _still(k_td * dt + BRAKE_S + 1.0, duration, rate))
-    return Scenario(rot, Motion.from_acceleration(acc, dt), still)
+    tf = fine_times(n * dt, rate)
+    rot = so3.from_rpy(smooth(np.column_stack([rolls, pitches, yaw]), dt, tf))
+    # the acceleration the controller held over [t_k, t_k+1), continuous through the interval midpoints (same
+    # integral over the log, so the vehicle still comes to rest)
+    a_n = np.column_stack([np.interp(tf, t[:-1] + 0.5 * dt, acc[:, i]) for i in range(3)])
+    dtf = dt / OVERSAMPLE
+    return Scenario(Trajectory.from_knots(rot, dtf), Motion.from_acceleration(a_n, dtf), still)
 
 
 def _terrain(rng: np.random.Generator, s: FloatArray) -> FloatArray:
@@ -230,12 +246,13 @@ def rover(rng: np.random.Generator, rate: float, duration: float) -> Scenario:
     """Parked 10 s, a drive of straights, full circles and figure-eights (two opposite circles) with one stop
     of 4 s half-way, parked 10 s. Speed: cruise 2.5-4 m/s +- 12 % (0.01-0.1 Hz); no side slip."""
     n, dt = round(duration * rate), 1.0 / rate
-    t = np.arange(n + 1, dtype=np.float64) * dt
+    t = fine_times(n * dt, rate)
+    dtf = dt / OVERSAMPLE
     t_a, t_b = PARK_S, duration - PARK_S
     v0 = rng.uniform(*CRUISE_MPS)
     at, end, half = t_a + rng.uniform(8.0, 14.0), t_b - rng.uniform(8.0, 12.0), t_a + 0.45 * (t_b - t_a)
-    yaw = np.full(n + 1, rng.uniform(-np.pi, np.pi))
-    speed = v0 * (1.0 + band(rng, n + 1, rate, 0.01, 0.1, 0.12)) * min_jerk((t - t_a) / 4.0) \
+    yaw = np.full(t.size, rng.uniform(-np.pi, np.pi))
+    speed = v0 * (1.0 + band(rng, n + 1, rate, 0.01, 0.1, 0.12, OVERSAMPLE)) * min_jerk((t - t_a) / 4.0) \
         * min_jerk((t_b - t) / 4.0)
     stops: list[float] = []
     while True:
@@ -253,9 +270,13 @@ def rover(rng: np.random.Generator, rate: float, duration: float) -> Scenario:
         for k in range({"circle": 1, "eight": 2}.get(kind, 0)):
             yaw += (-1) ** k * sign * 2 * np.pi * plateau((t - at - k * lap) / lap)
         at += length
-    dist = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dt)])
+    dist = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dtf)])
     rot = so3.from_rpy(np.column_stack([_terrain(rng, dist), _terrain(rng, dist), yaw]))
     v_n = speed[:, None] * rot[:, :, 0]
-    still = (_still(0.0, t_a, rate), *(_still(s + STOP_RAMP_S, s + STOP_RAMP_S + STOP_HOLD_S, rate) for s in stops),
-             _still(t_b, duration, rate))
-    return Scenario(rot, Motion.from_acceleration(np.diff(v_n, axis=0) / dt, dt, v_n[0]), still)
+    # a_n is the central difference of v_n on the fine grid, so it sees a stop's edge one fine step away: the
+    # still intervals start one IMU period after the speed reaches zero
+    still = (_still(0.0, t_a, rate),
+             *(_still(s + STOP_RAMP_S + dt, s + STOP_RAMP_S + STOP_HOLD_S, rate) for s in stops),
+             _still(t_b + dt, duration, rate))
+    a_n = np.gradient(v_n, dtf, axis=0, edge_order=2)
+    return Scenario(Trajectory.from_knots(rot, dtf), Motion.from_acceleration(a_n, dtf, v_n[0]), still)

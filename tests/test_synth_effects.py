@@ -13,14 +13,15 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from magcal_cli import so3
 from magcal_cli.cli import cli
-from magcal_cli.logwriters import write_log
+from magcal_cli.logwriters import imu_sampling, write_log
 from magcal_cli.models.accel import G
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind
 from magcal_cli.synth import Simulation, simulate, truth_calibration
 from magcal_cli.synth_effects import EFFECTS, EffectSpec, EffectSpecError, parse_effect
 from magcal_cli.synth_inject import InjectedEffect
-from magcal_cli.synth_physics import Trajectory, geodetic
+from magcal_cli.synth_motion import Trajectory
+from magcal_cli.synth_physics import geodetic
 
 RATE = 100.0
 W = np.array([0.3, -0.5, 0.8])                                 # rad/s, a constant-rate rotation
@@ -80,8 +81,9 @@ def test_time_offset_is_a_real_delay(tau: float) -> None:
 
 
 def test_time_offset_on_the_knots_of_a_hand_motion() -> None:
-    """tau of two IMU periods: magnetometer sample j sees exactly the rotation of IMU epoch 2j - 2."""
-    sim = quiet(EffectSpec("time_offset", {"tau_s": 0.02}), scenario="handheld", duration=None)
+    """tau of two IMU periods, magnetometer at phase 0 and half the IMU rate: magnetometer sample j sees exactly
+    the rotation at IMU stamp 2j - 2."""
+    sim = quiet(EffectSpec("time_offset", {"tau_s": 0.02}), scenario="handheld", duration=None, mag_phase_s=0.0)
     rot = sim.rotations[::2][:-1]
     want = np.einsum("nji,j->ni", rot, m_n(sim)) @ sim.truth.D.T + sim.truth.o
     np.testing.assert_allclose(mag(sim)[1:], want[: len(mag(sim)) - 1], rtol=0, atol=1e-15)
@@ -150,7 +152,7 @@ def test_temperature_drift_follows_the_warm_up(base: Simulation) -> None:
     sim = quiet(EffectSpec("temperature_drift", {"k": tuple(k), "T0": 30.0}))
     temp = sim.recording.select(Kind.TEMPERATURE).values
     np.testing.assert_allclose(mag(sim) - mag(base), (temp - 30.0) * k, rtol=0, atol=1e-19)
-    assert temp[0, 0] == pytest.approx(25.0) and np.all(np.diff(temp[:, 0]) >= 0) and 25 < temp[-1, 0] < 45
+    assert temp[0, 0] == pytest.approx(25.0, abs=1e-3) and np.all(np.diff(temp[:, 0]) >= 0) and 25 < temp[-1, 0] < 45
 
 
 def test_scale_factors(base: Simulation) -> None:
@@ -192,7 +194,8 @@ def test_transient_disturbance_only_inside_the_windows(base: Simulation) -> None
     outside = (t < 10.0) | ((t > 20.0) & (t < 40.0)) | (t > 43.0)
     assert diff[outside].max() < 1e-18
     full = ((t > 11.0) & (t < 19.0)) | ((t > 41.0) & (t < 42.0))
-    rot = sim.rotations[:: len(sim.rotations) // len(t)][: len(t)][full]
+    assert sim.trajectory is not None
+    rot = sim.trajectory.at(t[full])                               # at the magnetometer's own stamps
     want = np.einsum("nji,j->ni", rot, e.params["b_n"] / sim.truth.field_strength) @ sim.truth.D.T
     np.testing.assert_allclose((mag(sim) - mag(base))[full], want, rtol=0, atol=1e-18)
     assert 0.1 < np.linalg.norm(e.params["b_n"]) / sim.truth.field_strength < 0.3
@@ -271,23 +274,25 @@ FORMATS = {
 TOL = {Kind.BATTERY_CURRENT: 1e-4, Kind.BATTERY_VOLTAGE: 1e-4, Kind.THROTTLE: 1e-6, Kind.TEMPERATURE: 1e-4}
 
 
-@pytest.fixture(scope="module")
-def channel_sim() -> Simulation:
-    return simulate("paper", 3, rate=50.0, mag_rate=25.0, duration=12.0, effects=CHANNEL_EFFECTS)
+def channel_sim(out: Path) -> Simulation:
+    """The channel effects simulated for `out`'s format (its IMU sampling; phase 0 for a CSV's rows)."""
+    return simulate("paper", 3, rate=50.0, mag_rate=25.0, duration=12.0, effects=CHANNEL_EFFECTS,
+                    imu_sampling=imu_sampling(out), mag_phase_s=0.0 if out.suffix == ".csv" else None)
 
 
 @pytest.mark.parametrize("name", list(FORMATS))
-def test_channels_round_trip(tmp_path: Path, channel_sim: Simulation, name: str) -> None:
+def test_channels_round_trip(tmp_path: Path, name: str) -> None:
     """Battery current (positive while discharging), voltage, throttle, temperature and position come back
     with the right kinds, SI units and values; the truth names those channels and the log's unit."""
     out = tmp_path / name
-    write_log(channel_sim, out)
+    sim = channel_sim(out)
+    write_log(sim, out)
     rec = open_recording(out)
     current, throttle, temperature, position, unit = FORMATS[name]
     ids = {Kind.BATTERY_CURRENT: current, Kind.BATTERY_VOLTAGE: current, Kind.THROTTLE: throttle,
            Kind.TEMPERATURE: temperature}
     for kind, sid in ids.items():
-        want = channel_sim.recording.select(kind)
+        want = sim.recording.select(kind)
         got = rec.select(kind, sid)
         assert got.native_unit in ({"A": ("A",), "V": ("V",)}.get(kind.si_unit, (kind.si_unit,)))
         if kind is Kind.TEMPERATURE and name == "x.bin":            # IMU.T: at the IMU rate, interpolated
@@ -301,10 +306,10 @@ def test_channels_round_trip(tmp_path: Path, channel_sim: Simulation, name: str)
     if position is None:
         assert not rec.of_kind(Kind.POSITION)
     else:
-        got, want = rec.select(Kind.POSITION, position), channel_sim.recording.select(Kind.POSITION)
+        got, want = rec.select(Kind.POSITION, position), sim.recording.select(Kind.POSITION)
         np.testing.assert_allclose(got.values[:, :2], want.values[:, :2], rtol=0, atol=0.6e-7)
         np.testing.assert_allclose(got.values[:, 2], want.values[:, 2], rtol=0, atol=0.006)
-    doc = {e["id"]: e for e in truth_calibration(channel_sim, rec, "test", "now").effects}
+    doc = {e["id"]: e for e in truth_calibration(sim, rec, "test", "now").effects}
     assert doc["current_interference"]["channels"] == [current]
     assert doc["current_interference"]["units"] == {"c": f"{unit}/ampere"}
     assert doc["throttle_interference"]["channels"] == [throttle]
@@ -314,12 +319,11 @@ def test_channels_round_trip(tmp_path: Path, channel_sim: Simulation, name: str)
     assert doc["nongravity_acceleration"]["sensor"] == rec.ids(Kind.ACCELEROMETER)[0]
 
 
-def test_ros_battery_current_is_negative_in_the_bag_and_positive_when_read(tmp_path: Path,
-                                                                          channel_sim: Simulation) -> None:
+def test_ros_battery_current_is_negative_in_the_bag_and_positive_when_read(tmp_path: Path) -> None:
     """sensor_msgs/BatteryState.current is negative while discharging; the reader negates it."""
     from rosbags.highlevel import AnyReader
 
-    write_log(channel_sim, tmp_path / "x.bag")
+    write_log(channel_sim(tmp_path / "x.bag"), tmp_path / "x.bag")
     with AnyReader([tmp_path / "x.bag"]) as reader:
         conn = [c for c in reader.connections if c.topic == "/battery"]
         raw = [reader.deserialize(d, c.msgtype).current for c, _, d in reader.messages(connections=conn)]

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..errors import MagcalError
 from ..registry import resolve
+from ..streams import Sampling
 from ..synth import Simulation
 
 #: file extension -> "module:function(sim, path)"; a directory path (no extension) is a ROS 2 bag
@@ -18,14 +19,37 @@ LOG_WRITERS: dict[str, str] = {
     ".csv": "magcal_cli.logwriters.csvfile:write_csv",
     ".ulg": "magcal_cli.logwriters.ulog:write_ulg",
 }
+#: what an IMU sample of each format stands for: PX4's sensor_combined holds the mean rate and specific force over
+#: the gyro's last integration period (ending at its stamp); ROS sensor_msgs/Imu, ArduPilot's IMU message and CSV
+#: exports hold the values at the stamp
+IMU_SAMPLING: dict[str, Sampling] = {
+    ".mcap": Sampling.INSTANT,
+    ".bin": Sampling.INSTANT,
+    ".bag": Sampling.INSTANT,
+    "": Sampling.INSTANT,
+    ".csv": Sampling.INSTANT,
+    ".ulg": Sampling.PRECEDING,
+}
+
+
+def imu_sampling(path: Path) -> Sampling:
+    """The IMU sampling of the format `path`'s extension names (INSTANT for an unknown one)."""
+    return IMU_SAMPLING.get(path.suffix.lower(), Sampling.INSTANT)
 
 
 def write_log(sim: Simulation, path: Path) -> None:
-    """Write `sim` in the format named by `path`'s extension."""
-    target = LOG_WRITERS.get(path.suffix.lower())
+    """Write `sim` in the format named by `path`'s extension; refuse a simulation sampled another way."""
+    ext = path.suffix.lower()
+    target = LOG_WRITERS.get(ext)
     if target is None:
         msg = (f"{path}: cannot write a log with extension {path.suffix or '(none)'!r}; "
                f"use one of {', '.join(sorted(e or '(none: a ROS 2 bag directory)' for e in LOG_WRITERS))}")
+        raise MagcalError(msg)
+    want = IMU_SAMPLING[ext]
+    if sim.imu_sampling is not want:
+        msg = (f"{path}: a {ext or 'ROS 2 bag'} log holds {want.value} IMU samples but the simulation's are "
+               f"{sim.imu_sampling.value}; simulate with imu_sampling=Sampling.{want.name} "
+               "(logwriters.imu_sampling(path) gives it; magcal simulate chooses it from OUT)")
         raise MagcalError(msg)
     writer: Callable[[Simulation, Path], None] = resolve(target, f"writing {path.suffix or 'bag'} logs")
     writer(sim, path)

@@ -18,7 +18,6 @@ import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
 from .. import so3
-from ..align import interpolate
 from ..atomic import atomic_path
 from ..readers.dataflash_format import FMT_ID, FMT_LENGTH, FORMAT_CHARS, HEAD1, HEAD2, MessageFormat
 from ..readers.dataflash_mag import Correction, apply_correction, effective_scale, iron_matrix
@@ -228,7 +227,8 @@ def _series(rec: Recording, kind: Kind, t: FloatArray, default: FloatArray) -> F
     found = rec.of_kind(kind)
     if not found:
         return np.asarray(default, dtype=np.float64)
-    return interpolate(found[0], np.clip(t, found[0].t[0], found[0].t[-1]))[:, 0]
+    out: FloatArray = np.interp(t, found[0].t, found[0].values[:, 0])      # held at its ends
+    return out
 
 
 def _times(rec: Recording, kind: Kind, default: FloatArray) -> FloatArray:

@@ -17,7 +17,6 @@ import numpy as np
 import numpy.typing as npt
 
 from .. import __version__, so3, units
-from ..align import interpolate
 from ..atomic import atomic_path
 from ..streams import Kind, Recording
 from ..synth import T0_ROS, Simulation
@@ -163,13 +162,16 @@ def _us(t: npt.ArrayLike) -> npt.NDArray[np.int64]:
 
 
 def sim_content(sim: Simulation) -> UlogContent:
-    """The simulation as PX4 logs it: sensor_combined, sensor_mag (gauss, with the simulated temperature),
+    """The simulation as PX4 logs it: sensor_combined (means over gyro/accelerometer_integral_dt, the IMU period,
+    ending at the stamp), sensor_mag (gauss, stamped where it was sampled, with the simulated temperature),
     vehicle_attitude, parameters, and battery_status, vehicle_thrust_setpoint and vehicle_gps_position when the
     simulation has battery, throttle or position streams."""
     rec = sim.recording
     acc, gyr, mag = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), rec.select(Kind.MAGNETOMETER)
     t_imu, n = _us(gyr.t), len(gyr)
-    period = int(round(1e6 / gyr.rate_hz)) if gyr.rate_hz > 0 else 0
+    # sensor_combined's samples are means over the integration period ending at their stamp (Sampling.PRECEDING)
+    window = gyr.window_s or (1.0 / gyr.rate_hz if gyr.rate_hz > 0 else 0.0)
+    period = int(round(window * 1e6))
     zeros = np.zeros(n)
     comb = Topic("sensor_combined", (
         ("uint64_t", "timestamp"), ("float[3]", "gyro_rad"), ("uint32_t", "gyro_integral_dt"),
@@ -217,7 +219,8 @@ def _series(rec: Recording, kind: Kind, t: npt.NDArray[np.float64],
     found = rec.of_kind(kind)
     if not found or len(found[0]) < 2:
         return default
-    return interpolate(found[0], np.clip(t, found[0].t[0], found[0].t[-1]))[:, 0]
+    out: npt.NDArray[np.float64] = np.interp(t, found[0].t, found[0].values[:, 0])      # held at its ends
+    return out
 
 
 def _aux_topics(rec: Recording) -> list[Topic]:

@@ -25,7 +25,7 @@ def write(tmp_path: Path, text: str, name: str = "log.csv") -> Path:
 
 def test_round_trip_within_quantisation(tmp_path: Path) -> None:
     """simulate -> CSV -> read: same sample times (1 us) and values (9 significant digits)."""
-    sim = simulate("paper", 5, rate=80.0, mag_rate=40.0, duration=12.0)
+    sim = simulate("paper", 5, rate=80.0, mag_rate=40.0, duration=12.0, mag_phase_s=0.0)    # CSV: IMU rows
     write_log(sim, tmp_path / "s.csv")
     rec = open_recording(tmp_path / "s.csv")
     assert rec.format == "csv"
@@ -44,7 +44,7 @@ def test_fit_recovers_the_truth_from_csv(tmp_path: Path) -> None:
     from magcal_cli.config import Config
     from magcal_cli.pipeline import calibrate
 
-    sim = simulate("handheld", 3, rate=25.0, mag_rate=12.5)
+    sim = simulate("handheld", 3, rate=25.0, mag_rate=12.5, mag_phase_s=0.0)               # CSV: IMU rows
     write_log(sim, tmp_path / "h.csv")
     mag = calibrate(tmp_path / "h.csv", Config()).calibration.magnetometers[0]
     assert mag.unit == "microtesla"

@@ -18,7 +18,7 @@ from magcal_cli.pipeline import calibrate
 from magcal_cli.readers import ReadOptions, open_recording, sniff
 from magcal_cli.readers.ulog import device_text
 from magcal_cli.readers.ulog_load import STUCK_READS, GuardFile, _StuckError
-from magcal_cli.streams import Kind, Recording
+from magcal_cli.streams import Kind, Recording, Sampling
 from magcal_cli.synth import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -30,8 +30,8 @@ XYZ_T = (("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature"
 
 @pytest.fixture(scope="module")
 def sim() -> Simulation:
-    """A short handheld simulation at the sample log's rates."""
-    return simulate("handheld", 2, rate=50.0, mag_rate=25.0, duration=40.0)
+    """A short handheld simulation at the sample log's rates (sensor_combined's samples: PRECEDING)."""
+    return simulate("handheld", 2, rate=50.0, mag_rate=25.0, duration=40.0, imu_sampling=Sampling.PRECEDING)
 
 
 @pytest.fixture(scope="module")
