@@ -105,7 +105,10 @@ def summary(res: dict[str, Any], log: Path) -> dict[str, Any]:
     wmm = [float(x) for n in doc.get("notes", []) for x in re.findall(r"from the WMM\S* at the log's position "
                                                                         r"\((-?[\d.]+) deg\)", n)]
     row["method"] = doc.get("method")
+    timing = (doc.get("source") or {}).get("timing") or {}
+    row["timing"] = timing.get("imu", "following (magcal 0.1: every gyro)")
     row["mags"] = [{
+        "time_offset": time_offset(doc, m["id"]),
         "id": m["id"], "held": [h["parameter"] for h in m.get("held", [])], "reference": m.get("reference", "motion"),
         "wmm_dip_deg": wmm[0] if wmm else None,
         "held_source": sorted({h["source"] for h in m.get("held", [])}),
@@ -114,6 +117,18 @@ def summary(res: dict[str, Any], log: Path) -> dict[str, Any]:
         for m in doc["magnetometers"]]
     row["not_calibrated"] = [n for n in doc.get("notes", []) if "was not calibrated" in n]
     return row
+
+
+def time_offset(doc: dict[str, Any], mag_id: str) -> str:
+    """The document's time_offset verdict for one magnetometer: status, and tau with its 95 % interval (ms)."""
+    e = next((e for e in doc.get("effects", []) if e["id"] == "time_offset" and e.get("sensor") == mag_id), None)
+    if e is None:
+        return "not run"
+    tau, ci = (e.get("params") or {}).get("tau_s"), (e.get("ci95") or {}).get("tau_s")
+    if tau is None:
+        return e["status"]
+    interval = f" [{1e3 * ci[0]:.1f}, {1e3 * ci[1]:.1f}]" if ci else ""
+    return f"{e['status']} {1e3 * tau:.1f}{interval}"
 
 
 def raw_spread(log: Path) -> dict[str, float]:
@@ -135,14 +150,14 @@ def raw_spread(log: Path) -> dict[str, float]:
 def markdown(rows: list[dict[str, Any]], before: bool) -> str:
     """The results table."""
     head = "| log | " + ("before | " if before else "") + "after | magnetometer | held at a prior | raw spread % | " \
-        "calibrated spread % | dip deg (WMM) | heading change deg | s |"
+        "calibrated spread % | dip deg (WMM) | heading change deg | time offset ms (IMU samples) | s |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         b = r.get("before")
         before_txt = (f"exit {b['exit']}: {(b['error'] or 'ok')[:90]} | " if b else "— | ") if before else ""
         a = r["after"]
         if not a.get("mags"):
-            lines.append(f"| {r['log']} | {before_txt}exit {a['exit']}: {(a['error'] or '')[:140]} | | | | | | | "
+            lines.append(f"| {r['log']} | {before_txt}exit {a['exit']}: {(a['error'] or '')[:300]} | | | | | | | | "
                          f"{a['seconds']} |")
             continue
         for i, m in enumerate(a["mags"]):
@@ -155,9 +170,9 @@ def markdown(rows: list[dict[str, Any]], before: bool) -> str:
                 f"{'calibrated: ' + how if i == 0 else ''} | {m['id']} | {held} | "
                 f"{r['raw'].get(m['id'], float('nan')):.2f} | {m['norm_rms_pct']:.2f} | {m['dip_deg']:.1f}"
                 f"{'' if wmm is None else f' ({wmm:.1f})'} | {'—' if hc is None else f'{hc:.1f}'} | "
-                f"{a['seconds'] if i == 0 else ''} |")
+                f"{m['time_offset']} ({a['timing']}) | {a['seconds'] if i == 0 else ''} |")
         for n in a.get("not_calibrated", []):
-            lines.append(f"| | {'| ' if before else ''}| {n[:140]} | | | | | | |")
+            lines.append(f"| | {'| ' if before else ''}| {n[:300]} | | | | | | | |")
     return "\n".join(lines) + "\n"
 
 

@@ -98,3 +98,24 @@ def test_scalar_interval_and_case_matrix() -> None:
     assert run.effects_value(cases.CASES["sep_current_vs_throttle"], "explicit") == \
         "current_interference,throttle_interference"
     assert run.effects_value(cases.CASES["sep_current_vs_throttle"], "auto") == "auto"
+
+
+def test_scorer_timing_lag_and_z_criteria() -> None:
+    """Issue 25's rows: time_offset on the timing grid, the lag tier's mean error and coverage, pooled |z|."""
+    lag = [{"id": "time_offset", "params": {"tau_s": 0.020}}]
+    recs = [_rec("timing_handheld", s, [_entry("time_offset", "accepted" if s == 0 else "rejected")], [])
+            for s in range(20)]
+    recs += [_rec("lag_handheld", s, [_entry("time_offset", "accepted", params={"tau_s": 0.0203},
+                                             ci95={"tau_s": [0.0199, 0.0207] if s else [0.0201, 0.0207]})], lag)
+             for s in range(10)]
+    for r in recs:
+        r["z"] = [["MAG[0]", "o.x", 0.5], ["MAG[0]", "o.y", -2.5]] if r["seed"] != 3 else [["MAG[0]", "o.x", 5.5]]
+    summary = score.summarise(recs)
+    assert summary["timing_handheld"]["time_offset_rate"] == 0.05
+    assert summary["lag_handheld"]["lag_errors"] == pytest.approx([0.0003] * 10)
+    rows = {r["criterion"]: r for r in score.checks(summary)}
+    assert rows["timing_handheld: time_offset accepted (issue 25)"]["verdict"] == "PASS"
+    assert rows["lag_handheld: |mean error| of tau (issue 25)"]["value"] == pytest.approx(0.0003)
+    assert rows["lag_handheld: 95 % interval coverage (issue 25)"]["value"] == 0.9
+    assert rows["base parameters |z| <= 1.96, pooled (issue 25)"]["value"] == pytest.approx(28 / 58)      # seed 3 of both cases: one z
+    assert rows["logs with max |z| <= 5 (issue 25)"]["verdict"] == "FAIL"

@@ -11,9 +11,17 @@ temperature by the offset). Strong tier: the simulator's defaults (visible above
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
 
 #: tiers in report order
-TIERS = ("negative", "clear", "strong", "separable", "inseparable")
+TIERS = ("negative", "timing", "clear", "lag", "strong", "separable", "inseparable")
+#: the timing grid (issue 25): IMU and magnetometer rates (Hz), and the IMU convention with the format that holds it
+IMU_RATES, MAG_RATES = (50.0, 100.0, 200.0, 400.0), (10.0, 25.0, 50.0, 100.0)
+CONVENTIONS = (("instant", ".bin"), ("preceding", ".ulg"))
+#: the lag tier's range of true lags (s), drawn log-uniformly
+LAG_RANGE_S = (0.005, 0.060)
 #: zero-valued effects that only log their channels (current, voltage, throttle; temperature; GPS position)
 POWER_DECOY = "current_interference:c_uT_per_A=0/0/0"
 TEMPERATURE_DECOY = "temperature_drift:k_uT_per_degC=0/0/0"
@@ -49,6 +57,34 @@ class Case:
     rate: float | None = None
     power_profile: str = "flight"
     note: str = ""
+    #: per-seed variation: "" (none), "grid" (rates, phase and convention from the timing grid), "lag" (the grid
+    #: plus a true lag drawn from LAG_RANGE_S)
+    vary: str = ""
+
+    def settings(self, seed: int) -> Settings:
+        """What run `seed` simulates: rates, magnetometer phase, log format and effects."""
+        if not self.vary:
+            return Settings(self.rate, None, None, ".bin", self.effects)
+        combos = [(r, m, c) for c in CONVENTIONS for r in IMU_RATES for m in MAG_RATES]
+        imu, mag, (convention, suffix) = combos[seed % len(combos)]
+        rng = np.random.default_rng([seed, 25])
+        phase = float(rng.uniform(0.0, min(0.005, 1.0 / mag)))
+        effects = self.effects
+        if self.vary == "lag":
+            tau = float(np.exp(rng.uniform(*np.log(LAG_RANGE_S))))
+            effects = (f"time_offset:tau_s={tau:.6f}", *effects)
+        return Settings(imu, mag, phase, suffix, effects, convention)
+
+
+class Settings(NamedTuple):
+    """One run's simulation settings."""
+
+    rate: float | None
+    mag_rate: float | None
+    mag_phase_s: float | None
+    suffix: str
+    effects: tuple[str, ...]
+    convention: str = "instant"
 
 
 def _decoys(eid: str) -> tuple[str, ...]:
@@ -80,6 +116,16 @@ def _cases() -> list[Case]:
              note="time-trending decoys: current, throttle, voltage, temperature all monotone, no effect"),
         Case("neg_position_handheld", "negative", "handheld", (POSITION_DECOY, TEMPERATURE_DECOY), (),
              ("nongravity_acceleration", "lever_arm"), note="GPS position (still) and temperature, no effect"),
+    ]
+    out += [
+        Case("timing_handheld", "timing", "handheld", (), (), ("time_offset",), vary="grid",
+             note="no effect; IMU 50-400 Hz x magnetometer 10-100 Hz x random phase x instant (.bin) / preceding "
+                  "(.ulg) gyro, one combination per seed"),
+        Case("timing_flight", "timing", "multirotor", (), ("nongravity_acceleration",),
+             ("time_offset", "nongravity_acceleration"),
+             vary="grid", note="a flight (its own acceleration is physics, GPS logged), no other effect: the grid"),
+        Case("lag_handheld", "lag", "handheld", (), ("time_offset",), ("time_offset",), vary="lag",
+             note="a true lag of 5-60 ms (log-uniform) on the timing grid"),
     ]
     out += [_single(eid, "clear", value) for eid, value in CLEAR.items()]
     out += [_single(eid, "strong", "") for eid in ("current_interference", "temperature_drift", "time_offset",

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -23,11 +24,10 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cases import CASES, Case, select  # noqa: E402
-
-#: the log format written: ArduPilot DataFlash carries current, voltage, throttle, temperature and GPS
-LOG_SUFFIX = ".bin"
+from truth_score import z_scores  # noqa: E402
 
 
 def sim_seed(case: Case, seed: int) -> int:
@@ -62,18 +62,19 @@ def concealment(sim: Any) -> dict[str, dict[str, float]]:
 
 
 def generate(case: Case, seed: int, log: Path) -> dict[str, Any]:
-    """Write the case's log for `seed` and return its truth document (the reader's ids and magnetometer unit)
-    with the concealment figures under "concealment"."""
+    """Write the case's log for `seed` (its format: `log`'s suffix) and return its truth document (the reader's ids
+    and magnetometer unit) with the concealment figures under "concealment"."""
     from magcal_cli import __version__
     from magcal_cli.document import dumps_json
-    from magcal_cli.logwriters import write_log
+    from magcal_cli.logwriters import imu_sampling, write_log
     from magcal_cli.readers import open_recording
     from magcal_cli.synth import simulate, truth_calibration
     from magcal_cli.synth_effects import parse_effect
 
-    specs = tuple(parse_effect(e) for e in case.effects)
-    sim = simulate(case.scenario, sim_seed(case, seed), case.rate, None, case.duration, effects=specs,
-                   power_profile=case.power_profile)
+    st = case.settings(seed)
+    specs = tuple(parse_effect(e) for e in st.effects)
+    sim = simulate(case.scenario, sim_seed(case, seed), st.rate, st.mag_rate, case.duration, effects=specs,
+                   power_profile=case.power_profile, imu_sampling=imu_sampling(log), mag_phase_s=st.mag_phase_s)
     write_log(sim, log)
     doc = dumps_json(truth_calibration(sim, open_recording(log), __version__, "1970-01-01T00:00:00Z"))
     truth: dict[str, Any] = json.loads(doc)
@@ -85,7 +86,8 @@ def run_one(case: Case, seed: int, out: Path, effects_arg: str, keep_logs: bool 
     """Simulate, fit with `magcal fit --effects ...`, write and return the record of one run."""
     work = out / "work" / f"{case.name}-{seed:03d}"
     work.mkdir(parents=True, exist_ok=True)
-    log = work / f"log{LOG_SUFFIX}"
+    st = case.settings(seed)
+    log = work / f"log{st.suffix}"
     t0 = time.perf_counter()
     truth = generate(case, seed, log)
     t_sim = time.perf_counter() - t0
@@ -96,12 +98,17 @@ def run_one(case: Case, seed: int, out: Path, effects_arg: str, keep_logs: bool 
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     t_fit = time.perf_counter() - t0
     effects: list[dict[str, Any]] | None = None
+    z: list[list[Any]] | None = None
     cal = work / "fit" / "calibration.json"
     if proc.returncode in (0, 3) and cal.exists():
-        effects = json.loads(cal.read_text()).get("effects", [])
+        fitted = json.loads(cal.read_text())
+        effects = fitted.get("effects", [])
+        z = [[s.sensor, s.name, round(s.z, 4)] for s in z_scores(fitted, truth)]
     rec = {"case": case.name, "tier": case.tier, "seed": seed, "sim_seed": sim_seed(case, seed),
            "effects_arg": value, "truth": truth.get("effects", []), "concealment": truth["concealment"],
-           "effects": effects,
+           "effects": effects, "z": z,
+           "settings": {"rate_hz": st.rate, "mag_rate_hz": st.mag_rate, "mag_phase_s": st.mag_phase_s,
+                        "format": st.suffix, "imu_sampling": st.convention, "effects": list(st.effects)},
            "exit_code": proc.returncode, "stderr": proc.stderr[-2000:], "runtime_sim_s": round(t_sim, 3),
            "runtime_fit_s": round(t_fit, 3)}
     path = record_path(out, case, seed)
@@ -110,7 +117,7 @@ def run_one(case: Case, seed: int, out: Path, effects_arg: str, keep_logs: bool 
     tmp.write_text(json.dumps(rec, indent=1))
     tmp.replace(path)
     if not keep_logs:
-        log.unlink(missing_ok=True)
+        shutil.rmtree(work, ignore_errors=True)
     return rec
 
 

@@ -29,6 +29,9 @@ NEG_MAX, CLEAR_MIN, WRONG_MAX, COVER = 0.05, 0.90, 0.05, (0.88, 0.99)
 HELDOUT_MIN, AMBIG_MIN, SEPARABLE_MIN, STRONG_MIN = 0.90, 0.80, 0.90, 0.98
 #: coverage is judged from this many intervals of one effect on (design 7.6: >= 40 accepted runs)
 MIN_INTERVALS = 40
+#: issue 25: time_offset accepted on the timing grid's negative controls; the lag tier's mean error (s); the base
+#: parameters' |z| <= 1.96 share pooled over the good logs, and the largest |z| any log may have
+TIMING_MAX, LAG_BIAS_MAX, Z_SHARE, Z_MAX = 0.05, 0.5e-3, (0.85, 0.99), 5.0
 
 Record = dict[str, Any]
 
@@ -119,7 +122,19 @@ def run_outcome(rec: Record, case: Case) -> dict[str, Any]:
             "ambiguous_pair": ok and bool(pair) and pair <= ambiguous_names(rec),
             "wrong_pick": ok and bool(acc & (pair - expected)),
             "covered": sum(cover), "intervals": len(cover),
-            "heldout_ok": sum(held), "heldout_n": len(held)}
+            "heldout_ok": sum(held), "heldout_n": len(held),
+            "time_offset": "time_offset" in acc, "lag_error": lag_error(rec),
+            "z": [float(z[2]) for z in rec.get("z") or []]}
+
+
+def lag_error(rec: Record) -> float | None:
+    """Estimated minus true tau_s of an accepted time_offset that was injected, None otherwise."""
+    truth = next((t for t in rec.get("truth") or [] if t["id"] == "time_offset"), None)
+    fit = next((e for e in rec.get("effects") or [] if e["id"] == "time_offset" and e.get("status") == "accepted"),
+               None)
+    if truth is None or fit is None or "tau_s" not in (fit.get("params") or {}):
+        return None
+    return float(fit["params"]["tau_s"]) - float(truth["params"]["tau_s"])
 
 
 def _rate(k: int, n: int) -> float | None:
@@ -156,6 +171,11 @@ def summarise(recs: list[Record]) -> dict[str, dict[str, Any]]:
             "median_fit_s": fit_s[len(fit_s) // 2] if fit_s else None,
             "statistic_min_median": [round(stats[0], 1), round(stats[len(stats) // 2], 1)] if stats else None,
             "effects_arg": sorted({str(r.get("effects_arg")) for r in rs}),
+            "time_offset_rate": _rate(sum(o["time_offset"] for o in oc), n),
+            "lag_errors": [o["lag_error"] for o in oc if o["lag_error"] is not None],
+            "z_within": sum(int(abs(z) <= 1.96) for o in oc for z in o["z"]),
+            "z_count": sum(len(o["z"]) for o in oc),
+            "z_max": [round(max(map(abs, o["z"])), 2) for o in oc if o["z"]],
         }
     return out
 
@@ -183,6 +203,31 @@ def checks(summary: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     fa = sum(round(v["false_accept_rate"] * v["runs"]) for v in neg.values()) if n_neg else 0
     add("negative controls: any effect accepted", f"<= {NEG_MAX:.0%}", _rate(fa, n_neg),
         n_neg > 0 and fa / n_neg <= NEG_MAX, f"{fa}/{n_neg}")
+    for name, v in tier("timing").items():
+        add(f"{name}: time_offset accepted (issue 25)", f"<= {TIMING_MAX:.0%}", v["time_offset_rate"],
+            (v["time_offset_rate"] or 0.0) <= TIMING_MAX, f"of {v['runs']} runs")
+        add(f"{name}: wrong or extra", f"<= {WRONG_MAX:.0%}", v["wrong_or_extra_rate"],
+            (v["wrong_or_extra_rate"] or 0.0) <= WRONG_MAX)
+    for name, v in tier("lag").items():
+        errs = v["lag_errors"]
+        mean = sum(errs) / len(errs) if errs else None
+        add(f"{name}: accepted", f">= {CLEAR_MIN:.0%}", v["accept_rate"], (v["accept_rate"] or 0.0) >= CLEAR_MIN)
+        rows.append({"criterion": f"{name}: |mean error| of tau (issue 25)", "threshold": "<= 0.5 ms",
+                     "value": None if mean is None else abs(mean), "unit": "ms",
+                     "verdict": "n/a" if mean is None else ("PASS" if abs(mean) <= LAG_BIAS_MAX else "FAIL"),
+                     "detail": f"{len(errs)} runs" if mean is None else
+                     f"mean {1e3 * mean:+.3f} ms, RMS {1e3 * (sum(e * e for e in errs) / len(errs)) ** 0.5:.3f} ms, "
+                     f"{len(errs)} runs"})
+        cov = v["coverage"]
+        add(f"{name}: 95 % interval coverage (issue 25)", f"{COVER[0]:.0%}-{COVER[1]:.0%}", cov,
+            cov is not None and COVER[0] <= cov <= COVER[1], f"{v['covered']}/{v['intervals']}")
+    within, count = sum(v["z_within"] for v in summary.values()), sum(v["z_count"] for v in summary.values())
+    add("base parameters |z| <= 1.96, pooled (issue 25)", f"{Z_SHARE[0]:.0%}-{Z_SHARE[1]:.0%}", _rate(within, count),
+        count > 0 and Z_SHARE[0] <= within / count <= Z_SHARE[1], f"{within}/{count} estimates of D, o, dip, biases")
+    logs = [m for v in summary.values() for m in v["z_max"]]
+    over = sum(m > Z_MAX for m in logs)
+    add("logs with max |z| <= 5 (issue 25)", "all", _rate(len(logs) - over, len(logs)), bool(logs) and over == 0,
+        f"{over} of {len(logs)} logs over; largest {max(logs) if logs else 'n/a'}")
     for name, v in tier("clear").items():
         add(f"clear {name.removeprefix('clear_')}: accepted", f">= {CLEAR_MIN:.0%}", v["accept_rate"],
             (v["accept_rate"] or 0.0) >= CLEAR_MIN)
@@ -219,6 +264,13 @@ def _pct(x: float | None) -> str:
     return "n/a" if x is None else f"{100 * x:.0f} %"
 
 
+def _shown(row: dict[str, Any]) -> str:
+    """A criterion's value as the table prints it: a share in per cent, a time in milliseconds."""
+    if row.get("unit") == "ms":
+        return "n/a" if row["value"] is None else f"{1e3 * row['value']:.3f} ms"
+    return _pct(row["value"])
+
+
 def markdown(summary: dict[str, dict[str, Any]], rows: list[dict[str, Any]], load_note: str) -> str:
     """The report: per-case table, then the criteria."""
     lines = ["# Concealed-effect suite (issue 11)", "", load_note, "",
@@ -237,8 +289,7 @@ def markdown(summary: dict[str, dict[str, Any]], rows: list[dict[str, Any]], loa
                      f"| {_pct(v['ambiguous_rate'])} | {_pct(v['wrong_pick_rate'])} "
                      f"| {' / '.join(map(str, v['statistic_min_median'] or ['n/a']))} | {v['median_fit_s']} |")
     lines += ["", "| criterion | threshold | value | verdict | detail |", "|---|---|---|---|---|"]
-    lines += [f"| {r['criterion']} | {r['threshold']} | {_pct(r['value'])} | {r['verdict']} | {r['detail']} |"
-              for r in rows]
+    lines += [f"| {r['criterion']} | {r['threshold']} | {_shown(r)} | {r['verdict']} | {r['detail']} |" for r in rows]
     return "\n".join(lines) + "\n"
 
 
