@@ -267,3 +267,34 @@ def unmeasured_windows(acc: Stream, gyr: Stream) -> tuple[tuple[float, float], .
     if top >= GYRO_FAST:
         bad |= w >= SATURATION_SHARE * top
     return tuple((a, b) for a, b in padded_runs(acc.t, bad, UNMEASURED_MARGIN_S))
+
+
+#: seconds over which the gyro's own noise is measured where it moves (`gyro_noise_scale`)
+NOISE_BLOCK_S = 2.0
+#: the 4th difference x_k-2 - 4 x_k-1 + 6 x_k - 4 x_k+1 + x_k+2 cancels any cubic motion; its norm turns it into noise
+FOURTH = np.array([1.0, -4.0, 6.0, -4.0, 1.0])
+#: with at least this much still data (s) its noise levels are the sensors' white noise (the estimators' floors)
+MIN_STILL_S = 2.0
+
+
+def gyro_noise_scale(gyr: Stream, still: StillResult, block_s: float = NOISE_BLOCK_S) -> FloatArray | None:
+    """(N, 3) each gyro sample's white-noise std relative to the still level, never below 1; None without MIN_STILL_S
+    of still data (no rest level to compare with: the estimators then fit one level to the whole log).
+
+    A running motor shakes the IMU: in flight a multirotor's gyro is several times noisier than at rest (the
+    independent simulator's flight: 0.01 against 0.003 rad/s; log171: 0.016-0.065 against 0.0005). The level is
+    measured from the gyro itself: the robust spread of its 4th differences, which cancel the smooth motion, over
+    blocks of `block_s`, held over each block.
+    """
+    x, level = gyr.xyz, still.gyr_noise
+    n = x.shape[0]
+    if sum(s.end - s.start for s in still.segments) < MIN_STILL_S or n < 2 * FOURTH.size or not np.all(level > 0):
+        return None
+    d = np.stack([np.convolve(x[:, i], FOURTH, mode="same") for i in range(3)], axis=1) / np.linalg.norm(FOURTH)
+    d[:2], d[-2:] = d[2], d[-3]                      # 'same' pads with zeros at both ends
+    size = max(int(round(block_s * gyr.rate_hz)), 20)
+    blocks = -(-n // size)
+    padded = np.concatenate([d, np.repeat(d[-1:], blocks * size - n, axis=0)]).reshape(blocks, size, 3)
+    spread = 1.4826 * np.median(np.abs(padded - np.median(padded, axis=1, keepdims=True)), axis=1)
+    out: FloatArray = np.repeat(np.maximum(spread / level, 1.0), size, axis=0)[:n]
+    return out

@@ -16,7 +16,15 @@ import numpy.typing as npt
 from . import __version__, timing, units
 from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from .config import Config
-from .detect import IMPACT, StillResult, check_signal, detect_still, pooled_std, unmeasured_windows
+from .detect import (
+    IMPACT,
+    StillResult,
+    check_signal,
+    detect_still,
+    gyro_noise_scale,
+    pooled_std,
+    unmeasured_windows,
+)
 from .errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
 from .findings import Finding, Severity
 from .models.accel import G
@@ -156,9 +164,10 @@ def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
     aux = tuple(st for st in aux if len(st) >= 2)
     # still segments and impacts are found on the samples as logged (one IMU time base); the estimators take
     # them in their own time convention (timing.py)
+    scale = gyro_noise_scale(gyr, still)
     acc, gyr, mags_est, record = timing.for_estimator(acc, gyr, tuple(good), cfg.imu_timing, cfg.mag_timing)
     return Problem(where, acc.id, acc, gyr, mags_est, still, aux, onboard_priors(rec, good), unmeasured,
-                   _known_physics(cfg, aux), record), findings
+                   _known_physics(cfg, aux), record, scale), findings
 
 
 def onboard_priors(rec: Recording, mags: list[Stream]) -> dict[str, MagPrior]:

@@ -126,7 +126,7 @@ def _with_scale_jacobian(problem: Problem, mag: Stream, t: FloatArray, pre: Prei
     hit = memo.get(key)
     if hit is None:
         hit = preintegrate(problem.gyr.t, problem.gyr.xyz, t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}",
-                           scale_jacobian=True, breaks=problem.unmeasured)
+                           scale_jacobian=True, breaks=problem.unmeasured, scale=problem.gyr_scale)
         memo[key] = hit
     return hit
 

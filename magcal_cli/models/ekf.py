@@ -74,12 +74,14 @@ class Prepared:
     rot0: FloatArray
     notes: tuple[str, ...] = ()
     breaks: tuple[tuple[float, float], ...] = ()      # Problem.unmeasured
+    gyr_scale: FloatArray | None = None               # Problem.gyr_scale
     effects: tuple[Bound, ...] = ()
     untestable: tuple[EffectFit, ...] = ()
 
     def repreintegrated(self, bias: FloatArray) -> Prepared:
         """The same inputs with the gyro preintegrated at `bias` (rad/s)."""
-        pre = preintegrate(self.gyr_t, self.gyr, self.t, bias, self.noise.gyr, self.where, breaks=self.breaks)
+        pre = preintegrate(self.gyr_t, self.gyr, self.t, bias, self.noise.gyr, self.where, breaks=self.breaks,
+                           scale=self.gyr_scale)
         return replace(self, pre=pre)
 
     @property
@@ -130,7 +132,8 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
     gyr = problem.gyr
     still = bool(problem.still.segments)
     bias = problem.still.gyr_bias if still else np.zeros(3)
-    pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured)
+    pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured,
+                       scale=problem.gyr_scale)
     h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
     r_d, db = map_init.wu_luo(h, so3.log(pre.delta), pre.duration, window)
@@ -139,7 +142,8 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
         if still:                                      # not still after all: their gyro level is an upper bound
             noise = Noise(noise.acc, noise.gyr / GYRO_START_DIVISOR, noise.mag)
         bias = bias + db
-        pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured)
+        pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured,
+                           scale=problem.gyr_scale)
         why = "no still segment" if not still else (f"the still segments' gyro bias is {np.linalg.norm(db):.4f} "
                                                     "rad/s away from the field kinematics'")
         notes.append(f"{mag.id}: {why}; gyro bias started from the Wu & Luo alignment and the gyro noise from "
@@ -156,7 +160,7 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
     rot0 = map_init.attitudes(m_b[:1], ep.acc[:1], dip)[0]
     y = np.concatenate([ep.acc, ep.mag], axis=1)
     return Prepared(where, mag.id, ep.t, y, ep.acc_factor, pre, gyr.t, gyr.xyz, noise, intr.scale, theta, rot0,
-                    tuple(notes))
+                    tuple(notes), problem.unmeasured, problem.gyr_scale)
 
 
 def prepare_all(problem: Problem, cfg: object, method: str) -> list[Prepared]:

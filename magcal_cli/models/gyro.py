@@ -1,7 +1,8 @@
 """Gyro preintegration between magnetometer epochs (Forster et al. 2017) and its residual factor.
 
 methods.md section 3 item 3 (Huang et al. 2025, eqs. 16-18; the authors' gyroPreIntegration.m). A gyro sample
-y_k holds over [t_k, t_k+1) (zero-order hold, as `synth` generates it). The interval between two epochs is cut
+y_k holds over [t_k, t_k+1) (zero-order hold; timing.for_estimator turns every log's gyro into this form). The
+interval between two epochs is cut
 at every IMU time stamp into pieces, so epochs need not coincide with IMU samples (partial first and last
 pieces); when they do, every piece is one whole IMU sample and this is eq. 16 with L samples per interval.
 
@@ -81,7 +82,7 @@ def broken_intervals(epochs: FloatArray, windows: tuple[tuple[float, float], ...
 
 def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: FloatArray,
                  noise_std: FloatArray, where: str = "gyro", scale_jacobian: bool = False,
-                 breaks: tuple[tuple[float, float], ...] = ()) -> Preintegrated:
+                 breaks: tuple[tuple[float, float], ...] = (), scale: FloatArray | None = None) -> Preintegrated:
     """Preintegrate gyro samples gyr (N, 3) rad/s at t_imu (N,) between consecutive epochs (K,) s.
 
     noise_std (3,) is the per-sample white-noise std (rad/s) at the nominal IMU period dt; a piece of
@@ -94,7 +95,8 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
     `scale_jacobian`: also d dR / d s for a gyro scale error (the bias Jacobian with each piece weighted by its
     rotation vector: the scale acts as a per-sample bias diag(w_j) s; effects/gyro_scale.py).
     `breaks`: time windows the gyro did not measure (Problem.unmeasured); an interval overlapping one carries no
-    gyro factor (L^-1 = 0) and an orientation-unknown covariance (pi^2 rad^2) for the filters.
+    gyro factor (L^-1 = 0) and an orientation-unknown covariance (pi^2 rad^2) for the filters. `scale` (N, 3)
+    multiplies each sample's noise std (a flight's vibration, Problem.gyr_scale; None: 1).
     """
     if epochs.size < 2 or epochs[0] < t_imu[0] or np.any(np.diff(epochs) <= 0.0):
         msg = (f"{where}: preintegration needs at least two increasing magnetometer epochs inside the IMU "
@@ -112,6 +114,10 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
     dt = float(np.median(np.diff(t_imu)))
     steps, jr = so3.exp(phi), so3.right_jacobian(phi)
     q = (noise_std**2)[None, None, :] * (dt * d)[:, :, None]                    # diag Q of each piece
+    if scale is not None:
+        grow = np.ones((lmax, k, 3))
+        grow[slot, interval] = scale[sample] ** 2
+        q = q * grow
     delta = np.broadcast_to(np.eye(3), (k, 3, 3)).copy()
     d_bias = np.zeros((k, 3, 3))
     cov = np.zeros((k, 3, 3))

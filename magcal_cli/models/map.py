@@ -18,6 +18,7 @@ import numpy.typing as npt
 from scipy import stats
 
 from .. import so3
+from ..detect import MIN_STILL_S
 from ..effects import get
 from ..effects.base import Point, Target
 from ..errors import InsufficientDataError
@@ -70,8 +71,6 @@ FIRST_GYRO_SLOPE = -0.7
 TRAJECTORY_DAMPING = 1e-9
 #: the gyro variance never drops below this factor (log) of its start value (100x lower std)
 MIN_GYRO_LOG_VARIANCE = float(np.log(1e-4))
-#: with at least this much still data (s) its noise levels are floors (the white noise at rest)
-MIN_STILL_S = 2.0
 #: re-preintegrate when the first-order bias correction rotates an interval by more than this (rad)
 REPREINTEGRATE_RAD = 0.01
 @dataclass(frozen=True, eq=False)
@@ -272,14 +271,15 @@ def noise_step(step: FloatArray, floor: FloatArray | None, levels: FloatArray, h
     """One noise round's log-variance step (gyro at index 3) from the measured factors `step`: whether it is small
     enough to stop, and the gyro's measured factor (for the secant history)."""
     if floor is not None:
-        # still data measured the sensors' white noise: no level goes below it. In motion the IMU may be noisier
-        # than at rest (a flight's vibration doubles or triples the gyro's noise), so every level is estimated
+        # still data measured the sensors' white noise: levels never go below it, and the gyro keeps it; where it
+        # moves, the gyro's own noise is measured sample by sample (Problem.gyr_scale: a flight's vibration).
+        # Estimated from the residuals instead, the gyro level absorbs every misfit of the other factors and runs
+        # away (x 280 on the x-io log), docs/method-map.md
+        step[3] = 0.0
         step = np.maximum(step, 2.0 * np.log(floor / levels))
     small = float(np.max(np.abs(step))) < 2.0 * NOISE_TOL
     measured = float(step[3])
-    step[3] = _secant(history, applied, measured)
-    if floor is not None:
-        step[3] = max(step[3], 2.0 * float(np.log(floor[3] / levels[3])))
+    step[3] = _secant(history, applied, measured) if floor is None else 0.0
     # without still data the gyro level is weakly determined: when the other factors misfit (flight, too
     # little rotation) its fixed point runs away toward zero and the trajectory becomes numerically rigid
     step[3] = max(step[3], MIN_GYRO_LOG_VARIANCE - applied)
@@ -304,7 +304,7 @@ def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
         if np.allclose(ratio, ratio[0], rtol=1e-12):
             return hit.scaled(float(ratio[0]) ** 2)
     pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}",
-                       scale_jacobian=scale_jacobian, breaks=problem.unmeasured)
+                       scale_jacobian=scale_jacobian, breaks=problem.unmeasured, scale=problem.gyr_scale)
     cache[key] = pre
     return pre
 
@@ -421,7 +421,8 @@ def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated,
         full[layout.cols(*b.names())] = b.effect.start()
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
         pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias, pre.noise_std,
-                           f"{problem.where}: {mag.id}", scale_jacobian=True, breaks=problem.unmeasured)
+                           f"{problem.where}: {mag.id}", scale_jacobian=True, breaks=problem.unmeasured,
+                           scale=problem.gyr_scale)
     return layout, tuple(bound), untestable, full, pre
 
 
@@ -524,7 +525,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         db = theta[bg]
         if float(np.linalg.norm(db)) * float(pre.duration.max()) > REPREINTEGRATE_RAD:
             pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias + db, noise.gyr, where, scale_jac,
-                               problem.unmeasured)
+                               problem.unmeasured, problem.gyr_scale)
             theta[bg] = 0.0
             log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue
@@ -688,7 +689,7 @@ def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: 
     scale = float(np.cbrt(abs(np.linalg.det(d))))
     ep = epochs_for(problem, mag, scale)
     pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr,
-                       breaks=problem.unmeasured)
+                       breaks=problem.unmeasured, scale=problem.gyr_scale)
     jac = BASE.si_factors(scale)
     theta = theta_si / jac
     BASE.put(theta, "gyroscope_bias", 0.0)

@@ -24,6 +24,7 @@ import numpy.typing as npt
 from .. import consistency, so3
 from ..align import interpolate
 from ..config import Config
+from ..detect import MIN_STILL_S
 from ..errors import InsufficientDataError
 from ..findings import Finding, Severity
 from ..progress import current
@@ -34,7 +35,6 @@ from .epochs import MAX_EPOCHS, Epochs, Noise, epochs_for, initial_noise
 from .gyro import Preintegrated, preintegrate
 from .map import (
     DIP_BASIN_DEG,
-    MIN_STILL_S,
     NOISE_ROUNDS,
     REPREINTEGRATE_RAD,
     MapEstimate,
@@ -155,7 +155,8 @@ def _start(problem: Problem, je: JointEpochs, intr: list[map_init.Intrinsic], no
     magnetometer, the dip, the gyro-integrated or TRIAD trajectory, whichever fits better), for all at once."""
     where = problem.where
     bias = problem.still.gyr_bias if problem.still.segments else np.zeros(3)
-    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, je.t, bias, noise.gyr, where, breaks=problem.unmeasured)
+    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, je.t, bias, noise.gyr, where, breaks=problem.unmeasured,
+                       scale=problem.gyr_scale)
     cum = np.concatenate([np.eye(3)[None], so3.cumulative_product(pre.delta)])
     theta = layout.zeros()
     anchor = np.full((je.t.size, 3, 3), np.nan)
@@ -232,7 +233,7 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         if float(np.linalg.norm(theta[bg])) * float(pre.duration.max()) > REPREINTEGRATE_RAD:
             pre = preintegrate(problem.gyr.t, problem.gyr.xyz, je.t, pre.bias + theta[bg], noise.gyr,
-                               problem.where, breaks=problem.unmeasured)
+                               problem.where, breaks=problem.unmeasured, scale=problem.gyr_scale)
             theta[bg] = 0.0
             log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue

@@ -5,9 +5,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import numpy as np
+import numpy.typing as npt
+
 from ..detect import StillResult
 from ..streams import Kind, Stream
 from .partial import MagPrior
+
+FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,6 +44,8 @@ class Problem:
     base_effects: tuple[str, ...] = ()
     #: {"imu", "magnetometer", "set_by"}: the sampling the log's streams were read with (timing.py)
     timing: Mapping[str, str] = field(default_factory=dict)
+    #: (N, 3) each gyro sample's noise std relative to the still level (detect.gyro_noise_scale); None: 1
+    gyr_scale: FloatArray | None = None
 
     def channels(self, kind: Kind) -> tuple[Stream, ...]:
         """The auxiliary streams of one kind, in log order."""
