@@ -35,15 +35,18 @@ CORRUPT = "corrupt.bin"
 
 def make_logs(folder: Path, n: int, seed: int) -> dict[str, int]:
     """n-1 simulated handheld logs (40-60 s, formats in turn) and one corrupt DataFlash log; formats counted."""
-    from magcal_cli.logwriters import write_log
+    from magcal_cli.logwriters import imu_sampling, write_log
     from magcal_cli.synth import simulate
 
     rng = np.random.default_rng(seed)
     counts: dict[str, int] = {}
     for i in range(n - 1):
         ext = FORMATS[i % len(FORMATS)]
-        sim = simulate("handheld", seed + i, duration=float(rng.uniform(40.0, 60.0)))
-        write_log(sim, folder / f"log{i:03d}{ext}")
+        path = folder / f"log{i:03d}{ext}"
+        # the IMU sampled as the format holds it; a CSV log has one row per IMU sample, so its field is on IMU stamps
+        sim = simulate("handheld", seed + i, duration=float(rng.uniform(40.0, 60.0)), imu_sampling=imu_sampling(path),
+                       mag_phase_s=0.0 if ext == ".csv" else None)
+        write_log(sim, path)
         counts[ext or "ros2 bag dir"] = counts.get(ext or "ros2 bag dir", 0) + 1
     (folder / CORRUPT).write_bytes(rng.bytes(200_000))          # no record header anywhere: unusable
     counts["corrupt .bin"] = 1

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from magcal_cli.streams import Sampling
 from magcal_cli.synth import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,8 +37,16 @@ def update_golden(request: pytest.FixtureRequest) -> bool:
 def sim() -> Simulation:
     """A handheld simulation at 25 Hz IMU / 12.5 Hz field (about 90 s): accurate enough, fast to fit.
 
-    Modules with a `sim` fixture of their own use theirs (pytest prefers the nearer definition)."""
-    return simulate("handheld", 1, rate=25.0, mag_rate=12.5)
+    Its IMU samples are instantaneous and its field is read on IMU stamps (phase 0: a CSV log has one row per IMU
+    sample), so it writes to every format but .ulg (`sim_ulg`). Modules with a `sim` fixture of their own use theirs
+    (pytest prefers the nearer definition)."""
+    return simulate("handheld", 1, rate=25.0, mag_rate=12.5, mag_phase_s=0.0)
+
+
+@pytest.fixture(scope="module")
+def sim_ulg() -> Simulation:
+    """`sim` with the IMU sampled as a .ulg holds it: each sample the mean over the period ending at its stamp."""
+    return simulate("handheld", 1, rate=25.0, mag_rate=12.5, mag_phase_s=0.0, imu_sampling=Sampling.PRECEDING)
 
 
 @pytest.fixture

@@ -20,7 +20,10 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from magcal_cli.synth import Simulation
 
 #: the formats fuzzed; "log" is a text DataFlash log, "ros2" a ROS 2 bag directory with MCAP storage, "db3" one
 #: with sqlite3 storage (its database read from the file's pages: sqlite_pages.py)
@@ -93,19 +96,28 @@ def text_log(raw_bin: Path, out: Path) -> None:
     out.write_text("\n".join(line for _, line in lines) + "\n", encoding="latin-1")
 
 
+def seed_simulation(path: Path) -> Simulation:
+    """The simulation a seed at `path` is written from (handheld, 10 Hz IMU, 5 Hz field: about 80 s, fits in
+    ~0.3 s): its IMU sampled as the format holds it (logwriters.IMU_SAMPLING), its field read on IMU stamps (phase
+    0: a CSV log has one row per IMU sample)."""
+    from magcal_cli.logwriters import imu_sampling
+    from magcal_cli.synth import simulate
+
+    return simulate("handheld", 0, rate=10.0, mag_rate=5.0, imu_sampling=imu_sampling(path), mag_phase_s=0.0)
+
+
 def make_seeds(root: Path) -> dict[str, Path]:
-    """One small simulated log per format (handheld, 10 Hz IMU, 5 Hz field: about 80 s, fits in ~0.3 s)."""
+    """One small simulated log per format (seed_simulation)."""
     from magcal_cli.logwriters import write_log
     from magcal_cli.logwriters.mcap import write_mcap
     from magcal_cli.logwriters.rosbag import write_bag, write_ros2
-    from magcal_cli.synth import simulate
 
     root.mkdir(parents=True, exist_ok=True)
-    sim = simulate("handheld", 0, rate=10.0, mag_rate=5.0)
+    sim = seed_simulation(root / "seed.bin")                  # instantaneous IMU samples: every format but .ulg
     seeds = {}
     for fmt in ("bin", "ulg", "csv"):
         seeds[fmt] = root / f"seed.{fmt}"
-        write_log(sim, seeds[fmt])
+        write_log(sim if fmt != "ulg" else seed_simulation(seeds[fmt]), seeds[fmt])
     seeds["mcap"] = root / "seed.mcap"
     write_mcap(sim, seeds["mcap"], chunk_size=SEED_CHUNK)
     seeds["bag"] = root / "seed.bag"
@@ -145,9 +157,10 @@ class DeadSensor:
         from magcal_cli.logwriters import write_log
         from magcal_cli.readers.dataflash_binary import parse_binary
         from magcal_cli.streams import Kind
-        from magcal_cli.synth import simulate
 
-        sim = simulate("handheld", 0, rate=10.0, mag_rate=5.0)
+        path = root / f"dead.{fmt}"
+        binary = root / "dead.bin"                                 # a text log is made from a binary one
+        sim = seed_simulation(binary if fmt == "log" else path)
         kind = Kind(self.kind)
         patch = fmt in ("bin", "log") and kind is Kind.MAGNETOMETER and self.value == "zero"
         if not patch:
@@ -155,7 +168,9 @@ class DeadSensor:
                        for s in sim.recording.streams]
             sim = dataclasses.replace(sim, recording=dataclasses.replace(sim.recording, streams=tuple(streams)))
         root.mkdir(parents=True, exist_ok=True)
-        binary = root / "dead.bin"
+        if fmt not in ("bin", "log"):
+            write_log(sim, path)
+            return path
         write_log(sim, binary)
         if patch:
             data = bytearray(binary.read_bytes())
@@ -163,13 +178,9 @@ class DeadSensor:
             for pos in parse_binary(binary).tables["MAG"].pos.tolist():
                 data[pos + at:pos + at + n] = bytes(n)
             binary.write_bytes(bytes(data))
-        if fmt == "bin":
-            return binary
         if fmt == "log":
-            text_log(binary, root / "dead.log")
-            return root / "dead.log"
-        write_log(sim, root / f"dead.{fmt}")
-        return root / f"dead.{fmt}"
+            text_log(binary, path)
+        return path
 
     def _values(self, values: Any) -> Any:
         """Zeros, or the first reading repeated, in the shape of `values`."""

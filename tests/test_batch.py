@@ -31,7 +31,8 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("logs")
     (root / "sub").mkdir()
     for seed, name in ((1, "alpha.bin"), (2, "sub/bravo.mcap"), (3, "charlie.csv")):
-        write_log(simulate("handheld", seed, rate=50.0, mag_rate=25.0, duration=40.0), root / name)
+        phase = 0.0 if name.endswith(".csv") else None          # a CSV log has one row per IMU sample
+        write_log(simulate("handheld", seed, rate=50.0, mag_rate=25.0, duration=40.0, mag_phase_s=phase), root / name)
     (root / "corrupt.bin").write_bytes(np.random.default_rng(0).bytes(5000))
     (root / "notes.json").write_text("{}")            # neither a log nor one by its extension: not picked up
     return root

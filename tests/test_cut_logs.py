@@ -12,14 +12,14 @@ from click.testing import CliRunner, Result
 
 from magcal_cli.cli import cli
 from magcal_cli.errors import TruncatedLogError
-from magcal_cli.logwriters import write_log
+from magcal_cli.logwriters import imu_sampling, write_log
 from magcal_cli.logwriters.mcap import write_mcap
 from magcal_cli.logwriters.rosbag import write_bag, write_ros2
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.streams import Kind
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth import Simulation
 
-from .fuzzing import text_log
+from .fuzzing import seed_simulation, text_log
 
 #: every format and layout a reader handles: DataFlash binary and text, ULog, MCAP, ROS 1, ROS 2 (both
 #: storages), CSV
@@ -31,12 +31,14 @@ CUT_AT = {"ros2-mcap": 0.5}
 
 @pytest.fixture(scope="module")
 def sim() -> Simulation:
-    """A handheld simulation at 10 Hz IMU / 5 Hz field (about 80 s; fits in well under a second)."""
-    return simulate("handheld", 0, rate=10.0, mag_rate=5.0)
+    """A handheld simulation at 10 Hz IMU / 5 Hz field (about 80 s; fits in well under a second), instantaneous IMU
+    samples (`write` re-samples it for .ulg) and the field on IMU stamps (a CSV log has one row per IMU sample)."""
+    return seed_simulation(Path("x.bin"))
 
 
 def write(sim: Simulation, root: Path, fmt: str) -> tuple[Path, Path]:
-    """The log of `fmt` under `root`: (the path to give magcal, the file to cut)."""
+    """The log of `fmt` under `root`: (the path to give magcal, the file to cut); a .ulg from seed_simulation
+    sampled as the format holds its IMU."""
     if fmt == "log":
         write_log(sim, root / "x.bin")
         text_log(root / "x.bin", root / "x.log")
@@ -51,8 +53,9 @@ def write(sim: Simulation, root: Path, fmt: str) -> tuple[Path, Path]:
         write_ros2(sim, root / "bag", fmt.split("-")[1])
         storage = next(p for p in (root / "bag").iterdir() if p.suffix in (".mcap", ".db3"))
         return root / "bag", storage
-    write_log(sim, root / f"x.{fmt}")
-    return root / f"x.{fmt}", root / f"x.{fmt}"
+    path = root / f"x.{fmt}"
+    write_log(sim if imu_sampling(path) is sim.imu_sampling else seed_simulation(path), path)
+    return path, path
 
 
 def cut(victim: Path, fmt: str) -> int:

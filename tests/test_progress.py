@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from magcal_cli import progress as progress_mod
 from magcal_cli.cli import cli
 from magcal_cli.diagnose.parallel import pmap
-from magcal_cli.logwriters import write_log
+from magcal_cli.logwriters import imu_sampling, write_log
 from magcal_cli.progress import Progress, active, current, duration, noop, within
 from magcal_cli.readers import open_recording
 from magcal_cli.synth import Simulation, simulate
@@ -194,10 +194,16 @@ def test_warnings_grouped_one_line_per_kind_and_in_full_with_v() -> None:
     assert _warning_lines(found, mags, verbose=True) == [f.message for f in found[:5]]
 
 
+def minute(path: Path) -> Simulation:
+    """A minute of hand-held motion to write to `path`: the IMU sampled as its format holds it, the field read on IMU
+    stamps (phase 0: a CSV log has one row per IMU sample)."""
+    return simulate("handheld", 1, duration=60.0, imu_sampling=imu_sampling(path), mag_phase_s=0.0)
+
+
 @pytest.fixture(scope="module")
 def sim60() -> Simulation:
-    """A minute of hand-held motion."""
-    return simulate("handheld", 1, duration=60.0)
+    """A minute of hand-held motion (instantaneous IMU samples: every format but .ulg)."""
+    return minute(Path("r.mcap"))
 
 
 def _reading(path: Path) -> list[float]:
@@ -229,7 +235,7 @@ def test_reading_reports_fractions_that_rise_to_one(sim60: Simulation, tmp_path:
         u = np.random.default_rng(2).standard_normal((400, 3))
         path.write_text(text_log(450.0 * u / np.linalg.norm(u, axis=1, keepdims=True))[0])
     else:
-        write_log(sim60, path)
+        write_log(sim60 if imu_sampling(path) is sim60.imu_sampling else minute(path), path)
     f = _reading(path)
     assert f[0] < 0.01 and f[-1] == 1.0, f
     assert all(b >= a for a, b in zip(f, f[1:], strict=False)), f

@@ -186,9 +186,9 @@ def test_mostly_corrupt_dataflash_is_an_error_naming_the_damage(tmp_path: Path, 
         open_recording(tmp_path / "bad.bin")
 
 
-def test_corrupt_ulog_message_is_skipped(tmp_path: Path, sim: Simulation) -> None:
+def test_corrupt_ulog_message_is_skipped(tmp_path: Path, sim_ulg: Simulation) -> None:
     """A message header damaged in the middle of a ULog: pyulog resynchronises; the note counts the damage."""
-    write_log(sim, tmp_path / "x.ulg")
+    write_log(sim_ulg, tmp_path / "x.ulg")
     data = bytearray((tmp_path / "x.ulg").read_bytes())
     mid = len(data) // 2
     data[mid:mid + 40] = b"\xff" * 40
@@ -196,13 +196,13 @@ def test_corrupt_ulog_message_is_skipped(tmp_path: Path, sim: Simulation) -> Non
     rec = open_recording(tmp_path / "bad.ulg")
     assert any(n.startswith("corrupt data: pyulog skipped damaged bytes and resynchronised on the next message; "
                             "read ") for n in rec.notes)
-    assert len(rec.select(Kind.MAGNETOMETER)) > 0.9 * len(sim.recording.select(Kind.MAGNETOMETER))
+    assert len(rec.select(Kind.MAGNETOMETER)) > 0.9 * len(sim_ulg.recording.select(Kind.MAGNETOMETER))
 
 
-def test_damaged_ulog_format_definition(tmp_path: Path, sim: Simulation) -> None:
+def test_damaged_ulog_format_definition(tmp_path: Path, sim_ulg: Simulation) -> None:
     """A format definition whose timestamp field is garbled: that topic is ignored and named (found by fuzzing:
     it was a KeyError)."""
-    write_log(sim, tmp_path / "x.ulg")
+    write_log(sim_ulg, tmp_path / "x.ulg")
     data = (tmp_path / "x.ulg").read_bytes()
     at = data.index(b"timestamp", data.index(b"sensor_mag:"))
     (tmp_path / "bad.ulg").write_bytes(data[:at] + b"timestXmp" + data[at + 9:])

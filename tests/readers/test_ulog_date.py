@@ -68,9 +68,10 @@ def test_simulated_flight_ulog_is_dated_by_its_gps(tmp_path: Path) -> None:
     """`magcal simulate x.ulg` of a flight writes the receiver's UTC, so the log carries the date its truth's WMM
     field was taken at (T0_ROS), not today's."""
     from magcal_cli.logwriters.ulog import write_ulg
+    from magcal_cli.streams import Sampling
     from magcal_cli.synth import T0_ROS, simulate
 
     path = tmp_path / "flight.ulg"
-    write_ulg(simulate("multirotor", 0, duration=90.0), path)
+    write_ulg(simulate("multirotor", 0, duration=90.0, imu_sampling=Sampling.PRECEDING), path)
     utc0 = open_recording(path).utc0
     assert utc0 is not None and abs(utc0 - T0_ROS) < 0.2
