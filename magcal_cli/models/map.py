@@ -363,7 +363,8 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
     magnetometer to start from (its trajectory, parameters and noise levels).
     """
     effects = (*problem.base_effects, *(e for e in effects if e not in problem.base_effects))
-    args = (problem, mag, loss, dip_prior, noise_rounds, imu_start, {} if cache is None else cache, effects,
+    cache = {} if cache is None else cache
+    args = (problem, mag, loss, dip_prior, noise_rounds, imu_start, cache, effects,
             declination, holdout, warm)
     with one_blas_thread():       # small dense blocks: BLAS threads only cost
         try:
@@ -372,11 +373,13 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
             if warm is not None:
                 raise
             # the motion cannot determine everything: hold what it cannot at a prior (models/partial.py)
-            prior = partial.priors_by_id(problem.priors, mag.id, mag.xyz)
+            prior = _with_coverage(problem, mag, partial.priors_by_id(problem.priors, mag.id, mag.xyz), dip_prior,
+                                   cache)
             try:
                 return _fit_map(*args, prior=prior)
             except InsufficientDataError as exc:          # not even that: say why the partial fit failed
-                for level in (1, 2):                      # unless a half turn still gives the offsets
+                turned = prior.yaw_deg is not None and prior.yaw_deg >= partial.OFFSETS_YAW_DEG
+                for level in (1, 2) if turned else ():    # unless a half turn still gives the offsets
                     try:
                         return _fit_map(*args, prior=replace(prior, fallback=level))
                     except (InsufficientDataError, np.linalg.LinAlgError):
@@ -455,7 +458,6 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
     where = f"{problem.where}: {mag.id}"
     clean, spikes = map_init.despike(mag.xyz)            # outliers would wreck the algebraic start values
     if prior is not None:
-        prior = _with_coverage(problem, mag, prior, dip_prior, cache)
         intr = map_init.from_prior(clean, prior.D, prior.o)
     elif warm is not None:                # the fit to start from may be a partial one: no ellipsoid needed
         d, o, _ = mag_layout(warm.layout).unpack(warm.theta)

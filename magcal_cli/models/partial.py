@@ -73,6 +73,8 @@ class MagPrior:
     flat_axis: int | None = None
     #: after a refused fit, what a half turn still determines: 1 holds D's column along `flat_axis`, 2 all of D
     fallback: int = 0
+    #: a fit to the log's own readings (a sphere), not a calibration the vehicle flew with
+    from_readings: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,7 +154,8 @@ def sphere_prior(y: FloatArray) -> MagPrior:
     sol = np.linalg.solve(a.T @ a + 1e-3 * len(x) * np.diag([1.0, 1.0, 1.0, 0.0]), a.T @ rhs)
     centre = sol[:3]
     radius = float(np.sqrt(max(sol[3] + centre @ centre, 1e-12)))
-    return MagPrior(np.eye(3) * radius * s, mu + centre * s, "a sphere fit to the readings", SPHERE_REL_STD)
+    return MagPrior(np.eye(3) * radius * s, mu + centre * s, "a sphere fit to the readings", SPHERE_REL_STD,
+                    from_readings=True)
 
 
 def flown_prior(raw: FloatArray, field: FloatArray, to_si: float, slot: str) -> MagPrior | None:
@@ -210,14 +213,14 @@ SCALE_MISMATCH = 0.3
 
 
 def covered(prior: MagPrior, delta: FloatArray, acc: FloatArray, dip: float | None, y: FloatArray) -> MagPrior:
-    """The prior with the motion's coverage (`motion_coverage`), its D rescaled when its strength is not the one
-    the readings (N, 3) show for that motion: the readings' spread about their own mean over the unit field's
-    (two largest principal spreads), which no prior enters."""
+    """The prior with the motion's coverage (`motion_coverage`); a flown calibration's D rescaled when its strength is
+    not the one the readings (N, 3) show for that motion (the readings' spread about their own mean over the unit
+    field's, two largest principal spreads, which no prior enters), and its offsets then where they centre."""
     spread, yaw, flat = motion_coverage(delta, acc, dip)
     x = y - y.mean(axis=0)
     seen = np.sqrt(np.clip(np.linalg.eigvalsh(x.T @ x / len(x)), 0.0, None))[::-1]
     out = replace(prior, spread=spread, yaw_deg=yaw, flat_axis=flat)
-    if spread[1] <= 0.0:
+    if spread[1] <= 0.0 or prior.from_readings:      # a sphere through the readings is already their own scale
         return out
     strength = float(np.sqrt(seen[0] * seen[1] / (spread[0] * spread[1])))
     held = float(np.cbrt(abs(np.linalg.det(prior.D))))
