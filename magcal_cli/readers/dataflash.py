@@ -27,6 +27,8 @@ from .dataflash_mag import (
     Correction,
     ParamHistory,
     compass_correction,
+    motor_cast_evidence,
+    motor_product,
     param_suffix,
     truncation_evidence,
     undo_correction,
@@ -224,40 +226,24 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
     bad_instances: list[str] = []
     found = [(i, tb) for i, tb in instances(raw, MAG_NAMES, notes=bad_instances, limit=3)
              if tb.fmt.has("MagX", "MagY", "MagZ")]
-    integers = [_cols(tb, ("MagX", "MagY", "MagZ")) for _, tb in found if tb.fmt.char("MagX") in "bBhHiIqQ"]
-    evidence = truncation_evidence(integers) if integers else 0.0
-    truncated = evidence > -np.log(ROUNDED_EVIDENCE)
-    for inst, table in found:
-        f = table.fmt
-        notes: list[str] = []
-        t = time_of(table, clock)
-        if f.has("S", "TimeUS"):          # 4.x: S (uint32 us, wraps) is when the sample was taken
-            t = _sample_time(table.num("TimeUS"), table.num("S"))
-        keep = table.num("Health") != 0 if f.has("Health") else np.ones(len(table), dtype=bool)
-        if not keep.any():          # a compass that never worked (e.g. all fields zero): the dead-sensor check
-            notes.append(f"MAG[{inst}]: the firmware marked all {len(keep)} samples unhealthy")   # judges it
-            keep[:] = True
-        elif not keep.all():
-            notes.append(f"MAG[{inst}]: dropped {int((~keep).sum())} samples the firmware marked unhealthy")
-        table, t = table.where(keep), t[keep]
-        k = _mag_factor(table)
-        logged = _cols(table, ("MagX", "MagY", "MagZ"), k)
+    compasses = [_compass(inst, table, clock, params) for inst, table in found]
+    truncated, cast = _int16_cast(compasses, hist, throttle, current)
+    for c in compasses:
+        inst, table, t, notes = c.inst, c.table, c.t, list(c.notes)
+        f, k, logged = table.fmt, c.factor, c.logged
         field = logged
-        if f.char("MagX") in "bBhHiIqQ" and truncated:
+        if c.integer and truncated:
             # AP_Compass logs (int16_t)field: the cast truncates toward zero, so the field was on average half
             # a count further out; left in, it shrinks D by ~0.5 count / |field| (0.2 % at 270 mG)
             field = logged + 0.5 * k * np.sign(logged)
             notes.append(f"MAG[{inst}]: added back half a count ({0.5 * k:g} mG) lost to the firmware's int16 "
                          "truncation toward zero")
-        elif f.char("MagX") in "bBhHiIqQ":
-            notes.append(f"MAG[{inst}]: the logged integers have no dead zone at zero (rounded, not truncated "
-                         f"as AP_Compass's cast does: likelihood ratio {np.exp(-evidence):.3g}); no half count "
-                         "added back")
+        elif c.integer:
+            notes.append(f"MAG[{inst}]: the logged integers were rounded, not truncated as AP_Compass's cast does "
+                         f"({cast}); no half count added back")
         ofs = _cols(table, ("OfsX", "OfsY", "OfsZ"), k) if f.has("OfsX", "OfsY", "OfsZ") else None
-        mo_cols = next((c for c in (("MOfsX", "MOfsY", "MOfsZ"), ("MOX", "MOY", "MOZ")) if f.has(*c)), None)
-        motor = _cols(table, mo_cols, k) if mo_cols else None
         suffix, slot_note = param_suffix(inst, params)
-        corr, desc = compass_correction(hist, suffix, t, ofs, motor, after, _interp(t, throttle),
+        corr, desc = compass_correction(hist, suffix, t, ofs, c.motor, after, _interp(t, throttle),
                                         _interp(t, current))
         ext = {"": "COMPASS_EXTERNAL", "2": "COMPASS_EXTERN2", "3": "COMPASS_EXTERN3"}[suffix]
         frame = (f"COMPASS_ORIENT{suffix}={params.get(f'COMPASS_ORIENT{suffix}', 0):.0f}" if params.get(ext)
@@ -274,8 +260,62 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
         src = f"{path.name}#{f.name}{_inst(f, inst)}.MagX/MagY/MagZ (raw, reconstructed)"
         out.append(MagReconstruction(inst, src, t, logged, undo_correction(field, corr), corr,
                                      tuple(bad_instances * (not out) + notes),
-                                     _raw_resolution(corr, k) if f.char("MagX") in "bBhHiIqQ" else None))
+                                     _raw_resolution(corr, k) if c.integer else None))
     return out
+
+
+@dataclass(frozen=True, eq=False)
+class _Compass:
+    """One compass's healthy MAG records before the correction is undone: times (s), field and motor offsets (mG)."""
+
+    inst: int
+    table: Table
+    t: FloatArray
+    factor: float
+    logged: FloatArray
+    motor: FloatArray | None
+    integer: bool
+    notes: tuple[str, ...]
+
+
+def _compass(inst: int, table: Table, clock: Clock, params: dict[str, float]) -> _Compass:
+    """The healthy records of one compass (all of them, with a note, when the firmware marked none healthy)."""
+    f = table.fmt
+    notes: list[str] = []
+    t = time_of(table, clock)
+    if f.has("S", "TimeUS"):          # 4.x: S (uint32 us, wraps) is when the sample was taken
+        t = _sample_time(table.num("TimeUS"), table.num("S"))
+    keep = table.num("Health") != 0 if f.has("Health") else np.ones(len(table), dtype=bool)
+    if not keep.any():          # a compass that never worked (e.g. all fields zero): the dead-sensor check
+        notes.append(f"MAG[{inst}]: the firmware marked all {len(keep)} samples unhealthy")   # judges it
+        keep[:] = True
+    elif not keep.all():
+        notes.append(f"MAG[{inst}]: dropped {int((~keep).sum())} samples the firmware marked unhealthy")
+    table, t = table.where(keep), t[keep]
+    k = _mag_factor(table)
+    mo_cols = next((c for c in (("MOfsX", "MOfsY", "MOfsZ"), ("MOX", "MOY", "MOZ")) if f.has(*c)), None)
+    return _Compass(inst, table, t, k, _cols(table, ("MagX", "MagY", "MagZ"), k),
+                    _cols(table, mo_cols, k) if mo_cols else None, f.char("MagX") in "bBhHiIqQ", tuple(notes))
+
+
+def _int16_cast(compasses: list[_Compass], hist: ParamHistory, throttle: Series | None,
+                current: Series | None) -> tuple[bool, str]:
+    """Whether the log's integer fields were truncated toward zero (AP_Compass's cast) or rounded, and the evidence:
+    the logged motor offsets against the COMPASS_MOT product they were cast from, and the field's zero bin."""
+    params = hist.last()
+    ints = [c for c in compasses if c.integer]
+    zero_bin = truncation_evidence([c.logged / c.factor for c in ints], [c.t for c in ints]) if ints else 0.0
+    motor = 0.0
+    for c in compasses:
+        if c.motor is not None and c.integer:
+            product = motor_product(hist, param_suffix(c.inst, params)[0], c.t, _interp(c.t, throttle),
+                                    _interp(c.t, current))[0]
+            motor += motor_cast_evidence(c.motor / c.factor, product / c.factor)
+    evidence = zero_bin + motor
+    decades = -evidence / np.log(10.0)
+    ratio = f"1e{decades:.0f}" if decades > 6 else f"{10.0 ** decades:.3g}"
+    why = f"likelihood ratio {ratio} from the zero bin" + (" and the motor offsets against COMPASS_MOT" if motor else "")
+    return evidence > -np.log(ROUNDED_EVIDENCE), why
 
 
 def reconstruct_mags(path: Path) -> list[MagReconstruction]:

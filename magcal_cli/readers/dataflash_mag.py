@@ -114,17 +114,34 @@ def undo_correction(logged: FloatArray, c: Correction) -> FloatArray:
 ROUNDED_EVIDENCE = 100.0
 #: bins either side of zero the test compares the zero bin with, and the fewest counts it needs there
 ZERO_TEST_BINS, ZERO_TEST_MIN = 3, 30
+#: a value counts as in motion when its axis changes by more than this many counts over this long (s) around it:
+#: a sweep of 40 counts/s (0.1 rad/s on a 400-count field) is motion, a still pose's noise (2-3 counts) is not
+MOVING_COUNTS, MOVING_S = 10.0, 0.25
 
 
-def truncation_evidence(counts: list[FloatArray]) -> float:
-    """ln P(zero bin | truncated) - ln P(zero bin | rounded) for integer logged values (any shapes).
+def _in_motion(counts: FloatArray, t: FloatArray) -> FloatArray:
+    """The values (flat) of an (N, 3) integer field at times t (N,) s whose axis moves by more than MOVING_COUNTS over
+    the MOVING_S around them: a still pose parks an axis near one value and would put a bump beside the zero bin."""
+    x = np.asarray(counts, dtype=np.float64).reshape(len(counts), -1)
+    if len(x) < 3:
+        return np.zeros(0)
+    later = np.stack([np.interp(t + MOVING_S / 2, t, x[:, i]) for i in range(x.shape[1])], axis=1)
+    earlier = np.stack([np.interp(t - MOVING_S / 2, t, x[:, i]) for i in range(x.shape[1])], axis=1)
+    out: FloatArray = x[np.abs(later - earlier) > MOVING_COUNTS]
+    return out
+
+
+def truncation_evidence(counts: list[FloatArray], times: list[FloatArray]) -> float:
+    """ln P(zero bin | truncated) - ln P(zero bin | rounded) for integer logged fields (N, 3) at times (N,) s.
 
     AP_Compass logs `(int16_t)field`: the cast truncates toward zero, so bin 0 holds (-1, 1), twice the width of
     any other bin, and bin k > 0 holds [k, k + 1). A log rounded to the nearest count (another firmware, a
-    converter, a simulator) has no such dead zone. A quadratic density is fitted to the bins +-1..+-3 at each
-    hypothesis' bin centres and the zero bin's count scored as Poisson; 0 when there are too few counts to judge.
+    converter, a simulator) has no such dead zone. Only values in motion count (`_in_motion`): there the field
+    sweeps smoothly through zero. A quadratic density is fitted to the bins +-1..+-3 at each hypothesis' bin centres
+    and the zero bin's count scored as Poisson; 0 when there are too few counts to judge.
     """
-    v = np.rint(np.concatenate([np.asarray(c, dtype=np.float64).ravel() for c in counts]))
+    v = np.rint(np.concatenate([_in_motion(c, t) for c, t in zip(counts, times, strict=True)])) if counts else \
+        np.zeros(0)
     ks = np.concatenate([-np.arange(ZERO_TEST_BINS, 0, -1), np.arange(1, ZERO_TEST_BINS + 1)]).astype(np.float64)
     near = np.array([np.count_nonzero(v == k) for k in ks], dtype=np.float64)
     if near.sum() < ZERO_TEST_MIN:
@@ -164,6 +181,35 @@ def _fmt(v: FloatArray) -> str:
     return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
 
 
+def motor_product(hist: ParamHistory, suffix: str, t: FloatArray, throttle: FloatArray | None,
+                  current: FloatArray | None) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """COMPASS_MOT x throttle (MOTCT 1) or x current (MOTCT 2) at the sample times (N, 3) mG, the signal (N,) and
+    COMPASS_MOTCT (N,): the motor offset the firmware adds before it logs MO."""
+    motct = hist.at("COMPASS_MOTCT", t, 0.0)
+    mot = _vec(hist, "MOT", suffix, t, 0.0)
+    zero = np.zeros(t.size)
+    signal = np.where(motct == 1, zero if throttle is None else throttle,
+                      np.where(motct == 2, zero if current is None else current, 0.0))
+    return mot * signal[:, None], signal, motct
+
+
+#: a logged MO count matching the truncated product where rounding would give another (or the reverse) is this
+#: strong evidence for the cast (the current's own error makes a mismatch possible, not likely)
+CAST_MATCH_LOG_LR = float(np.log(20.0))
+
+
+def motor_cast_evidence(logged: FloatArray, product: FloatArray) -> float:
+    """ln P(MO | truncated) - ln P(MO | rounded) from the logged motor-offset counts (N, 3) and the float product
+    the firmware cast (N, 3), in counts: only where the two casts differ and the product is not near a half count."""
+    frac = np.abs(product) - np.floor(np.abs(product))
+    telling = (np.abs(product) >= 1.0) & (frac > 0.6) & (frac < 0.9)
+    if not telling.any():
+        return 0.0
+    by_trunc = np.count_nonzero(logged[telling] == np.trunc(product[telling]))
+    by_round = np.count_nonzero(logged[telling] == np.rint(product[telling]))
+    return float((by_trunc - by_round) * CAST_MATCH_LOG_LR)
+
+
 def compass_correction(hist: ParamHistory, suffix: str, t: FloatArray, logged_ofs: FloatArray | None,
                        logged_motor: FloatArray | None, motor_after_matrix: bool,
                        throttle: FloatArray | None = None,
@@ -190,12 +236,7 @@ def compass_correction(hist: ParamHistory, suffix: str, t: FloatArray, logged_of
     dia, odi = _vec(hist, "DIA", suffix, t, 0.0), _vec(hist, "ODI", suffix, t, 0.0)
     scale_raw = hist.at(f"COMPASS_SCALE{suffix}", t, 0.0)
     scale = effective_scale(scale_raw)
-    motct = hist.at("COMPASS_MOTCT", t, 0.0)
-    mot = _vec(hist, "MOT", suffix, t, 0.0)
-    zero = np.zeros(n)
-    signal = np.where(motct == 1, zero if throttle is None else throttle,
-                      np.where(motct == 2, zero if current is None else current, 0.0))
-    product = mot * signal[:, None]
+    product, signal, motct = motor_product(hist, suffix, t, throttle, current)
     if logged_motor is not None:
         motor, motor_desc = logged_motor, "motor offsets from the logged MO fields"
         # MO is COMPASS_MOT x throttle or current, logged as int16: where the product agrees with it to within a

@@ -463,3 +463,34 @@ def test_the_date_comes_from_gps_time(tmp_path: Path, sim: Simulation) -> None:
     write_log(sim, path)
     rec = open_recording(path)
     assert rec.t0 < 1e6 and rec.utc0 == pytest.approx(sim.recording.t0, abs=0.01)
+
+
+def _sweeps(n: int = 6000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Times (n,) s and (n, 3) a field sweeping smoothly through zero on every axis at 100 Hz, mG, 2 mG of noise."""
+    t = np.arange(n) / 100.0
+    rng = np.random.default_rng(seed)
+    return t, 300.0 * np.sin(np.outer(t, [0.31, 0.47, 0.23]) + [0.0, 1.0, 2.0]) + 2.0 * rng.standard_normal((n, 3))
+
+
+def test_the_zero_bin_tells_a_truncating_cast_from_rounding() -> None:
+    """Issue 25: AP_Compass's (int16_t) truncates toward zero (half a count is added back); a log rounded to the
+    count (the independent simulator's flight) has no dead zone at zero, and nothing may be added."""
+    from magcal_cli.readers.dataflash_mag import ROUNDED_EVIDENCE, truncation_evidence
+
+    t, x = _sweeps()
+    assert truncation_evidence([np.trunc(x)], [t]) > 2.0                     # the firmware's cast stands
+    assert truncation_evidence([np.rint(x)], [t]) < -np.log(ROUNDED_EVIDENCE)
+    # a pose held for 30 s with an axis near zero, truncated: its noise about -1.6 is no sweep through the zero bin
+    still = np.array([-1.6, 0.4, 250.0]) + 2.0 * np.random.default_rng(1).standard_normal((3000, 3))
+    both = np.concatenate([x, still]), np.concatenate([t, t[-1] + 0.01 + np.arange(3000) / 100.0])
+    assert truncation_evidence([np.trunc(both[0])], [both[1]]) > 2.0
+
+
+def test_motor_offsets_show_the_cast_they_went_through() -> None:
+    """MO = COMPASS_MOT x current, logged as an int16: which of trunc and round it matches where they differ."""
+    from magcal_cli.readers.dataflash_mag import motor_cast_evidence
+
+    product = np.outer(np.linspace(0.5, 18.0, 500), [0.255, 0.126, -0.247])
+    assert motor_cast_evidence(np.trunc(product), product) > 20.0
+    assert motor_cast_evidence(np.rint(product), product) < -20.0
+    assert motor_cast_evidence(np.rint(product), np.zeros_like(product)) == 0.0
