@@ -89,6 +89,17 @@ def describe(s: Sampling) -> str:
             Sampling.FOLLOWING: "the mean over the interval that starts at its stamp"}[s]
 
 
+def sentence(record: dict[str, str]) -> str:
+    """The document's source.timing as one line for reports ('' when it has none)."""
+    def what(value: str | None) -> str:
+        return describe(Sampling(value)) if value in CHOICES else str(value)
+
+    if not record:
+        return ""
+    return (f"each IMU sample taken as {what(record.get('imu'))}, each magnetometer sample as "
+            f"{what(record.get('magnetometer'))} (set by {record.get('set_by', 'the log')})")
+
+
 def stated(s: Stream, override: Sampling | None) -> Stream:
     """`s` with the sampling an option states instead of the reader's (the reader's window only for its own)."""
     if override is None or override is s.sampling:

@@ -14,6 +14,7 @@ from ..atomic import write_text
 from ..calibration import MagCalibration
 from ..effects.correct import terms
 from ..findings import Severity
+from ..timing import sentence
 
 if TYPE_CHECKING:
     from ..pipeline import RunResult
@@ -68,6 +69,8 @@ def render(result: RunResult) -> str:
     lines = [f"magcal {cal.magcal_version} calibration report ({cal.created_utc})", "",
              f"Log:     {src.path} ({src.format}, {src.end_s - src.start_s:.1f} s used, sha256 {src.sha256[:12]})",
              f"Method:  {METHOD_NAMES.get(cal.method, cal.method)}"]
+    if src.timing:
+        lines.append(f"Timing:  {sentence(src.timing)}")
     if cal.diagnosis:
         lines += ["", "What the recording says"]
         for block in cal.diagnosis.get("sensors", [cal.diagnosis]):

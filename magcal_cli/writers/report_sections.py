@@ -12,6 +12,7 @@ import numpy.typing as npt
 from .. import so3, units
 from ..calibration import MagCalibration
 from ..findings import Severity
+from ..timing import sentence
 from .plots import Plot
 from .report import DISPLAY, METHOD_NAMES, fmt_param, held_sentence, vec
 from .report_summary import LEVELS, Group, Verdict, next_steps, overall
@@ -236,6 +237,7 @@ def provenance(result: RunResult, text_report: str) -> str:
     src = cal.source
     pairs = [("log", escape(src.path)), ("format", escape(src.format)), ("sha256", f"<code>{escape(src.sha256)}</code>"),
              ("time span used", escape(f"{src.start_s:.2f} – {src.end_s:.2f} s")),
+             *([("sample timing", escape(sentence(src.timing)))] if src.timing else []),
              ("magcal", escape(f"{cal.magcal_version}, {cal.created_utc}")),
              ("files", "calibration.json / calibration.yaml (<code>magcal.calibration/1</code>), report.txt")]
     return (f"<section id='provenance'><h2>Provenance</h2>{_rows(pairs)}<details><summary>The text report "
