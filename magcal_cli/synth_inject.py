@@ -62,7 +62,8 @@ class InjectedEffect:
 @dataclass(frozen=True, eq=False)
 class Base:
     """What the effects act on: the true attitude (body->NED) and the scenario's translation (None: a pure
-    rotation), both functions of time; the IMU and magnetometer stamps (s); gravity g_n (m/s^2) and the field."""
+    rotation), both functions of time; the IMU and magnetometer stamps (s); gravity g_n (m/s^2) and the field.
+    `log_power` logs the power channels even when no power effect adds a magnetic term."""
 
     trajectory: Trajectory
     t_imu: FloatArray
@@ -75,6 +76,7 @@ class Base:
     source: str
     power_profile: str = "flight"
     motion: Motion | None = None
+    log_power: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -196,8 +198,9 @@ def _aux(kind: Kind, sid: str, t: FloatArray, v: FloatArray, unit: str, base: Ba
 
 def _power_terms(p: dict[str, dict[str, Any]], base: Base, sensed: FloatArray, duration: float,
                  streams: list[Stream], effects: list[InjectedEffect]) -> list[Term]:
-    """current_interference c I(t) and throttle_interference c u(t)^p, and the three power channels they log."""
-    if "current_interference" not in p and "throttle_interference" not in p:
+    """current_interference c I(t) and throttle_interference c u(t)^p, and the three power channels they log (also
+    logged without either effect when `base.log_power`)."""
+    if "current_interference" not in p and "throttle_interference" not in p and not base.log_power:
         return []
     pw = phys.power(_rng(base.seed, 1), duration, base.power_profile)
     t_mag, noise, ns = base.t_mag, _rng(base.seed, 4), base.noise_scale

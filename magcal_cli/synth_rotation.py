@@ -17,14 +17,29 @@ FloatArray = npt.NDArray[np.float64]
 
 #: a level ROS (FLU) body in NED: x north, y west, z up
 FLU_LEVEL = np.diag([1.0, -1.0, -1.0])
+#: the paper's random rate component: std per axis (rad/s) and its band edge as a fraction of the IMU rate
+PAPER_RATE_STD, PAPER_BAND = 0.05, 1.0 / 8.0
+
+
+def band_limited(x: FloatArray, cutoff: float, fs: float, std: float) -> FloatArray:
+    """Columns of x (N, k), sampled at fs Hz, without their content above `cutoff` Hz (a zero-phase FFT low-pass:
+    nothing above the cut-off, nothing below it changed or delayed), each rescaled to `std`."""
+    spec = np.fft.rfft(x, axis=0)
+    spec[np.fft.rfftfreq(len(x), 1.0 / fs) > cutoff] = 0.0
+    y = np.fft.irfft(spec, len(x), axis=0)
+    sd = np.std(y, axis=0)
+    out: FloatArray = y * np.where(sd > 0, std / np.where(sd > 0, sd, 1.0), 0.0)
+    return out
 
 
 def paper(rng: np.random.Generator, rate: float, duration: float | None) -> Scenario:
     """From I, at body rates v + 0.05 randn(3) rad/s for 2 pi/|v| s each, v in 0.1 {x, y, z, x+y, x+z, y+z}.
 
-    The rate is re-drawn once per IMU sample (as in the authors' simulate.m, so its statistics do not depend on
-    the fine grid), at the IMU stamps and at the end, and spread smoothly onto the fine grid (synth_motion.smooth);
-    the knots integrate it at the midpoints of the fine intervals.
+    The random part is drawn once per IMU sample (as in the authors' simulate.m, so its statistics do not depend
+    on the fine grid), at the IMU stamps and at the end, then band-limited to rate / 8 (`band_limited`, std kept
+    at 0.05 rad/s per axis: a real gyro's anti-aliasing filter never passes a rate with content up to Nyquist,
+    and docs/simulate-scenarios.md says why), and spread smoothly onto the fine grid (synth_motion.smooth); the
+    knots integrate it at the midpoints of the fine intervals.
     """
     axes = 0.1 * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1]], dtype=float)
     spans = 2.0 * np.pi / np.linalg.norm(axes, axis=1)
@@ -32,7 +47,8 @@ def paper(rng: np.random.Generator, rate: float, duration: float | None) -> Scen
         spans = np.full(6, duration / 6.0)
     counts = np.ceil(spans * rate).astype(int)
     counts[-1] += 1                                   # the draw at the end of the last IMU period
-    omega = np.repeat(axes, counts, axis=0) + 0.05 * rng.standard_normal((counts.sum(), 3))
+    draws = PAPER_RATE_STD * rng.standard_normal((counts.sum(), 3))
+    omega = np.repeat(axes, counts, axis=0) + band_limited(draws, PAPER_BAND * rate, rate, PAPER_RATE_STD)
     dt = 1.0 / (rate * OVERSAMPLE)
     mid = (np.arange((len(omega) - 1) * OVERSAMPLE) + 0.5) * dt
     steps = so3.exp(smooth(omega, 1.0 / rate, mid) * dt)

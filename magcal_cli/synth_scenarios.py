@@ -43,7 +43,8 @@ PARK_S, CRUISE_MPS, RADIUS_M, STOP_RAMP_S, STOP_HOLD_S = 10.0, (2.5, 4.0), (6.0,
 
 
 class Scenario(NamedTuple):
-    """A scenario's truth: the attitude, its translation (None: a pure rotation) and still intervals (s).
+    """A scenario's truth: the attitude, its translation (None: a pure rotation), still intervals (s) and the
+    intervals (s) in which motors run at flight speed (take-off to touchdown; empty: no motors).
 
     A still interval runs from the first to the last IMU stamp of a span in which the body is at rest, with one
     IMU period of margin where the smoothing onto the fine grid reaches into the span from a move.
@@ -52,6 +53,34 @@ class Scenario(NamedTuple):
     trajectory: Trajectory
     motion: Motion | None
     still: Intervals
+    motors: Intervals = ()
+
+
+class Limits(NamedTuple):
+    """The multirotor's flight envelope: the tilt (deg, the body z axis from vertical) and the horizontal NED
+    acceleration (m/s^2). Both None: the original controller (roll and pitch each softly within
+    TILT_LIMIT_DEG); either given: the limited one (tilt within `tilt_deg`, default TILT_LIMIT_DEG)."""
+
+    tilt_deg: float | None = None
+    accel_mps2: float | None = None
+
+    @property
+    def active(self) -> bool:
+        """Whether the limited controller flies."""
+        return self.tilt_deg is not None or self.accel_mps2 is not None
+
+    def orbit_cap(self, radius: float) -> float:
+        """The largest centripetal acceleration (m/s^2) of an orbit of `radius` (m) that leaves room to manoeuvre:
+        60 % of the acceleration limit, and a thrust (centripetal plus the drag k v at v = sqrt(a_c r)) that
+        tilts at most 70 % of the tilt limit."""
+        cap = math.inf if self.accel_mps2 is None else 0.6 * self.accel_mps2
+        h = 0.7 * G * math.tan(math.radians(self.tilt_deg if self.tilt_deg is not None else TILT_LIMIT_DEG))
+        k2r = ROTOR_DRAG**2 * radius
+        return min(cap, 0.5 * (math.sqrt(k2r * k2r + 4.0 * h * h) - k2r))
+
+
+#: the original flight: no limits beyond roll and pitch each softly within TILT_LIMIT_DEG
+NO_LIMITS = Limits()
 
 
 def min_jerk(s: npt.ArrayLike) -> FloatArray:
@@ -131,12 +160,14 @@ def _rotation(roll: float, pitch: float, yaw: float) -> tuple[float, ...]:
             -sp, cp * sr, cp * cr)
 
 
-def _flight_plan(rng: np.random.Generator, t: FloatArray, duration: float) -> tuple[FloatArray, ...]:
+def _flight_plan(rng: np.random.Generator, t: FloatArray, duration: float,
+                 limits: Limits = NO_LIMITS) -> tuple[FloatArray, ...]:
     """Commands of the flight: hold target r (N+1, 2) NED m, altitude h (m), yaw, pilot roll and pitch (rad).
 
     Pilot tilt: band-limited 0.05-0.5 Hz noise (std 5 deg) plus dash-and-stop pulses (12-18 deg, 1.5-3 s).
     Yaw: slow wander (0.005-0.05 Hz, std 25 deg), pirouettes (360 deg at 45-90 deg/s on average), and an orbit
-    of one or two laps (radius 15-30 m, centripetal 1.2-2.5 m/s^2) with the nose along the track.
+    of one or two laps (radius 15-30 m, centripetal 1.2-2.5 m/s^2, at most `limits.orbit_cap` when limited)
+    with the nose along the track.
     """
     rate = 1.0 / float(t[1] - t[0])
     n1 = len(t)
@@ -156,6 +187,8 @@ def _flight_plan(rng: np.random.Generator, t: FloatArray, duration: float) -> tu
         pilot += amp * pulse((t - t0) / length)[:, None] * np.array([np.cos(beta), np.sin(beta)])
     yaw = rng.uniform(-np.pi, np.pi) + gate * band(rng, n1, rate, 0.005, 0.05, np.deg2rad(25.0))
     radius, a_c = rng.uniform(15.0, 30.0), rng.uniform(1.2, 2.5)
+    if limits.active:
+        a_c = min(a_c, limits.orbit_cap(radius))
     lap = 2 * np.pi * radius / np.sqrt(a_c * radius) / (1.0 - 0.15)     # plateau speed sqrt(a_c radius)
     laps = 2 if 2 * lap < (span[1] - span[0]) / 2 else 1 if lap < (span[1] - span[0]) / 2 else 0
     orbit = _slots(rng, span, [laps * lap], []) if laps else []
@@ -171,16 +204,59 @@ def _flight_plan(rng: np.random.Generator, t: FloatArray, duration: float) -> tu
     return r * home[:, None], h, yaw, pilot[:, 0], pilot[:, 1]
 
 
-def multirotor(rng: np.random.Generator, rate: float, duration: float) -> Scenario:
+def _thrust_acceleration(roll: float, pitch: float, yaw: float, v: list[float], az_cmd: float) -> list[float]:
+    """a_n = R (-k v_b,x, -k v_b,y, -T) + g_n with the thrust T that gives the vertical acceleration az_cmd."""
+    m = _rotation(roll, pitch, yaw)
+    fx = -ROTOR_DRAG * (m[0] * v[0] + m[3] * v[1] + m[6] * v[2])       # rotor drag on v_b,x and v_b,y
+    fy = -ROTOR_DRAG * (m[1] * v[0] + m[4] * v[1] + m[7] * v[2])
+    thrust = (m[6] * fx + m[7] * fy + G - az_cmd) / m[8]                # the thrust that gives az_cmd
+    return [m[0] * fx + m[1] * fy - m[2] * thrust, m[3] * fx + m[4] * fy - m[5] * thrust,
+            m[6] * fx + m[7] * fy - m[8] * thrust + G]
+
+
+def _limited(a_h: tuple[float, float], yaw: float, pilot: tuple[float, float], ww: float,
+             pad: tuple[float, float], v: list[float], az_cmd: float, limits: Limits) -> tuple[float, float]:
+    """Roll and pitch of the limited controller: the hold's horizontal acceleration a_h plus the pilot's tilt (as
+    the acceleration it asks for), saturated softly at the acceleration limit; the tilt that gives it (drag
+    compensated), its magnitude limited softly (tanh); blended with the pad attitude by the authority ww.
+    With an acceleration limit, a few fixed-point steps on the exact acceleration of the thrust axis make the
+    realised acceleration the saturated one (the tilt's small-angle inversion is only approximate)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    fwd, right = -G * math.tan(pilot[1]), G * math.tan(pilot[0])
+    ax, ay = a_h[0] + c * fwd - s * right, a_h[1] + s * fwd + c * right
+    if limits.accel_mps2 is not None and (norm := math.hypot(ax, ay)) > 0.0:
+        f = limits.accel_mps2 * math.tanh(norm / limits.accel_mps2) / norm
+        ax, ay = ax * f, ay * f
+    lim = math.radians(limits.tilt_deg if limits.tilt_deg is not None else TILT_LIMIT_DEG)
+    tx, ty = ax + ROTOR_DRAG * v[0], ay + ROTOR_DRAG * v[1]
+    roll, pitch = pad
+    for _ in range(8):
+        roll, pitch = math.atan((c * ty - s * tx) / G), -math.atan((c * tx + s * ty) / G)
+        if (q := math.hypot(roll, pitch)) > 0.0:
+            f = lim * math.tanh(q / lim) / q
+            roll, pitch = roll * f, pitch * f
+        roll, pitch = ww * roll + (1.0 - ww) * pad[0], ww * pitch + (1.0 - ww) * pad[1]
+        if limits.accel_mps2 is None:
+            break
+        a = _thrust_acceleration(roll, pitch, yaw, v, az_cmd)
+        ex, ey = ax - a[0], ay - a[1]
+        if math.hypot(ex, ey) < 1e-9:
+            break
+        tx, ty = tx + ex, ty + ey
+    return roll, pitch
+
+
+def multirotor(rng: np.random.Generator, rate: float, duration: float, limits: Limits = NO_LIMITS) -> Scenario:
     """10 s on the ground, take-off, a flight in position hold with the pilot's tilt, pirouettes and an orbit
     on top, descent back home, 12 s on the ground (the first second brakes what speed is left).
 
     The altitude and horizontal position holds act through the thrust and the tilt of the thrust axis only:
-    a_n = R (-k v_b,x, -k v_b,y, -T) + g_n, integrated step by step (the tilt depends on the state).
+    a_n = R (-k v_b,x, -k v_b,y, -T) + g_n, integrated step by step (the tilt depends on the state). `limits`
+    bounds the tilt and the horizontal acceleration (`Limits`).
     """
     n, dt = round(duration * rate), 1.0 / rate
     t = np.arange(n + 1, dtype=np.float64) * dt
-    r, h, yaw, pilot_roll, pilot_pitch = _flight_plan(rng, t, duration)
+    r, h, yaw, pilot_roll, pilot_pitch = _flight_plan(rng, t, duration, limits)
     r_d, z_d = np.gradient(r, dt, axis=0), np.gradient(-h, dt)
     pads = np.deg2rad(rng.uniform(-1.0, 1.0, (2, 2))).tolist()   # roll, pitch on the pad before and after
     t_to, t_td = GROUND_S, duration - LANDED_S
@@ -197,25 +273,26 @@ def multirotor(rng: np.random.Generator, rate: float, duration: float) -> Scenar
     for k in range(n + 1):
         air = t_to <= k * dt < t_td
         roll, pitch = pads[int(k * dt > duration / 2)]
+        az_cmd = 0.0
         if air:
-            ax = an_r[k] + kp * (rn[k] - p[0]) + kd * (vn_r[k] - v[0]) + ROTOR_DRAG * v[0]
-            ay = ae_r[k] + kp * (re[k] - p[1]) + kd * (ve_r[k] - v[1]) + ROTOR_DRAG * v[1]
-            c, s = math.cos(psi[k]), math.sin(psi[k])
-            cmd_roll = math.atan((c * ay - s * ax) / G) + p_roll[k]
-            cmd_pitch = -math.atan((c * ax + s * ay) / G) + p_pitch[k]
-            roll = ww[k] * lim * math.tanh(cmd_roll / lim) + (1.0 - ww[k]) * roll
-            pitch = ww[k] * lim * math.tanh(cmd_pitch / lim) + (1.0 - ww[k]) * pitch
+            az_cmd = az_r[k] + kpz * (z_r[k] - p[2]) + kdz * (vz_r[k] - v[2])
+            ax = an_r[k] + kp * (rn[k] - p[0]) + kd * (vn_r[k] - v[0])
+            ay = ae_r[k] + kp * (re[k] - p[1]) + kd * (ve_r[k] - v[1])
+            if limits.active:
+                roll, pitch = _limited((ax, ay), psi[k], (p_roll[k], p_pitch[k]), ww[k], (roll, pitch), v, az_cmd,
+                                       limits)
+            else:
+                ax, ay = ax + ROTOR_DRAG * v[0], ay + ROTOR_DRAG * v[1]
+                c, s = math.cos(psi[k]), math.sin(psi[k])
+                cmd_roll = math.atan((c * ay - s * ax) / G) + p_roll[k]
+                cmd_pitch = -math.atan((c * ax + s * ay) / G) + p_pitch[k]
+                roll = ww[k] * lim * math.tanh(cmd_roll / lim) + (1.0 - ww[k]) * roll
+                pitch = ww[k] * lim * math.tanh(cmd_pitch / lim) + (1.0 - ww[k]) * pitch
         rolls[k], pitches[k] = roll, pitch
         if k == n:
             break
         if air:
-            m = _rotation(roll, pitch, psi[k])
-            fx = -ROTOR_DRAG * (m[0] * v[0] + m[3] * v[1] + m[6] * v[2])       # rotor drag on v_b,x and v_b,y
-            fy = -ROTOR_DRAG * (m[1] * v[0] + m[4] * v[1] + m[7] * v[2])
-            az_cmd = az_r[k] + kpz * (z_r[k] - p[2]) + kdz * (vz_r[k] - v[2])
-            thrust = (m[6] * fx + m[7] * fy + G - az_cmd) / m[8]            # the thrust that gives az_cmd
-            a = [m[0] * fx + m[1] * fy - m[2] * thrust, m[3] * fx + m[4] * fy - m[5] * thrust,
-                 m[6] * fx + m[7] * fy - m[8] * thrust + G]
+            a = _thrust_acceleration(roll, pitch, psi[k], v, az_cmd)
         elif k >= k_td:                                                     # on the pad: brake what is left
             v_td = v_td or list(v)
             a = [(vi * keep[k] - v[i]) / dt for i, vi in enumerate(v_td)]
@@ -232,7 +309,7 @@ def multirotor(rng: np.random.Generator, rate: float, duration: float) -> Scenar
     # integral over the log, so the vehicle still comes to rest)
     a_n = np.column_stack([np.interp(tf, t[:-1] + 0.5 * dt, acc[:, i]) for i in range(3)])
     dtf = dt / OVERSAMPLE
-    return Scenario(Trajectory.from_knots(rot, dtf), Motion.from_acceleration(a_n, dtf), still)
+    return Scenario(Trajectory.from_knots(rot, dtf), Motion.from_acceleration(a_n, dtf), still, ((t_to, t_td),))
 
 
 def _terrain(rng: np.random.Generator, s: FloatArray) -> FloatArray:

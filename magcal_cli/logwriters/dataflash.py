@@ -1,16 +1,17 @@
 """ArduPilot DataFlash `.bin` writer for simulations: a 4.x record set with the field logged *corrected*.
 
 The simulated firmware flies with an earlier onboard calibration (COMPASS_OFS/DIA/ODI, optionally SCALE and
-motor compensation) and logs MAG the way AP_Compass does: corrected, in the body frame, truncated to int16
-mGauss, with OfsX.. and MOX.. beside it. Metadata records (FMT, UNIT, MULT, FMTU, PARM, VER, MSG) are packed
-with struct; sensor records are built as numpy structured arrays and interleaved by time in one pass.
+motor compensation; `Simulation.previous`, synth_firmware.py) and logs MAG the way AP_Compass does: corrected,
+in the body frame, truncated to int16 mGauss, with OfsX.. and MOX.. beside it. Every magnetometer of the
+simulation (up to three) is a compass: MAG instance I = k with the parameters COMPASS_*, *2, *3.
+Metadata records (FMT, UNIT, MULT, FMTU, PARM, VER, MSG) are packed with struct; sensor records are built as
+numpy structured arrays and interleaved by time in one pass.
 """
 
 from __future__ import annotations
 
 import struct
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +20,15 @@ from numpy.lib.stride_tricks import as_strided
 
 from .. import so3
 from ..atomic import atomic_path
+from ..errors import MagcalError
 from ..readers.dataflash_format import FMT_ID, FMT_LENGTH, FORMAT_CHARS, HEAD1, HEAD2, MessageFormat
 from ..readers.dataflash_mag import Correction, apply_correction, effective_scale, iron_matrix
-from ..streams import Kind, Recording
+from ..streams import Kind, Recording, Stream
 from ..synth import Simulation
+from ..synth_firmware import MAX_COMPASSES, CompassParams
+from ..synth_firmware import (
+    PreviousCalibration as PreviousCalibration,  # re-exported: its home before the move
+)
 from ..synth_physics import local
 from ..units import GPS_EPOCH_UNIX, GPS_LEAP_S, GPS_WEEK_S
 
@@ -55,23 +61,12 @@ RECORDS = [
 ]
 
 
-@dataclass(frozen=True)
-class PreviousCalibration:
-    """The compass parameters the simulated vehicle flies with; `None` offsets mean 'derived from the truth'.
-
-    `ofs_after` (with `change_at_s`) simulates a PARM change during the log, e.g. offsets set from a GCS.
-    """
-
-    ofs: tuple[float, float, float] | None = None
-    dia: tuple[float, float, float] = (1.031, 0.968, 1.012)
-    odi: tuple[float, float, float] = (0.021, -0.014, 0.009)
-    scale: float = 0.0
-    mot: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    motct: int = 0
-    change_at_s: float | None = None
-    ofs_after: tuple[float, float, float] | None = None
-    current_swing_a: float = 0.0
-    extra_params: dict[str, float] = field(default_factory=dict)
+#: COMPASS_DEV_ID, DEV_ID2, DEV_ID3 (and PRIOn_ID) of the simulated compasses: ArduPilot SITL's three
+DEV_IDS = (97539, 131874, 263178)
+#: what an earlier calibration's offsets missed the negated true hard iron by, per compass (mG)
+OFFSET_MISS = ((6.0, -4.0, 5.0), (-5.0, 7.0, -3.0), (4.0, 5.0, -6.0))
+#: MAG records of instance k are logged this much (us) after instance k - 1's, as one update loop writes them
+INSTANCE_STAGGER_US = 30
 
 
 #: format character -> struct code
@@ -148,8 +143,10 @@ def _metadata(params: dict[str, float], t_us: int, banner: str) -> bytes:
     return b"".join(out)
 
 
-def compass_params(prev: PreviousCalibration, ofs: FloatArray) -> dict[str, float]:
-    """The PARM dump: compass 1 calibration and the globals the reader and exporters look at."""
+def compass_params(prev: PreviousCalibration, ofs: FloatArray,
+                   more_ofs: tuple[FloatArray, ...] = ()) -> dict[str, float]:
+    """The PARM dump: compass 1 calibration, the globals the reader and exporters look at, and compasses 2, 3
+    (their offsets `more_ofs`)."""
     p = {f"COMPASS_OFS_{a}": float(v) for a, v in zip("XYZ", ofs, strict=True)}
     p |= {f"COMPASS_DIA_{a}": v for a, v in zip("XYZ", prev.dia, strict=True)}
     p |= {f"COMPASS_ODI_{a}": v for a, v in zip("XYZ", prev.odi, strict=True)}
@@ -161,22 +158,34 @@ def compass_params(prev: PreviousCalibration, ofs: FloatArray) -> dict[str, floa
     # the level trim the attitude estimate includes
     p |= {"CUST_ROT_ENABLE": 0.0, "AHRS_EKF_TYPE": 3.0} | {f"AHRS_TRIM_{a}": 0.0 for a in "XYZ"}
     p |= {f"CUST_ROT{n}_{ax}": 0.0 for n in (1, 2) for ax in ("ROLL", "PITCH", "YAW")}
+    for k, ofs_k in enumerate(more_ofs, start=1):
+        cp, n = prev.compass(k), str(k + 1)
+        for stem, vec in (("OFS", ofs_k), ("DIA", cp.dia), ("ODI", cp.odi), ("MOT", cp.mot)):
+            p |= {f"COMPASS_{stem}{n}_{a}": float(v) for a, v in zip("XYZ", vec, strict=True)}
+        p |= {f"COMPASS_SCALE{n}": cp.scale, f"COMPASS_ORIENT{n}": 0.0, f"COMPASS_EXTERN{n}": 0.0,
+              f"COMPASS_USE{n}": 1.0, f"COMPASS_DEV_ID{n}": float(DEV_IDS[k]),
+              f"COMPASS_PRIO{n}_ID": float(DEV_IDS[k])}
     return p | prev.extra_params
 
 
-def default_offsets(sim: Simulation) -> FloatArray:
-    """COMPASS_OFS of an earlier calibration: the negated true hard iron (mGauss) missed by a few mGauss."""
-    out: FloatArray = np.round(-sim.truth.o * 1e7 + np.array([6.0, -4.0, 5.0]), 2)
+def default_offsets(sim: Simulation, k: int = 0) -> FloatArray:
+    """COMPASS_OFS (k = 0) or OFS{k+1} of an earlier calibration: the negated true hard iron of magnetometer k
+    (mGauss) missed by a few mGauss."""
+    out: FloatArray = np.round(-sim.truths[k].o * 1e7 + np.array(OFFSET_MISS[k]), 2)
     return out
 
 
 def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArray[np.uint8]:
-    """The bytes of a `.bin` log of the simulation flown with `prev` (default: an earlier calibration)."""
-    prev = prev or PreviousCalibration()
+    """The bytes of a `.bin` log of the simulation flown with `prev` (default: `sim.previous`, else an earlier
+    calibration without motor compensation)."""
+    prev = prev or sim.previous or PreviousCalibration()
     rec = sim.recording
-    acc, gyr, mag = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), rec.select(Kind.MAGNETOMETER)
+    acc, gyr, mags = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), rec.of_kind(Kind.MAGNETOMETER)
+    if len(mags) > MAX_COMPASSES:
+        msg = (f"an ArduPilot log holds at most {MAX_COMPASSES} calibrated compasses, the simulation has "
+               f"{len(mags)} magnetometers; simulate with n_mags <= {MAX_COMPASSES} or write another format")
+        raise MagcalError(msg)
     ofs0 = f32(prev.ofs if prev.ofs is not None else default_offsets(sim))
-    n = len(mag)
 
     imu = _records("IMU", len(acc))
     imu["TimeUS"] = _us(acc.t)
@@ -190,26 +199,20 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
     t_bat, t_thr = _times(rec, Kind.BATTERY_CURRENT, t10), _times(rec, Kind.THROTTLE, t10)
     current = _series(rec, Kind.BATTERY_CURRENT, t_bat, 0.8 + prev.current_swing_a * swing)
     throttle = _series(rec, Kind.THROTTLE, t_thr, 0.2 + 0.5 * swing if prev.motct == 1 else np.zeros_like(t10))
+    motor = (t_thr, throttle) if prev.motct == 1 else (t_bat, current) if prev.motct == 2 else None
 
-    ofs = np.tile(ofs0, (n, 1))
-    if prev.change_at_s is not None and prev.ofs_after is not None:
-        ofs[mag.t >= prev.change_at_s] = f32(prev.ofs_after)
-    signal = np.zeros(n)
-    if prev.motct in (1, 2):
-        signal = np.interp(mag.t, *((t_thr, throttle) if prev.motct == 1 else (t_bat, current)))
-    corr = Correction(ofs, iron_matrix(np.tile(f32(prev.dia), (n, 1)), np.tile(f32(prev.odi), (n, 1))),
-                      effective_scale(np.full(n, f32(prev.scale))), signal[:, None] * f32(prev.mot))
-    logged = apply_correction(mag.values * 1e7, corr)
-    m = _records("MAG", n)
-    m["S"] = _us(mag.t) % (1 << 32)                     # uint32 us: wraps after 71.6 min, as in firmware
-    m["TimeUS"] = _us(mag.t) + 150                      # logged a little after the sample was taken
-    for i, a in enumerate("XYZ"):                       # int16 casts truncate toward zero, as (int16_t) does
-        m[f"Mag{a}"] = np.trunc(np.clip(logged[:, i], -32768, 32767))
-        m[f"Ofs{a}"] = np.trunc(ofs[:, i])
-        m[f"MO{a}"] = np.trunc(corr.motor[:, i])
-    m["Health"] = 1
-
-    parts = [(imu["TimeUS"], imu), (m["TimeUS"], m)] + _slow_records(sim, t10, (t_bat, current), (t_thr, throttle))
+    parts = [(imu["TimeUS"], imu)]
+    more_ofs = []
+    for k, mag in enumerate(mags):
+        cp = prev.compass(k)
+        ofs_k = ofs0 if k == 0 else f32(cp.ofs if cp.ofs is not None else default_offsets(sim, k))
+        ofs = np.tile(ofs_k, (len(mag), 1))
+        if k == 0 and prev.change_at_s is not None and prev.ofs_after is not None:
+            ofs[mag.t >= prev.change_at_s] = f32(prev.ofs_after)
+        more_ofs += [ofs_k] if k else []
+        m = _mag_records(mag, k, cp, ofs, motor)
+        parts.append((m["TimeUS"], m))
+    parts += _slow_records(sim, t10, (t_bat, current), (t_thr, throttle))
     if prev.change_at_s is not None and prev.ofs_after is not None:
         change = _records("PARM", 3)
         change["TimeUS"] = _us(prev.change_at_s)
@@ -217,9 +220,30 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
         change["Value"] = change["Default"] = f32(prev.ofs_after)
         parts.append((change["TimeUS"], change))
     banner = f"ArduCopter V4.6.2 (magcal simulate {sim.scenario} seed={sim.seed})"
-    meta = _metadata(compass_params(prev, ofs0), int(_us(0.0)) - 50_000, banner)
+    meta = _metadata(compass_params(prev, ofs0, tuple(more_ofs)), int(_us(0.0)) - 50_000, banner)
     head = np.frombuffer(meta, dtype=np.uint8)
     return np.concatenate([head, interleave(parts)])
+
+
+def _mag_records(mag: Stream, k: int, cp: CompassParams, ofs: FloatArray,
+                 motor: tuple[FloatArray, FloatArray] | None) -> np.ndarray:
+    """MAG records of instance k: the raw field (tesla) corrected with the offsets `ofs` (N, 3) mG and `cp`, plus
+    MOT times the motor signal (t, throttle or current) at the readings' stamps, as AP_Compass logs it."""
+    n = len(mag)
+    signal = np.zeros(n) if motor is None else np.interp(mag.t, *motor)
+    corr = Correction(ofs, iron_matrix(np.tile(f32(cp.dia), (n, 1)), np.tile(f32(cp.odi), (n, 1))),
+                      effective_scale(np.full(n, f32(cp.scale))), signal[:, None] * f32(cp.mot))
+    logged = apply_correction(mag.values * 1e7, corr)
+    m = _records("MAG", n)
+    m["I"] = k
+    m["S"] = _us(mag.t) % (1 << 32)                     # uint32 us: wraps after 71.6 min, as in firmware
+    m["TimeUS"] = _us(mag.t) + 150 + INSTANCE_STAGGER_US * k     # logged a little after the sample was taken
+    for i, a in enumerate("XYZ"):                       # int16 casts truncate toward zero, as (int16_t) does
+        m[f"Mag{a}"] = np.trunc(np.clip(logged[:, i], -32768, 32767))
+        m[f"Ofs{a}"] = np.trunc(ofs[:, i])
+        m[f"MO{a}"] = np.trunc(corr.motor[:, i])
+    m["Health"] = 1
+    return m
 
 
 def _series(rec: Recording, kind: Kind, t: FloatArray, default: FloatArray) -> FloatArray:

@@ -18,7 +18,7 @@ import numpy.typing as npt
 
 from .. import __version__, so3, units
 from ..atomic import atomic_path
-from ..streams import Kind, Recording
+from ..streams import Kind, Recording, Stream
 from ..synth import T0_ROS, Simulation
 from ..synth_physics import local
 
@@ -33,6 +33,8 @@ NUMPY_TYPES = {"int8_t": "i1", "uint8_t": "u1", "int16_t": "<i2", "uint16_t": "<
 START_US = 20_000_000
 #: DeviceStructure of the simulated magnetometer: bus type 4 (simulation), bus 0, address 0x0e, devtype 0x06
 SIM_MAG_DEVICE_ID = 4 | (0 << 3) | (0x0E << 8) | (0x06 << 16)
+#: magnetometer k of a simulation is on bus k (same type and address), so each has a device id of its own
+SIM_MAG_BUS_STEP = 1 << 3
 #: the temperature the simulated magnetometer reports (degC) when the simulation has no temperature stream
 SIM_MAG_TEMPERATURE = 25.0
 #: DeviceStructure of the simulated GNSS receiver: bus type 5 (serial), bus 1, devtype 0xa6 (GPS)
@@ -163,11 +165,11 @@ def _us(t: npt.ArrayLike) -> npt.NDArray[np.int64]:
 
 def sim_content(sim: Simulation) -> UlogContent:
     """The simulation as PX4 logs it: sensor_combined (means over gyro/accelerometer_integral_dt, the IMU period,
-    ending at the stamp), sensor_mag (gauss, stamped where it was sampled, with the simulated temperature),
-    vehicle_attitude, parameters, and battery_status, vehicle_thrust_setpoint and vehicle_gps_position when the
+    ending at the stamp), sensor_mag instance k per magnetometer (gauss, stamped where it was sampled, with the
+    simulated temperature; CAL_MAGk_ID its device id), vehicle_attitude, parameters, and battery_status, vehicle_thrust_setpoint and vehicle_gps_position when the
     simulation has battery, throttle or position streams."""
     rec = sim.recording
-    acc, gyr, mag = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE), rec.select(Kind.MAGNETOMETER)
+    acc, gyr = rec.select(Kind.ACCELEROMETER), rec.select(Kind.GYROSCOPE)
     t_imu, n = _us(gyr.t), len(gyr)
     # sensor_combined's samples are means over the integration period ending at their stamp (Sampling.PRECEDING)
     window = gyr.window_s or (1.0 / gyr.rate_hz if gyr.rate_hz > 0 else 0.0)
@@ -183,17 +185,7 @@ def sim_content(sim: Simulation) -> UlogContent:
          "accelerometer_timestamp_relative": _us(acc.t) - t_imu, "accelerometer_m_s2": acc.values,
          "accelerometer_integral_dt": np.full(n, period), "accelerometer_clipping": zeros,
          "gyro_clipping": zeros, "accel_calibration_count": zeros, "gyro_calibration_count": zeros})
-    t_mag, m = _us(mag.t), len(mag)
-    field_g = mag.xyz * units.from_si("gauss")
-    sensor_mag = Topic("sensor_mag", (
-        ("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
-        ("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature"), ("uint32_t", "error_count"),
-        ("bool", "is_external")),
-        {"timestamp": t_mag + 150, "timestamp_sample": t_mag, "device_id": np.full(m, SIM_MAG_DEVICE_ID),
-         "x": field_g[:, 0], "y": field_g[:, 1], "z": field_g[:, 2],
-         "temperature": _series(rec, Kind.TEMPERATURE, mag.t, np.full(m, SIM_MAG_TEMPERATURE)),
-         "error_count": np.zeros(m),
-         "is_external": np.ones(m)})
+    mags = [_sensor_mag(rec, s, k) for k, s in enumerate(rec.of_kind(Kind.MAGNETOMETER))]
     step = max(1, int(round(gyr.rate_hz / ATTITUDE_RATE_HZ)))
     att_t = t_imu[::step]
     att = Topic("vehicle_attitude", (
@@ -208,9 +200,32 @@ def sim_content(sim: Simulation) -> UlogContent:
     for axis in "XYZ":
         params |= {f"CAL_MAG0_{axis}OFF": 0.0, f"CAL_MAG0_{axis}SCALE": 1.0, f"CAL_MAG0_{axis}ODIAG": 0.0,
                    f"CAL_MAG0_{axis}COMP": 0.0, f"SENS_BOARD_{axis}_OFF": 0.0}
+    for k in range(1, len(mags)):
+        params |= {f"CAL_MAG{k}_ID": SIM_MAG_DEVICE_ID + k * SIM_MAG_BUS_STEP, f"CAL_MAG{k}_PRIO": 50,
+                   f"CAL_MAG{k}_ROT": 0} | {f"CAL_MAG{k}_{ax}": 0.0 for ax in ("ROLL", "PITCH", "YAW")}
+        for axis in "XYZ":
+            params |= {f"CAL_MAG{k}_{axis}OFF": 0.0, f"CAL_MAG{k}_{axis}SCALE": 1.0, f"CAL_MAG{k}_{axis}ODIAG": 0.0,
+                       f"CAL_MAG{k}_{axis}COMP": 0.0}
     info = {"sys_name": "PX4", "ver_hw": "MAGCAL_SIM", "ver_sw": f"magcal {__version__} simulate",
             "magcal_simulation": f"{sim.scenario} seed={sim.seed}"}
-    return UlogContent((comb, sensor_mag, att, *_aux_topics(rec)), params, info)
+    return UlogContent((comb, *mags, att, *_aux_topics(rec)), params, info)
+
+
+def _sensor_mag(rec: Recording, mag: Stream, k: int) -> Topic:
+    """sensor_mag instance k (multi_id k, its own device id): the raw field in gauss, stamped where it was
+    sampled, published 150 us later, with the simulated temperature."""
+    t_mag, m = _us(mag.t), len(mag)
+    field_g = mag.xyz * units.from_si("gauss")
+    return Topic("sensor_mag", (
+        ("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("uint32_t", "device_id"),
+        ("float", "x"), ("float", "y"), ("float", "z"), ("float", "temperature"), ("uint32_t", "error_count"),
+        ("bool", "is_external")),
+        {"timestamp": t_mag + 150, "timestamp_sample": t_mag,
+         "device_id": np.full(m, SIM_MAG_DEVICE_ID + k * SIM_MAG_BUS_STEP),
+         "x": field_g[:, 0], "y": field_g[:, 1], "z": field_g[:, 2],
+         "temperature": _series(rec, Kind.TEMPERATURE, mag.t, np.full(m, SIM_MAG_TEMPERATURE)),
+         "error_count": np.zeros(m),
+         "is_external": np.ones(m)}, multi_id=k)
 
 
 def _series(rec: Recording, kind: Kind, t: npt.NDArray[np.float64],
