@@ -170,7 +170,13 @@ def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generat
     acc_pred = ep.acc - fa.r / s_acc[:, None] * noise.acc
     mag_pred = ep.mag - fm.r * noise.mag
     k = ep.t.size
-    acc = acc_pred + rng.standard_normal((k, 3)) * noise.acc / s_acc[:, None]
+    if ep.acc_at is None:
+        e_acc = rng.standard_normal((k, 3)) / s_acc[:, None]
+    else:                   # noise at the IMU samples, interpolated as the accelerometer was: shared samples correlate
+        j, w = ep.acc_at
+        z = rng.standard_normal((int(j.max()) + 2 - int(j.min()), 3))
+        e_acc = (1.0 - w)[:, None] * z[j - j.min()] + w[:, None] * z[j + 1 - j.min()]
+    acc = acc_pred + e_acc * noise.acc
     mag = mag_pred + rng.standard_normal((k, 3)) * noise.mag
     chol = np.linalg.cholesky(pre.cov)          # not inv(l_inv): a broken interval has l_inv = 0 (gyro.py)
     r = (chol @ fg.r[:, :, None])[:, :, 0]

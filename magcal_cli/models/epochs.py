@@ -29,7 +29,8 @@ BIAS_SCALE = np.array([0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3])
 @dataclass(frozen=True, eq=False)
 class Epochs:
     """One magnetometer's epochs: times (K,) s, readings / scale (K, 3), accelerometer interpolated onto them
-    (K, 3) m/s^2 and the factor (K,) by which interpolation shrinks its noise std."""
+    (K, 3) m/s^2 and the factor (K,) by which interpolation shrinks its noise std (not the correlation it gives
+    epochs that share a sample: the fit leaves that to the time-clustered sandwich)."""
 
     mag_id: str
     t: FloatArray
@@ -39,6 +40,9 @@ class Epochs:
     scale: float
     notes: tuple[str, ...] = ()
     index: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))   # readings used
+    #: the accelerometer samples j (K,) and weights w (K,) of the interpolation (1 - w) a_j + w a_j+1: epochs that
+    #: share a sample share its noise (diagnose/ppc.py simulates it so); None: each epoch's own sample
+    acc_at: tuple[npt.NDArray[np.int64], FloatArray] | None = None
 
 
 @dataclass(frozen=True)
@@ -75,7 +79,7 @@ def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int = MA
     j = np.clip(np.searchsorted(t_imu, t, side="right") - 1, 0, t_imu.size - 2)
     w = np.clip((t - t_imu[j]) / (t_imu[j + 1] - t_imu[j]), 0.0, 1.0)
     factor = np.sqrt((1.0 - w) ** 2 + w**2)        # std of (1-w) a_j + w a_j+1 relative to one sample's
-    return Epochs(mag.id, t, mag.xyz[index] / scale, acc, factor, scale, tuple(notes), index)
+    return Epochs(mag.id, t, mag.xyz[index] / scale, acc, factor, scale, tuple(notes), index, (j, w))
 
 
 def initial_noise(problem: Problem, mag: Stream, scale: float, fit_rms: float) -> Noise:

@@ -481,7 +481,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         theta = BASE.zeros()
         BASE.carry(theta, warm.layout, warm.theta)
     else:
-        clean_ep = Epochs(ep.mag_id, ep.t, clean[ep.index] / intr.scale, ep.acc, ep.acc_factor, ep.scale)
+        clean_ep = replace(ep, mag=clean[ep.index] / intr.scale, notes=(), index=np.zeros(0, np.int64))
         gyro_effect = any(get(e).target is Target.GYRO for e in effects)
         states, theta, pre, notes = _initial_state(problem, clean_ep, intr, noise, dip_prior, cache, prior is None,
                                                    gyro_effect)
