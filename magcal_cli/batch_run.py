@@ -85,7 +85,7 @@ def _mag_numbers(result: Any) -> list[dict[str, Any]]:
     return out
 
 
-def _fit(job: Job, report: LogReport) -> None:
+def _fit(job: Job, report: LogReport, start: float) -> None:
     """Fit the log and write its outputs as `magcal fit` does, filling `report`; errors propagate."""
     from .config import Config
     from .fitrun import gate_failures, write_fit_outputs
@@ -102,8 +102,6 @@ def _fit(job: Job, report: LogReport) -> None:
     names = list(job.names)
     if job.auto and FIRMWARE_OUTPUTS.get(result.recording.format) == job.auto:
         names.append(job.auto)
-    written = write_fit_outputs(result, job.outdir, names, job.auto, report.warnings.append)
-    report.outputs = [str(p) for p in written]
     if result.recording.cut is not None:
         report.warnings.append(f"warning: {result.recording.cut.message}")
     report.warnings += [f"warning: {f.message}" for f in result.findings if f.severity.value == "warning"]
@@ -111,6 +109,16 @@ def _fit(job: Job, report: LogReport) -> None:
     failed = gate_failures(result, o.fail_on)
     if failed:
         report.status, report.exit_code, report.error = "gate_failed", 3, f"fit --fail-on: {'; '.join(failed)}"
+    def complete(final: list[Path]) -> None:
+        # with the renames, Ctrl-C held back: a folder of outputs always has its batch.json (it had not, once)
+        report.outputs, report.seconds = [str(p) for p in final], time.perf_counter() - start
+        try:
+            write_status(job, report)
+        except BaseException:
+            report.outputs = []                    # not marked complete: run_one reports the failure
+            raise
+
+    write_fit_outputs(result, job.outdir, names, job.auto, report.warnings.append, complete)
 
 
 def run_one(job: Job) -> LogReport:
@@ -119,10 +127,11 @@ def run_one(job: Job) -> LogReport:
     start = time.perf_counter()
     try:
         with _interruptible():
-            _fit(job, report)
+            _fit(job, report, start)
     except KeyboardInterrupt:
-        report.status, report.exit_code, report.error = "interrupted", 130, "interrupted"
-        return report                               # no batch.json: the log is fitted again on the next run
+        if not report.outputs:
+            report.status, report.exit_code, report.error = "interrupted", 130, "interrupted"
+            return report                           # no batch.json: the log is fitted again on the next run
     except MagcalError as exc:
         report.status, report.exit_code, report.error = "failed", 1, str(exc)
     except OSError as exc:
@@ -133,10 +142,12 @@ def run_one(job: Job) -> LogReport:
             _internal(report, exc)
     except Exception as exc:  # noqa: BLE001 - one log's bug must not stop the others
         _internal(report, exc)
+    if report.outputs:                              # marked complete with the outputs (`_fit`)
+        return report
     report.seconds = time.perf_counter() - start
     try:
         write_status(job, report)
-    except (MagcalError, OSError) as exc:           # the outputs are there, but not marked complete
+    except (MagcalError, OSError) as exc:
         report.status, report.exit_code, report.error = "failed", 1, str(exc)
     return report
 

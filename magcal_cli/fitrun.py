@@ -31,19 +31,19 @@ def firmware_output(log: Path, fmt: str | None, names: list[str]) -> str | None:
 
 
 def write_fit_outputs(result: RunResult, outdir: Path, names: list[str], auto: str | None,
-                      warn: Callable[[str], None]) -> list[Path]:
+                      warn: Callable[[str], None], then: Callable[[list[Path]], None] | None = None) -> list[Path]:
     """write_outputs; the firmware file fit adds on its own is skipped with a warning when the calibration
     cannot be written as parameters (asked for with --outputs, it stays an error)."""
     from .firmware import FirmwareError
     from .writers import write_outputs
 
     try:
-        return write_outputs(result, outdir, names)
+        return write_outputs(result, outdir, names, then)
     except FirmwareError as exc:
         if auto is None or auto not in names:
             raise
         warn(f"warning: no {auto} parameter file written: {exc}")
-        return write_outputs(result, outdir, [n for n in names if n != auto])
+        return write_outputs(result, outdir, [n for n in names if n != auto], then)
 
 
 def gate_failures(result: RunResult, conditions: tuple[Any, ...]) -> list[str]:

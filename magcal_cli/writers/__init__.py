@@ -7,7 +7,7 @@ import shutil
 import signal
 import tempfile
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
@@ -82,12 +82,14 @@ def _sigint_deferred() -> Iterator[None]:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-def write_outputs(result: RunResult, outdir: Path, names: list[str]) -> list[Path]:
+def write_outputs(result: RunResult, outdir: Path, names: list[str],
+                  then: Callable[[list[Path]], None] | None = None) -> list[Path]:
     """Write every output named in `names` to `outdir` all together or not at all.
 
     Files are written into a staging directory inside `outdir` and renamed into place in one step with Ctrl-C
     held back, so an error or an interrupt leaves `outdir` as it was (a directory created for the run is
-    removed again when it stays empty).
+    removed again when it stays empty). `then` runs on the final paths in the same step (batch marks the
+    outputs complete there: a Ctrl-C cannot fall between them).
     """
     created = not outdir.exists()
     done = False
@@ -108,6 +110,8 @@ def write_outputs(result: RunResult, outdir: Path, names: list[str]) -> list[Pat
                 p.replace(target)
                 final.append(target)
             done = True
+            if then is not None:
+                then(final)
         return final
     except OSError as exc:
         msg = f"{outdir}: cannot write the outputs ({exc.strerror or exc}). Check the directory's permissions"
