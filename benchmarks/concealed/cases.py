@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 #: tiers in report order
-TIERS = ("negative", "timing", "clear", "lag", "strong", "separable", "inseparable")
+TIERS = ("negative", "timing", "flight", "clear", "lag", "strong", "separable", "inseparable")
 #: the timing grid (issue 25): IMU and magnetometer rates (Hz), and the IMU convention with the format that holds it
 IMU_RATES, MAG_RATES = (50.0, 100.0, 200.0, 400.0), (10.0, 25.0, 50.0, 100.0)
 CONVENTIONS = (("instant", ".bin"), ("preceding", ".ulg"))
@@ -60,11 +60,18 @@ class Case:
     #: per-seed variation: "" (none), "grid" (rates, phase and convention from the timing grid), "lag" (the grid
     #: plus a true lag drawn from LAG_RANGE_S)
     vary: str = ""
+    #: the log's format (suffix) and rates when not varied, further `simulate` keywords, and the firmware the
+    #: vehicle flew with (a synth_firmware name: "stale" is STALE_CURRENT_COMPENSATION)
+    suffix: str = ".bin"
+    mag_rate: float | None = None
+    simulate: tuple[tuple[str, object], ...] = ()
+    firmware: str = ""
 
     def settings(self, seed: int) -> Settings:
         """What run `seed` simulates: rates, magnetometer phase, log format and effects."""
         if not self.vary:
-            return Settings(self.rate, None, None, ".bin", self.effects)
+            return Settings(self.rate, self.mag_rate, None, self.suffix, self.effects,
+                            "preceding" if self.suffix == ".ulg" else "instant")
         combos = [(r, m, c) for c in CONVENTIONS for r in IMU_RATES for m in MAG_RATES]
         imu, mag, (convention, suffix) = combos[seed % len(combos)]
         rng = np.random.default_rng([seed, 25])
@@ -126,6 +133,21 @@ def _cases() -> list[Case]:
              vary="grid", note="a flight (its own acceleration is physics, GPS logged), no other effect: the grid"),
         Case("lag_handheld", "lag", "handheld", (), ("time_offset",), ("time_offset",), vary="lag",
              note="a true lag of 5-60 ms (log-uniform) on the timing grid"),
+    ]
+    flight = (("n_mags", 2), ("tilt_limit_deg", 15.0), ("accel_limit_mps2", 1.5))
+    out += [
+        Case("flight_ardupilot", "flight", "multirotor", (), ("nongravity_acceleration",),
+             ("nongravity_acceleration", "current_interference", "throttle_interference"), duration=240.0,
+             rate=100.0, mag_rate=10.0, simulate=(*flight, ("log_power", True)), firmware="stale",
+             note="ArduPilot .bin: two compasses with their onboard calibrations, COMPASS_MOTCT=2 with a stale "
+                  "COMPASS_MOT, MAG int16 mG at 10 Hz, IMU 100 Hz with motor vibration, tilt <= 15 deg, "
+                  "acceleration <= 1.5 m/s^2; no magnetic effect"),
+        Case("flight_px4_current", "flight", "multirotor", ("current_interference",),
+             ("current_interference", "nongravity_acceleration"),
+             ("nongravity_acceleration", "current_interference", "throttle_interference"), duration=240.0,
+             rate=200.0, mag_rate=50.0, suffix=".ulg", simulate=flight,
+             note="PX4 .ulg: sensor_combined at 200 Hz (the mean over each interval), two sensor_mag at 50 Hz, motor "
+                  "vibration, current interference (simulate's default, 0.2/-0.1/0.3 mG/A) on the first"),
     ]
     out += [_single(eid, "clear", value) for eid, value in CLEAR.items()]
     out += [_single(eid, "strong", "") for eid in ("current_interference", "temperature_drift", "time_offset",

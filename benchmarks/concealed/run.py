@@ -18,6 +18,7 @@ import sys
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +75,12 @@ def generate(case: Case, seed: int, log: Path) -> dict[str, Any]:
     st = case.settings(seed)
     specs = tuple(parse_effect(e) for e in st.effects)
     sim = simulate(case.scenario, sim_seed(case, seed), st.rate, st.mag_rate, case.duration, effects=specs,
-                   power_profile=case.power_profile, imu_sampling=imu_sampling(log), mag_phase_s=st.mag_phase_s)
+                   power_profile=case.power_profile, imu_sampling=imu_sampling(log), mag_phase_s=st.mag_phase_s,
+                   **dict(case.simulate))
+    if case.firmware == "stale":
+        from magcal_cli.synth_firmware import STALE_CURRENT_COMPENSATION
+
+        sim = replace(sim, previous=STALE_CURRENT_COMPENSATION)
     write_log(sim, log)
     doc = dumps_json(truth_calibration(sim, open_recording(log), __version__, "1970-01-01T00:00:00Z"))
     truth: dict[str, Any] = json.loads(doc)
