@@ -69,3 +69,26 @@ def covers(entry: dict[str, Any], truth_entry: dict[str, Any]) -> dict[str, bool
         for i, (x, (lo, hi)) in enumerate(zip(v, lo_hi, strict=True)):
             out[f"{name}[{i}]" if v.size > 1 else name] = bool(lo <= x <= hi)
     return out
+
+
+def heading_errors(doc: dict[str, Any], truth: dict[str, Any]) -> dict[str, float]:
+    """Per magnetometer: the largest heading error (deg) over a level 360 deg turn at the true dip, the fitted
+    calibration applied to the readings the true one produces (the accuracy that matters to a vehicle)."""
+    mags = _by_alias(truth)
+    frame = str((truth.get("imu") or {}).get("frame", "FRD")).upper()
+    down = -1.0 if frame == "FLU" else 1.0                   # the body's z axis points up in ROS (FLU)
+    psi = np.deg2rad(np.arange(0.0, 360.0, 1.0))
+    out: dict[str, float] = {}
+    for m in doc.get("magnetometers", []):
+        t = mags.get(m["id"])
+        if t is None:
+            continue
+        dip = np.deg2rad(float(t["dip_deg"]))
+        # level body, heading psi: x forward; y right (FRD) or left (FLU); z along gravity (FRD) or against (FLU)
+        m_b = np.stack([np.cos(dip) * np.cos(psi), -down * np.cos(dip) * np.sin(psi),
+                        np.full_like(psi, down * np.sin(dip))], axis=1)
+        y = m_b @ np.asarray(t["D"], dtype=float).T + np.asarray(t["o"], dtype=float)
+        fitted = (y - np.asarray(m["o"], dtype=float)) @ np.linalg.inv(np.asarray(m["D"], dtype=float)).T
+        heading = np.arctan2(-down * fitted[:, 1], fitted[:, 0])
+        out[m["id"]] = float(np.degrees(np.max(np.abs(np.angle(np.exp(1j * (heading - psi)))))))
+    return out

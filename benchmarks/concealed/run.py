@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cases import CASES, Case, select  # noqa: E402
-from truth_score import z_scores  # noqa: E402
+from truth_score import heading_errors, z_scores  # noqa: E402
 
 
 def sim_seed(case: Case, seed: int) -> int:
@@ -105,14 +105,16 @@ def run_one(case: Case, seed: int, out: Path, effects_arg: str, keep_logs: bool 
     t_fit = time.perf_counter() - t0
     effects: list[dict[str, Any]] | None = None
     z: list[list[Any]] | None = None
+    heading: dict[str, float] | None = None
     cal = work / "fit" / "calibration.json"
     if proc.returncode in (0, 3) and cal.exists():
         fitted = json.loads(cal.read_text())
         effects = fitted.get("effects", [])
         z = [[s.sensor, s.name, round(s.z, 4)] for s in z_scores(fitted, truth)]
+        heading = heading_errors(fitted, truth)
     rec = {"case": case.name, "tier": case.tier, "seed": seed, "sim_seed": sim_seed(case, seed),
            "effects_arg": value, "truth": truth.get("effects", []), "concealment": truth["concealment"],
-           "effects": effects, "z": z,
+           "effects": effects, "z": z, "heading_error_deg": heading,
            "settings": {"rate_hz": st.rate, "mag_rate_hz": st.mag_rate, "mag_phase_s": st.mag_phase_s,
                         "format": st.suffix, "imu_sampling": st.convention, "effects": list(st.effects)},
            "exit_code": proc.returncode, "stderr": proc.stderr[-2000:], "runtime_sim_s": round(t_sim, 3),

@@ -124,7 +124,8 @@ def run_outcome(rec: Record, case: Case) -> dict[str, Any]:
             "covered": sum(cover), "intervals": len(cover),
             "heldout_ok": sum(held), "heldout_n": len(held),
             "time_offset": "time_offset" in acc, "lag_error": lag_error(rec),
-            "z": [float(z[2]) for z in rec.get("z") or []]}
+            "z": [float(z[2]) for z in rec.get("z") or []],
+            "heading": list((rec.get("heading_error_deg") or {}).values())}
 
 
 def lag_error(rec: Record) -> float | None:
@@ -176,6 +177,7 @@ def summarise(recs: list[Record]) -> dict[str, dict[str, Any]]:
             "z_within": sum(int(abs(z) <= 1.96) for o in oc for z in o["z"]),
             "z_count": sum(len(o["z"]) for o in oc),
             "z_max": [round(max(map(abs, o["z"])), 2) for o in oc if o["z"]],
+            "heading_deg": sorted(h for o in oc for h in o["heading"]),
         }
     return out
 
@@ -264,6 +266,14 @@ def _pct(x: float | None) -> str:
     return "n/a" if x is None else f"{100 * x:.0f} %"
 
 
+def _spread(values: list[float]) -> str:
+    """'median / max' of a list, n/a when empty."""
+    if not values:
+        return "n/a"
+    v = sorted(values)
+    return f"{v[len(v) // 2]:.2f} / {v[-1]:.2f}"
+
+
 def _shown(row: dict[str, Any]) -> str:
     """A criterion's value as the table prints it: a share in per cent, a time in milliseconds."""
     if row.get("unit") == "ms":
@@ -278,7 +288,8 @@ def markdown(summary: dict[str, dict[str, Any]], rows: list[dict[str, Any]], loa
              "each case's candidate list); issue 11 asks for >= 20 runs per case with `auto`. Produced by "
              "`benchmarks/concealed/score.py` (cases and calibration: `benchmarks/concealed/README.md`).", "",
              "| case | tier | --effects | runs | failed | accepted (correct) | wrong/extra | CI coverage "
-             "| held-out | ambiguous pair | wrong pick | test stat min / median | fit s |", "|" + "---|" * 13]
+             "| held-out | ambiguous pair | wrong pick | test stat min / median | max abs z median / max "
+             "| level-turn heading error deg median / max | fit s |", "|" + "---|" * 15]
     order = sorted(summary, key=lambda k: (TIERS.index(summary[k]["tier"]), k))
     for k in order:
         v = summary[k]
@@ -287,7 +298,8 @@ def markdown(summary: dict[str, dict[str, Any]], rows: list[dict[str, Any]], loa
         lines.append(f"| {k} | {v['tier']} | {', '.join(v['effects_arg'])} | {v['runs']} | {v['failed']} "
                      f"| {_pct(v['accept_rate'])} | {_pct(v['wrong_or_extra_rate'])} | {cov} | {held} "
                      f"| {_pct(v['ambiguous_rate'])} | {_pct(v['wrong_pick_rate'])} "
-                     f"| {' / '.join(map(str, v['statistic_min_median'] or ['n/a']))} | {v['median_fit_s']} |")
+                     f"| {' / '.join(map(str, v['statistic_min_median'] or ['n/a']))} | {_spread(v['z_max'])} "
+                     f"| {_spread(v['heading_deg'])} | {v['median_fit_s']} |")
     lines += ["", "| criterion | threshold | value | verdict | detail |", "|---|---|---|---|---|"]
     lines += [f"| {r['criterion']} | {r['threshold']} | {_shown(r)} | {r['verdict']} | {r['detail']} |" for r in rows]
     return "\n".join(lines) + "\n"
