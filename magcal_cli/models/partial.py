@@ -75,6 +75,8 @@ class MagPrior:
     fallback: int = 0
     #: a fit to the log's own readings (a sphere), not a calibration the vehicle flew with
     from_readings: bool = False
+    #: where the offsets came from when not from `source` (a flown calibration that does not fit its sensor)
+    offset_source: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -210,6 +212,8 @@ def motion_coverage(delta: FloatArray, acc: FloatArray, dip: float | None) -> tu
 #: a prior whose field strength differs from the one the motion shows by more than this (relative, or 3 of its
 #: stds) is no calibration of this sensor (an uncalibrated compass's 'identity' through its hard iron)
 SCALE_MISMATCH = 0.3
+#: the field directions must spread this much (rad RMS, across the second direction) for that strength to be judged
+SCALE_SPREAD = 0.1
 
 
 def covered(prior: MagPrior, delta: FloatArray, acc: FloatArray, dip: float | None, y: FloatArray) -> MagPrior:
@@ -220,7 +224,8 @@ def covered(prior: MagPrior, delta: FloatArray, acc: FloatArray, dip: float | No
     x = y - y.mean(axis=0)
     seen = np.sqrt(np.clip(np.linalg.eigvalsh(x.T @ x / len(x)), 0.0, None))[::-1]
     out = replace(prior, spread=spread, yaw_deg=yaw, flat_axis=flat)
-    if spread[1] <= 0.0 or prior.from_readings:      # a sphere through the readings is already their own scale
+    if spread[1] < SCALE_SPREAD or prior.from_readings:
+        # a narrow cap shows no strength to compare with; a sphere through the readings is already their scale
         return out
     strength = float(np.sqrt(seen[0] * seen[1] / (spread[0] * spread[1])))
     held = float(np.cbrt(abs(np.linalg.det(prior.D))))
@@ -228,8 +233,10 @@ def covered(prior: MagPrior, delta: FloatArray, acc: FloatArray, dip: float | No
         return out
     # no calibration of this sensor: its offsets are where the readings centre, its scale what the motion shows
     return replace(out, D=prior.D * (strength / held), o=sphere_prior(y).o, rel_std=max(prior.rel_std, SPHERE_REL_STD),
-                   source=f"the centre of the readings and {prior.source} rescaled by {strength / held:.2f} to the "
-                          "field strength the motion shows (the flown calibration does not fit this sensor)")
+                   source=f"{prior.source}, rescaled by {strength / held:.2f} to the field strength the motion shows "
+                          "(as flown it does not fit this sensor)",
+                   offset_source="the centre of the readings (the calibration the vehicle flew with does not fit this "
+                                 "sensor)")
 
 
 def cap_needs(rel_std: float) -> tuple[float, float]:
@@ -289,7 +296,7 @@ def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, d
             ("accelerometer_bias", np.zeros(3), ACCEL_BIAS_STD, "no bias beyond the factory calibration"),
             ("gyroscope_bias", np.zeros(3), GYRO_BIAS_STD, "the still segments' gyro bias (zero without any)"),
             ("D", prior.D.ravel(order="F") / scale, prior.rel_std, prior.source),
-            ("o", prior.o / scale, prior.rel_std, prior.source),
+            ("o", prior.o / scale, prior.rel_std, prior.offset_source or prior.source),
             ("dip", np.atleast_1d(layout.get(theta, "dip")[0] if dip_ref is None else dip_ref),
              DIP_DATA_STD if dip_ref is None else DIP_REF_STD,
              "the data's start value (no position for the World Magnetic Model)" if dip_ref is None else
