@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .. import so3
+from .map_init import despike
 from .params import BASE, Layout
 from .solve import Factor, gaussian_factor
 
@@ -198,7 +199,10 @@ def motion_coverage(delta: FloatArray, acc: FloatArray, dip: float | None) -> tu
     v = v / (np.linalg.norm(v) or 1.0)
     axis = np.cross(v, [0.0, 0.0, -1.0])                        # body-0's vertical onto NED up
     s, c = float(np.linalg.norm(axis)), float(-v[2])
-    level = so3.exp(axis / s * np.arctan2(s, c)) if s > 1e-12 else np.diag([1.0, -1.0, -1.0]) if c < 0 else np.eye(3)
+    if s > 1e-12:
+        level = so3.exp(axis / s * np.arctan2(s, c))
+    else:                                                       # already vertical: upright, or upside down
+        level = np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
     rot = level @ rel
     d = DIP_TYPICAL if dip is None else dip
     m_b = np.einsum("kji,j->ki", rot, [np.cos(d), 0.0, np.sin(d)])
@@ -221,7 +225,8 @@ def covered(prior: MagPrior, delta: FloatArray, acc: FloatArray, dip: float | No
     not the one the readings (N, 3) show for that motion (the readings' spread about their own mean over the unit
     field's, two largest principal spreads, which no prior enters), and its offsets then where they centre."""
     spread, yaw, flat = motion_coverage(delta, acc, dip)
-    x = y - y.mean(axis=0)
+    clean, _ = despike(y)                    # an isolated spike would inflate the readings' spread
+    x = clean - clean.mean(axis=0)
     seen = np.sqrt(np.clip(np.linalg.eigvalsh(x.T @ x / len(x)), 0.0, None))[::-1]
     out = replace(prior, spread=spread, yaw_deg=yaw, flat_axis=flat)
     if spread[1] < SCALE_SPREAD or prior.from_readings:
