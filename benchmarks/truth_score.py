@@ -27,6 +27,19 @@ def _by_alias(truth: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def truth_offset(doc: dict[str, Any], truth: dict[str, Any], mag_id: str, o: Any) -> Any:
+    """The truth's offset o at the fit's reference temperature: a temperature drift's offset is at its T0, which
+    the fit takes from the log (its mean temperature) and the simulator from its own (25 degC)."""
+    fit = next((e for e in doc.get("effects", []) if e["id"] == "temperature_drift" and e.get("sensor") == mag_id
+                and "T0" in (e.get("params") or {}) and "k" in (e.get("params") or {})), None)
+    true = next((e for e in truth.get("effects", []) if e["id"] == "temperature_drift"
+                 and e.get("sensor") in (mag_id, None)), None)
+    if fit is None or true is None:
+        return o
+    k = np.asarray(true["params"]["k"], dtype=float)
+    return np.asarray(o, dtype=float) + k * (float(fit["params"]["T0"]) - float(true["params"]["T0"]))
+
+
 def z_scores(doc: dict[str, Any], truth: dict[str, Any]) -> list[Z]:
     """Every estimate of D, o, dip and the IMU biases as an error over its reported std (held entries skipped)."""
     out: list[Z] = []
@@ -37,7 +50,8 @@ def z_scores(doc: dict[str, Any], truth: dict[str, Any]) -> list[Z]:
             continue
         held = {h["parameter"] for h in m.get("held", [])}
         for key in ("D", "o"):
-            err = (np.asarray(m[key], dtype=float) - np.asarray(t[key], dtype=float)).ravel()
+            true = truth_offset(doc, truth, m["id"], t["o"]) if key == "o" else t["D"]
+            err = (np.asarray(m[key], dtype=float) - np.asarray(true, dtype=float)).ravel()
             std = np.asarray(m["std"][key], dtype=float).ravel()
             names = [f"{key}.{i}{j}" for i in range(3) for j in range(3)] if key == "D" else \
                 [f"o.{a}" for a in "xyz"]
@@ -87,7 +101,7 @@ def heading_errors(doc: dict[str, Any], truth: dict[str, Any]) -> dict[str, floa
         # level body, heading psi: x forward; y right (FRD) or left (FLU); z along gravity (FRD) or against (FLU)
         m_b = np.stack([np.cos(dip) * np.cos(psi), -down * np.cos(dip) * np.sin(psi),
                         np.full_like(psi, down * np.sin(dip))], axis=1)
-        y = m_b @ np.asarray(t["D"], dtype=float).T + np.asarray(t["o"], dtype=float)
+        y = m_b @ np.asarray(t["D"], dtype=float).T + np.asarray(truth_offset(doc, truth, m["id"], t["o"]), dtype=float)
         fitted = (y - np.asarray(m["o"], dtype=float)) @ np.linalg.inv(np.asarray(m["D"], dtype=float)).T
         heading = np.arctan2(-down * fitted[:, 1], fitted[:, 0])
         out[m["id"]] = float(np.degrees(np.max(np.abs(np.angle(np.exp(1j * (heading - psi)))))))

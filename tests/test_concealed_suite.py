@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks" / "concealed"))
@@ -119,3 +120,17 @@ def test_scorer_timing_lag_and_z_criteria() -> None:
     assert rows["lag_handheld: 95 % interval coverage (issue 25)"]["value"] == 0.9
     assert rows["base parameters |z| <= 1.96, pooled (issue 25)"]["value"] == pytest.approx(28 / 58)      # seed 3 of both cases: one z
     assert rows["logs with max |z| <= 5 (issue 25)"]["verdict"] == "FAIL"
+
+
+def test_a_drifting_offset_is_compared_at_the_fits_reference_temperature() -> None:
+    """The fit reports o at its T0 (the log's mean temperature), the simulator's truth at 25 degC: the truth's
+    offset moves by k (T0_fit - T0_true) before the two are compared."""
+    from truth_score import z_scores  # run.py put benchmarks/ on the path
+
+    truth = {"magnetometers": [{"id": "MAG[0]", "D": np.eye(3).tolist(), "o": [10.0, 0.0, 0.0], "dip_deg": 60.0}],
+             "effects": [{"id": "temperature_drift", "sensor": "MAG[0]", "params": {"k": [0.5, 0.0, 0.0], "T0": 25.0}}]}
+    doc = {"magnetometers": [{"id": "MAG[0]", "D": np.eye(3).tolist(), "o": [14.0, 0.0, 0.0], "dip_deg": 60.0,
+                              "std": {"D": np.full((3, 3), 0.1).tolist(), "o": [0.1] * 3, "dip_deg": 0.1}}],
+           "effects": [{"id": "temperature_drift", "sensor": "MAG[0]", "status": "accepted",
+                        "params": {"k": [0.5, 0.0, 0.0], "T0": 33.0}}]}
+    assert max(abs(z.z) for z in z_scores(doc, truth)) < 1e-9

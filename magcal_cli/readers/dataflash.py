@@ -29,6 +29,8 @@ from .dataflash_mag import (
     compass_correction,
     motor_cast_evidence,
     motor_product,
+    offset_cast_evidence,
+    offsets_in_force,
     param_suffix,
     truncation_evidence,
     undo_correction,
@@ -276,6 +278,7 @@ class _Compass:
     motor: FloatArray | None
     integer: bool
     notes: tuple[str, ...]
+    ofs: FloatArray | None = None
 
 
 def _compass(inst: int, table: Table, clock: Clock, params: dict[str, float]) -> _Compass:
@@ -295,7 +298,8 @@ def _compass(inst: int, table: Table, clock: Clock, params: dict[str, float]) ->
     k = _mag_factor(table)
     mo_cols = next((c for c in (("MOfsX", "MOfsY", "MOfsZ"), ("MOX", "MOY", "MOZ")) if f.has(*c)), None)
     return _Compass(inst, table, t, k, _cols(table, ("MagX", "MagY", "MagZ"), k),
-                    _cols(table, mo_cols, k) if mo_cols else None, f.char("MagX") in "bBhHiIqQ", tuple(notes))
+                    _cols(table, mo_cols, k) if mo_cols else None, f.char("MagX") in "bBhHiIqQ", tuple(notes),
+                    _cols(table, ("OfsX", "OfsY", "OfsZ"), k) if f.has("OfsX", "OfsY", "OfsZ") else None)
 
 
 def _int16_cast(compasses: list[_Compass], hist: ParamHistory, throttle: Series | None,
@@ -305,16 +309,20 @@ def _int16_cast(compasses: list[_Compass], hist: ParamHistory, throttle: Series 
     params = hist.last()
     ints = [c for c in compasses if c.integer]
     zero_bin = truncation_evidence([c.logged / c.factor for c in ints], [c.t for c in ints]) if ints else 0.0
-    motor = 0.0
-    for c in compasses:
-        if c.motor is not None and c.integer:
-            product = motor_product(hist, param_suffix(c.inst, params)[0], c.t, _interp(c.t, throttle),
-                                    _interp(c.t, current))[0]
+    motor = offset = 0.0
+    for c in (c for c in compasses if c.integer):
+        suffix = param_suffix(c.inst, params)[0]
+        if c.motor is not None:
+            product = motor_product(hist, suffix, c.t, _interp(c.t, throttle), _interp(c.t, current))[0]
             motor += motor_cast_evidence(c.motor / c.factor, product / c.factor)
-    evidence = zero_bin + motor
+        in_force = offsets_in_force(hist, suffix, c.t)
+        if c.ofs is not None and in_force is not None:
+            offset += offset_cast_evidence(c.ofs / c.factor, in_force / c.factor)
+    evidence = zero_bin + motor + offset
     decades = -evidence / np.log(10.0)
     ratio = f"1e{decades:.0f}" if decades > 6 else f"{10.0 ** decades:.3g}"
-    why = f"likelihood ratio {ratio} from the zero bin" + (" and the motor offsets against COMPASS_MOT" if motor else "")
+    why = f"likelihood ratio {ratio} from the zero bin" + (", the offsets against COMPASS_OFS" if offset else "") + (
+        ", the motor offsets against COMPASS_MOT" if motor else "")
     return evidence > -np.log(ROUNDED_EVIDENCE), why
 
 

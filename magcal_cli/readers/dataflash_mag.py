@@ -111,7 +111,7 @@ def undo_correction(logged: FloatArray, c: Correction) -> FloatArray:
 
 #: a log's integer field counts as rounded (no half count added back) only when its zero bin favours rounding over
 #: the firmware's truncating cast by at least this likelihood ratio; with less evidence the firmware's cast stands
-ROUNDED_EVIDENCE = 100.0
+ROUNDED_EVIDENCE = 1000.0
 #: bins either side of zero the test compares the zero bin with, and the fewest counts it needs there
 ZERO_TEST_BINS, ZERO_TEST_MIN = 3, 30
 #: a value counts as in motion when its axis changes by more than this many counts over this long (s) around it:
@@ -201,13 +201,33 @@ CAST_MATCH_LOG_LR = float(np.log(20.0))
 def motor_cast_evidence(logged: FloatArray, product: FloatArray) -> float:
     """ln P(MO | truncated) - ln P(MO | rounded) from the logged motor-offset counts (N, 3) and the float product
     the firmware cast (N, 3), in counts: only where the two casts differ and the product is not near a half count."""
-    frac = np.abs(product) - np.floor(np.abs(product))
-    telling = (np.abs(product) >= 1.0) & (frac > 0.6) & (frac < 0.9)
+    return cast_evidence(logged, product, CAST_MATCH_LOG_LR)
+
+
+def cast_evidence(logged: FloatArray, exact: FloatArray, per_match: float) -> float:
+    """ln P(logged | truncated) - ln P(logged | rounded) for integer counts cast from known floats (same shapes):
+    `per_match` for each value that matches one cast where the other differs (its fraction 0.6-0.9 of a count)."""
+    frac = np.abs(exact) - np.floor(np.abs(exact))
+    telling = (np.abs(exact) >= 1.0) & (frac > 0.6) & (frac < 0.9)
     if not telling.any():
         return 0.0
-    by_trunc = np.count_nonzero(logged[telling] == np.trunc(product[telling]))
-    by_round = np.count_nonzero(logged[telling] == np.rint(product[telling]))
-    return float((by_trunc - by_round) * CAST_MATCH_LOG_LR)
+    by_trunc = np.count_nonzero(logged[telling] == np.trunc(exact[telling]))
+    by_round = np.count_nonzero(logged[telling] == np.rint(exact[telling]))
+    return float((by_trunc - by_round) * per_match)
+
+
+def offsets_in_force(hist: ParamHistory, suffix: str, t: FloatArray) -> FloatArray | None:
+    """COMPASS_OFS{suffix} at the sample times (N, 3) mG, None when the log has no such records."""
+    if not all(f"COMPASS_OFS{suffix}_{a}" in hist for a in AXES):
+        return None
+    return _vec(hist, "OFS", suffix, t, 0.0)
+
+
+def offset_cast_evidence(logged: FloatArray, params: FloatArray) -> float:
+    """The cast evidence of the logged OfsX.. counts (N, 3) against the COMPASS_OFS values in force (N, 3), counting
+    each distinct (parameter, logged) pair once: the same offset is logged in every record."""
+    pairs = np.unique(np.concatenate([params, logged], axis=1), axis=0)
+    return cast_evidence(pairs[:, 3:], pairs[:, :3], float(np.log(ROUNDED_EVIDENCE)))
 
 
 def compass_correction(hist: ParamHistory, suffix: str, t: FloatArray, logged_ofs: FloatArray | None,

@@ -494,3 +494,12 @@ def test_motor_offsets_show_the_cast_they_went_through() -> None:
     assert motor_cast_evidence(np.trunc(product), product) > 20.0
     assert motor_cast_evidence(np.rint(product), product) < -20.0
     assert motor_cast_evidence(np.rint(product), np.zeros_like(product)) == 0.0
+
+
+def test_logged_offsets_show_the_cast_each_distinct_value_once() -> None:
+    """OfsX.. = (int16_t)COMPASS_OFS in every record: one distinct pair per axis counts, however many records."""
+    from magcal_cli.readers.dataflash_mag import ROUNDED_EVIDENCE, offset_cast_evidence
+
+    params = np.repeat([[-11.40, -137.32, -27.70]], 500, axis=0)          # only z tells the casts apart
+    assert offset_cast_evidence(np.trunc(params), params) == pytest.approx(np.log(ROUNDED_EVIDENCE))
+    assert offset_cast_evidence(np.rint(params), params) == pytest.approx(-np.log(ROUNDED_EVIDENCE))
