@@ -293,19 +293,30 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
             note = f"the score test found no sign of it (p = {s.p_value:.2g})"
         verdicts[s.id] = EffectFit(s.id, _sensor(s.id, mag, problem), "rejected", None, (), s.robust, s.dof,
                                    s.p_value, reason=note, test_kind="score")
-    # a pair is ambiguous only when its representative earned its place (it stays in the model: either
-    # explains the same readings, so the calibration is right whichever it is)
-    # the score tests found a mismatch that follows rivals this log cannot tell apart: say so, whether or not
-    # the representative then earned its place (if it did not, nothing is modelled)
+    # the score tests found a mismatch that follows rivals this log cannot tell apart: say so. Where none of a
+    # pair earned its place, its representative is carried all the same: left out, its mean is absorbed by the
+    # offsets, which then claim a precision the log does not have (hover logs: o 46-77 std off the truth); carried,
+    # either rival explains the same readings and the offsets' uncertainty holds the confounding
+    carried = [rep for pair in ambiguous if not pair & set(accepted)
+               for rep in [next((e for e in fw.picked if e in pair), None)] if rep is not None]
+    if carried:
+        est, kept = fit((*accepted, *dict.fromkeys(carried)), base)
+        fitted = {f.id: f for f in est.effects}
+        for eid in kept:
+            if eid in carried and eid in fitted and eid in verdicts:
+                verdicts[eid] = replace(verdicts[eid], estimate=fitted[eid].estimate)
+        modelled_ids = set(kept)
+    else:
+        modelled_ids = set(accepted)
     rivals_of: dict[str, set[str]] = {}
     for pair in ambiguous:
         for eid in pair:
             rivals_of.setdefault(eid, set()).update(pair - {eid})
     for eid, rs in rivals_of.items():
         rival = tuple(sorted(rs))
-        modelled = any(e in accepted for e in (eid, *rival))
+        modelled = eid in modelled_ids
         said = f"cannot be told apart from {' or '.join(rival)} in this log" + (
-            "" if modelled else "; not modelled: neither was confirmed on its own")
+            "" if any(e in modelled_ids for e in (eid, *rival)) else "; not modelled: the fit could not carry it")
         verdicts[eid] = replace(verdicts[eid], status="ambiguous", confounded_with=rival, reason=said,
                                 estimate=verdicts[eid].estimate if modelled else None)
     verdicts.update({u.id: u for u in scr.untestable if u.id not in verdicts})
