@@ -9,7 +9,8 @@ screened again given it). An effect is accepted only when all of these hold:
    interval of the likelihood gain above zero), and the screening on the training folds alone chose it in at
    least half of them;
 4. it matters: at the 99th percentile of the log it moves the heading by >= RELEVANT_DEG or the field by >= 1 %
-   (tilt or 10-s attitude for IMU effects).
+   (tilt or 10-s attitude for IMU effects), or left out it would move D, o or the dip by >= RELEVANT_SIGMAS of
+   their own stds (a calibration that leaves out what the log proves must not claim more precision than it has).
 Significant candidates whose signatures the log cannot separate (canonical correlation > SEPARABLE) are
 `ambiguous` together.
 """
@@ -45,6 +46,9 @@ SEPARABLE = 0.95
 BIC_MIN = 6.0
 RELEVANT_DEG = 0.25
 RELEVANT_FIELD = 0.01
+#: the calibration shift (in its own stds) that makes an effect matter: the simulated warm-ups the heading rule
+#: rejected (0.23 deg) had moved the offsets 5.7-6.4 std
+RELEVANT_SIGMAS = 2.0
 #: the quantile over the log that stands for an effect's largest change
 TOP_QUANTILE = 0.99
 MAX_EFFECTS = 3
@@ -104,21 +108,37 @@ def relevance(est: MapEstimate, eid: str) -> dict[str, float]:
         return {}
     at = point_at(ctx.states, ctx.theta, ctx.layout, ctx.pre)
     value = b.effect.term(b.inputs, beta, at).value
+    out = {"calibration_shift_sigma": calibration_shift(est, b.names())}
     if b.effect.target is Target.MAG:
         dh = value @ np.linalg.inv(at.D).T                      # fraction of the field, body frame
         east = np.einsum("kij,kj->ki", ctx.states, dh)[:, 1]
         dip = float(ctx.layout.get(ctx.theta, "dip")[0])
         head = np.rad2deg(np.abs(east) / max(abs(np.cos(dip)), 0.05))
-        return {"heading_max_deg": _top(head), "heading_rms_deg": float(np.sqrt(np.mean(head**2))),
-                "field_max_pct": _top(100.0 * np.linalg.norm(dh, axis=1))}
+        return out | {"heading_max_deg": _top(head), "heading_rms_deg": float(np.sqrt(np.mean(head**2))),
+                      "field_max_pct": _top(100.0 * np.linalg.norm(dh, axis=1))}
     if b.effect.target is Target.ACCEL:
         tilt = np.rad2deg(np.linalg.norm(value, axis=1) / 9.80665)
-        return {"tilt_max_deg": _top(tilt), "tilt_rms_deg": float(np.sqrt(np.mean(tilt**2)))}
+        return out | {"tilt_max_deg": _top(tilt), "tilt_rms_deg": float(np.sqrt(np.mean(tilt**2)))}
     dt = float(np.median(np.diff(ctx.ep.t)))
     k = max(1, int(round(10.0 / dt)))
     acc = np.cumsum(value, axis=0)
     drift = np.linalg.norm(acc[k:] - acc[:-k], axis=1) if acc.shape[0] > k else np.linalg.norm(acc, axis=1)
-    return {"attitude_10s_max_deg": _top(np.rad2deg(drift))}
+    return out | {"attitude_10s_max_deg": _top(np.rad2deg(drift))}
+
+
+def calibration_shift(est: MapEstimate, names: Sequence[str]) -> float:
+    """How far (in their own stds) leaving the effect out would move the calibration (D, o, dip), to first order:
+    the posterior regression of those on the effect's parameters at beta = 0, against their std with beta held."""
+    cal, eff = est.layout.cols("D", "o", "dip"), est.layout.cols(*names)
+    c = est.cov
+    c_ce, c_ee = c[np.ix_(cal, eff)], c[np.ix_(eff, eff)]
+    try:
+        gain = np.linalg.solve(c_ee, c_ce.T).T                  # C_ce C_ee^-1
+    except np.linalg.LinAlgError:
+        return 0.0
+    shift = gain @ est.theta[eff]
+    held = np.clip(np.diag(c[np.ix_(cal, cal)] - gain @ c_ce.T), 1e-300, None)
+    return float(np.max(np.abs(shift) / np.sqrt(held)))
 
 
 def _top(x: FloatArray) -> float:
@@ -127,9 +147,11 @@ def _top(x: FloatArray) -> float:
 
 
 def _relevant(rel: dict[str, float]) -> bool:
-    """Does the effect matter in practice?"""
+    """Does the effect matter in practice: for the heading, the field or the tilt, or for the calibration's own
+    honesty (left out, it would move D, o or the dip by more than RELEVANT_SIGMAS of their stds)?"""
     return any(v >= RELEVANT_DEG for k, v in rel.items() if k.endswith("max_deg")) or \
-        rel.get("field_max_pct", 0.0) >= 100.0 * RELEVANT_FIELD
+        rel.get("field_max_pct", 0.0) >= 100.0 * RELEVANT_FIELD or \
+        rel.get("calibration_shift_sigma", 0.0) >= RELEVANT_SIGMAS
 
 
 @dataclass(frozen=True, eq=False)
@@ -293,18 +315,18 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
             note = f"the score test found no sign of it (p = {s.p_value:.2g})"
         verdicts[s.id] = EffectFit(s.id, _sensor(s.id, mag, problem), "rejected", None, (), s.robust, s.dof,
                                    s.p_value, reason=note, test_kind="score")
-    # the score tests found a mismatch that follows rivals this log cannot tell apart: say so. Where none of a
-    # pair earned its place, its representative is carried all the same: left out, its mean is absorbed by the
-    # offsets, which then claim a precision the log does not have (hover logs: o 46-77 std off the truth); carried,
-    # either rival explains the same readings and the offsets' uncertainty holds the confounding
-    carried = [rep for pair in ambiguous if not pair & set(accepted)
-               for rep in [next((e for e in fw.picked if e in pair), None)] if rep is not None]
-    if carried:
-        est, kept = fit((*accepted, *dict.fromkeys(carried)), base)
+    # the score tests found a mismatch that follows rivals this log cannot tell apart: say so. One of each pair stays
+    # in the fit, accepted or not: left out, its mean is absorbed by the offsets, which then claim a precision the
+    # log does not have (hover logs: o 46-77 std off the truth). Either rival explains the same readings, so the one
+    # whose term vanishes at rest is kept: the offsets are then the hard iron, not those at the log's mean temperature
+    modelled = _modelled(accepted, ambiguous, fw.picked)
+    if set(modelled) != set(accepted):
+        est, kept = fit(modelled, base)
         fitted = {f.id: f for f in est.effects}
         for eid in kept:
-            if eid in carried and eid in fitted and eid in verdicts:
-                verdicts[eid] = replace(verdicts[eid], estimate=fitted[eid].estimate)
+            if eid not in accepted and eid in fitted and eid in verdicts:
+                # the fit's own entry (estimate, constants such as T0, Wald test); its verdict follows below
+                verdicts[eid] = replace(fitted[eid], evidence=verdicts[eid].evidence)
         modelled_ids = set(kept)
     else:
         modelled_ids = set(accepted)
@@ -314,13 +336,29 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
             rivals_of.setdefault(eid, set()).update(pair - {eid})
     for eid, rs in rivals_of.items():
         rival = tuple(sorted(rs))
-        modelled = eid in modelled_ids
+        carried = eid in modelled_ids
         said = f"cannot be told apart from {' or '.join(rival)} in this log" + (
             "" if any(e in modelled_ids for e in (eid, *rival)) else "; not modelled: the fit could not carry it")
         verdicts[eid] = replace(verdicts[eid], status="ambiguous", confounded_with=rival, reason=said,
-                                estimate=verdicts[eid].estimate if modelled else None)
+                                estimate=verdicts[eid].estimate if carried else None)
     verdicts.update({u.id: u for u in scr.untestable if u.id not in verdicts})
     return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous))
+
+
+def _modelled(accepted: Sequence[str], pairs: Sequence[frozenset[str]], picked: Sequence[str]) -> tuple[str, ...]:
+    """The effects the final fit carries: the accepted ones, and for each ambiguous pair that the forward selection
+    acted on one member, preferring one whose term vanishes at rest (`Effect.zero_at_rest`) to one that does not."""
+    out = list(accepted)
+    for pair in pairs:
+        if not any(e in picked for e in pair):
+            continue
+        at_rest = sorted(e for e in pair if registry.get(e).zero_at_rest)
+        inside = [e for e in pair if e in out]
+        if inside and (not at_rest or any(e in at_rest for e in inside)):
+            continue
+        out = [e for e in out if e not in inside]
+        out.append(at_rest[0] if at_rest else next(e for e in picked if e in pair))
+    return tuple(dict.fromkeys(out))
 
 
 def _failed(exc: Exception, problem: Problem, mag: Stream) -> str:

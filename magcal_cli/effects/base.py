@@ -124,6 +124,9 @@ class Effect:
     #: parameters -- not on the orientation, the base parameters or row weights (Term.d_state None, no d_base):
     #: the EKF baselines carry such a term as extra parameters or states (models/ekf_effects.py)
     additive: ClassVar[bool] = False
+    #: the term vanishes with the vehicle at rest (motors off: no current, no throttle), so the offsets it leaves are
+    #: the hard iron itself; of an ambiguous pair the diagnosis carries such a one (diagnose/select.py)
+    zero_at_rest: ClassVar[bool] = False
 
     def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
                declination: float = 0.0) -> Inputs:

@@ -30,6 +30,7 @@ class Current(Effect):
     id = "current_interference"
     target = Target.MAG
     additive = True
+    zero_at_rest = True
     params = (ParamBlock("c", 3, "field", "current interference", XYZ),)
     units: ClassVar[dict[str, str]] = {"c": "{field}/ampere"}
     channels = (Kind.BATTERY_CURRENT,)

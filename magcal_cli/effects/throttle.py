@@ -23,6 +23,7 @@ class Throttle(Effect):
     id = "throttle_interference"
     target = Target.MAG
     additive = True
+    zero_at_rest = True
     params = (ParamBlock("c", 3, "field", "throttle interference", XYZ), ParamBlock("p", 1, "none"))
     units: ClassVar[dict[str, str]] = {"c": "{field}", "p": "1"}
     channels = (Kind.THROTTLE,)
