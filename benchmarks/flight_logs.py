@@ -202,7 +202,7 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str) + "\n")
     args.out.with_suffix(".md").write_text(
-        f"# Every real log through `magcal fit {args.fit}`\n\n"
+        f"# Every real log through `{' '.join(('magcal fit', args.fit)).strip()}`\n\n"
         "Made by `python benchmarks/flight_logs.py" + (f" --before {args.before}" if args.before else "") +
         (f" --fit '{args.fit}'" if args.fit else "") + "`. "
         "Raw spread: std/mean of |raw reading|; calibrated spread: the document's field_norm_rms_pct; heading "
