@@ -352,12 +352,13 @@ def _modelled(accepted: Sequence[str], pairs: Sequence[frozenset[str]], picked: 
     for pair in pairs:
         if not any(e in picked for e in pair):
             continue
-        at_rest = sorted(e for e in pair if registry.get(e).zero_at_rest)
+        at_rest = {e for e in pair if registry.get(e).zero_at_rest}
         inside = [e for e in pair if e in out]
         if inside and (not at_rest or any(e in at_rest for e in inside)):
             continue
+        pool = at_rest or set(pair)
         out = [e for e in out if e not in inside]
-        out.append(at_rest[0] if at_rest else next(e for e in picked if e in pair))
+        out.append(next((e for e in picked if e in pool), min(pool)))
     return tuple(dict.fromkeys(out))
 
 

@@ -15,7 +15,7 @@ from magcal_cli.cli import cli
 from magcal_cli.config import Config
 from magcal_cli.diagnose import ppc
 from magcal_cli.diagnose.score import Score, Screen, screen
-from magcal_cli.diagnose.select import Selection, holm, select
+from magcal_cli.diagnose.select import Selection, _modelled, _relevant, holm, select
 from magcal_cli.diagnose.validate import blocks, folds
 from magcal_cli.models.map import MapEstimate, fit_map
 from magcal_cli.models.problem import Problem
@@ -129,6 +129,38 @@ def test_inseparable_pair_is_ambiguous_never_a_confident_pick() -> None:
     assert status["current_interference"].status == "ambiguous", {k: v.status for k, v in status.items()}
     assert status["current_interference"].confounded_with
     assert not [k for k, v in status.items() if v.status == "accepted"]
+
+
+def test_the_inseparable_pair_keeps_the_member_that_vanishes_at_rest_and_honest_offsets() -> None:
+    """Hover: a member that is zero with the motors off (current or throttle) stays in the fit, so the offsets are
+    the hard iron and their interval holds the truth; left out, or carried as temperature, they were 46-72 std off
+    in the concealed suite (issue 25)."""
+    sim, _, _ = _fit("hover", 2)
+    sel = _selected("hover", 2)
+    carried = [v.id for v in sel.verdicts if v.status == "ambiguous" and v.estimate is not None]
+    assert carried and all(registry.get(e).zero_at_rest for e in carried), carried
+    est = sel.estimate
+    z = (est.value("o") - sim.truth.o) / est.std_of("o")
+    assert np.all(np.abs(z) < 5.0), z
+
+
+def test_of_an_ambiguous_pair_the_member_that_vanishes_at_rest_is_modelled() -> None:
+    """Temperature does not vanish at rest, current and throttle do; a pair the selection never acted on stays out."""
+    cur_temp = frozenset({"current_interference", "temperature_drift"})
+    cur_thr = frozenset({"current_interference", "throttle_interference"})
+    assert _modelled(("temperature_drift",), [cur_temp], ("temperature_drift",)) == ("current_interference",)
+    assert _modelled((), [cur_temp], ("temperature_drift",)) == ("current_interference",)
+    assert _modelled(("current_interference",), [cur_temp], ("current_interference",)) == ("current_interference",)
+    assert _modelled((), [cur_thr], ("throttle_interference",)) == ("throttle_interference",)
+    assert _modelled(("gyro_scale",), [cur_temp], ("gyro_scale",)) == ("gyro_scale",)
+
+
+def test_an_effect_matters_when_leaving_it_out_moves_the_calibration() -> None:
+    """Below the heading and field bars, an effect still matters when it shifts D, o or the dip by >= 2 std."""
+    small = {"heading_max_deg": 0.23, "field_max_pct": 0.4}
+    assert not _relevant(small | {"calibration_shift_sigma": 1.5})
+    assert _relevant(small | {"calibration_shift_sigma": 6.0})
+    assert _relevant({"heading_max_deg": 0.3, "calibration_shift_sigma": 0.0})
 
 
 @pytest.fixture(scope="module")
