@@ -32,6 +32,10 @@ TITLES = {
 NORM_CHECK_PCT, NORM_POOR_PCT = 1.0, 5.0
 COVERAGE_CHECK_PCT, COVERAGE_POOR_PCT = 30.0, 15.0
 HEADING_CHECK_DEG = 2.0
+#: low coverage alone makes a calibration unusable only when the heading it gives is this uncertain (1 sigma):
+#: accuracy is judged by heading (docs/results/heading.md), and a flight that yawed through full turns within
+#: +-20 deg of level covers 11-15 % of the sphere yet determines the heading to a degree
+HEADING_POOR_DEG = 5.0
 APPLY = "Apply m_b = A (y - b) to raw readings"
 
 
@@ -93,8 +97,9 @@ def verdicts(result: RunResult) -> list[Verdict]:
         if norm is not None:
             (poor if norm > NORM_POOR_PCT else check if norm > NORM_CHECK_PCT else []).append(  # [] drops it
                 f"the calibrated field strength still varies by {norm:.2f} % RMS")
-        if cover is not None:
-            (poor if cover < COVERAGE_POOR_PCT else check if cover < COVERAGE_CHECK_PCT else []).append(
+        if cover is not None and cover < COVERAGE_CHECK_PCT:
+            unsure = heading is None or heading > HEADING_POOR_DEG
+            (poor if cover < COVERAGE_POOR_PCT and unsure else check).append(
                 f"the log covers only {cover:.0f} % of the field directions")
         if heading is not None and heading > HEADING_CHECK_DEG:
             check.append(f"the heading is uncertain by up to {heading:.1f} deg (1 sigma)")

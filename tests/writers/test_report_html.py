@@ -15,6 +15,7 @@ from magcal_cli.firmware.metrics import heading_std_curve_deg, heading_std_deg
 from magcal_cli.pipeline import RunResult, calibrate_recording
 from magcal_cli.synth import Simulation
 from magcal_cli.writers import get_writer
+from magcal_cli.writers import report_summary as rs
 from magcal_cli.writers.report_data import heading_view, mag_view
 from magcal_cli.writers.report_html import render_html
 from magcal_cli.writers.report_summary import groups, verdicts
@@ -74,6 +75,19 @@ def test_verdict_follows_quality(result: RunResult) -> None:
     cal = replace(result.calibration, magnetometers=(worse,))
     (bad,) = verdicts(replace(result, calibration=cal))
     assert bad.level == "poor" and bad.reasons == ("the calibrated field strength still varies by 6.00 % RMS",)
+
+
+def test_low_coverage_is_a_caveat_while_the_heading_is_determined(result: RunResult,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A flight covering 11 % of the sphere with heading sigma 0.75 deg is usable with caveats; at 6 deg it is not."""
+    base = rs.fit_metrics(result)
+    mid = result.calibration.magnetometers[0].id
+    for heading, level in ((0.75, "check"), (6.0, "poor")):
+        m = dict(base[mid][0]) | {"coverage_pct": 11.0, "heading_std_deg": heading}
+        monkeypatch.setattr(rs, "fit_metrics", lambda _r, m=m: {mid: (m, *base[mid][1:])})
+        (v,) = verdicts(result)
+        assert v.level == level, (heading, v.reasons)
+        assert "the log covers only 11 % of the field directions" in v.reasons
 
 
 def test_warnings_grouped_in_full() -> None:
