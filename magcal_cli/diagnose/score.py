@@ -22,7 +22,7 @@ import numpy.typing as npt
 from scipy import stats
 
 from .. import effects as registry
-from ..models.gyro import Preintegrated, preintegrate
+from ..models.gyro import Preintegrated, preintegrate_log
 from ..models.map import MapEstimate
 from ..models.map_effects import Bound, bind, layout_for
 from ..models.params import Layout
@@ -125,8 +125,7 @@ def _with_scale_jacobian(problem: Problem, mag: Stream, t: FloatArray, pre: Prei
         memo = _SCALE_JACOBIAN.setdefault(problem, {})
     hit = memo.get(key)
     if hit is None:
-        hit = preintegrate(problem.gyr.t, problem.gyr.xyz, t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}",
-                           scale_jacobian=True, breaks=problem.unmeasured, scale=problem.gyr_scale)
+        hit = preintegrate_log(problem, t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True)
         memo[key] = hit
     return hit
 

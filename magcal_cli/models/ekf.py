@@ -28,7 +28,7 @@ from . import map_init
 from .accel import G
 from .ekf_effects import Terms, fitted, layout_of
 from .epochs import BIAS_SCALE, GYRO_START_DIVISOR, Noise, epochs_for, initial_noise
-from .gyro import Preintegrated, preintegrate
+from .gyro import Preintegrated, preintegrate, preintegrate_log
 from .map_effects import Bound
 from .observability import check_observability
 from .params import BASE, MAG
@@ -132,8 +132,7 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
     gyr = problem.gyr
     still = bool(problem.still.segments)
     bias = problem.still.gyr_bias if still else np.zeros(3)
-    pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured,
-                       scale=problem.gyr_scale)
+    pre = preintegrate_log(problem, ep.t, bias, noise.gyr, where)
     h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
     r_d, db = map_init.wu_luo(h, so3.log(pre.delta), pre.duration, window)
@@ -142,8 +141,7 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
         if still:                                      # not still after all: their gyro level is an upper bound
             noise = Noise(noise.acc, noise.gyr / GYRO_START_DIVISOR, noise.mag)
         bias = bias + db
-        pre = preintegrate(gyr.t, gyr.xyz, ep.t, bias, noise.gyr, where, breaks=problem.unmeasured,
-                           scale=problem.gyr_scale)
+        pre = preintegrate_log(problem, ep.t, bias, noise.gyr, where)
         why = "no still segment" if not still else (f"the still segments' gyro bias is {np.linalg.norm(db):.4f} "
                                                     "rad/s away from the field kinematics'")
         notes.append(f"{mag.id}: {why}; gyro bias started from the Wu & Luo alignment and the gyro noise from "

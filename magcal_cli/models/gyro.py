@@ -13,6 +13,7 @@ Forster's recursions for dR, its bias Jacobian and its covariance run over the p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -21,6 +22,9 @@ from .. import so3
 from ..errors import InsufficientDataError
 from . import stacks
 from .solve import Factor
+
+if TYPE_CHECKING:
+    from .problem import Problem
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -142,6 +146,14 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
         l_inv[broken], cov[broken] = 0.0, np.pi**2 * np.eye(3)
     return Preintegrated(epochs, np.array(bias, dtype=np.float64), delta, d_bias, cov, l_inv,
                          np.diff(epochs), np.array(noise_std, dtype=np.float64), d_scale, broken)
+
+
+def preintegrate_log(problem: Problem, epochs: FloatArray, bias: FloatArray, noise_std: FloatArray,
+                     where: str = "gyro", scale_jacobian: bool = False) -> Preintegrated:
+    """`preintegrate` over the problem's gyro, with the windows it did not measure and its in-flight noise profile
+    (Problem.unmeasured, Problem.gyr_scale): the one way every estimator preintegrates a log."""
+    return preintegrate(problem.gyr.t, problem.gyr.xyz, epochs, bias, noise_std, where, scale_jacobian,
+                        problem.unmeasured, problem.gyr_scale)
 
 
 def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_at: int,

@@ -28,7 +28,7 @@ from ..streams import Stream
 from . import map_init, partial
 from .accel import G, accel_factor
 from .epochs import Epochs, Noise, epochs_for, initial_noise
-from .gyro import Preintegrated, gyro_factor, preintegrate
+from .gyro import Preintegrated, gyro_factor, preintegrate_log
 from .mag import MagLayout, field_nav, mag_factor
 from .map_effects import (
     Bound,
@@ -303,8 +303,7 @@ def _preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
         ratio = noise.gyr / hit.noise_std
         if np.allclose(ratio, ratio[0], rtol=1e-12):
             return hit.scaled(float(ratio[0]) ** 2)
-    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}",
-                       scale_jacobian=scale_jacobian, breaks=problem.unmeasured, scale=problem.gyr_scale)
+    pre = preintegrate_log(problem, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}", scale_jacobian)
     cache[key] = pre
     return pre
 
@@ -423,9 +422,7 @@ def _with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated,
     for b in bound:
         full[layout.cols(*b.names())] = b.effect.start()
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
-        pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias, pre.noise_std,
-                           f"{problem.where}: {mag.id}", scale_jacobian=True, breaks=problem.unmeasured,
-                           scale=problem.gyr_scale)
+        pre = preintegrate_log(problem, ep.t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True)
     return layout, tuple(bound), untestable, full, pre
 
 
@@ -526,8 +523,7 @@ def _fit_map(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, 
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = theta[bg]
         if float(np.linalg.norm(db)) * float(pre.duration.max()) > REPREINTEGRATE_RAD:
-            pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, pre.bias + db, noise.gyr, where, scale_jac,
-                               problem.unmeasured, problem.gyr_scale)
+            pre = preintegrate_log(problem, ep.t, pre.bias + db, noise.gyr, where, scale_jac)
             theta[bg] = 0.0
             log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue
@@ -690,8 +686,7 @@ def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: 
     d = BASE.get(theta_si, "D").reshape(3, 3, order="F")
     scale = float(np.cbrt(abs(np.linalg.det(d))))
     ep = epochs_for(problem, mag, scale)
-    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr,
-                       breaks=problem.unmeasured, scale=problem.gyr_scale)
+    pre = preintegrate_log(problem, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr)
     jac = BASE.si_factors(scale)
     theta = theta_si / jac
     BASE.put(theta, "gyroscope_bias", 0.0)

@@ -32,7 +32,7 @@ from ..streams import Stream
 from . import map_init
 from .accel import G
 from .epochs import MAX_EPOCHS, Epochs, Noise, epochs_for, initial_noise
-from .gyro import Preintegrated, preintegrate
+from .gyro import Preintegrated, preintegrate_log
 from .map import (
     DIP_BASIN_DEG,
     NOISE_ROUNDS,
@@ -155,8 +155,7 @@ def _start(problem: Problem, je: JointEpochs, intr: list[map_init.Intrinsic], no
     magnetometer, the dip, the gyro-integrated or TRIAD trajectory, whichever fits better), for all at once."""
     where = problem.where
     bias = problem.still.gyr_bias if problem.still.segments else np.zeros(3)
-    pre = preintegrate(problem.gyr.t, problem.gyr.xyz, je.t, bias, noise.gyr, where, breaks=problem.unmeasured,
-                       scale=problem.gyr_scale)
+    pre = preintegrate_log(problem, je.t, bias, noise.gyr, where)
     cum = np.concatenate([np.eye(3)[None], so3.cumulative_product(pre.delta)])
     theta = layout.zeros()
     anchor = np.full((je.t.size, 3, 3), np.nan)
@@ -232,8 +231,7 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
         log.extend(f"round {rnd}: {line}" for line in sol.log)
         if float(np.linalg.norm(theta[bg])) * float(pre.duration.max()) > REPREINTEGRATE_RAD:
-            pre = preintegrate(problem.gyr.t, problem.gyr.xyz, je.t, pre.bias + theta[bg], noise.gyr,
-                               problem.where, breaks=problem.unmeasured, scale=problem.gyr_scale)
+            pre = preintegrate_log(problem, je.t, pre.bias + theta[bg], noise.gyr, problem.where)
             theta[bg] = 0.0
             log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue
