@@ -228,7 +228,7 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
     bad_instances: list[str] = []
     found = [(i, tb) for i, tb in instances(raw, MAG_NAMES, notes=bad_instances, limit=3)
              if tb.fmt.has("MagX", "MagY", "MagZ")]
-    compasses = [_compass(inst, table, clock, params) for inst, table in found]
+    compasses = [_compass(inst, table, clock) for inst, table in found]
     truncated, cast = _int16_cast(compasses, hist, throttle, current)
     for c in compasses:
         inst, table, t, notes = c.inst, c.table, c.t, list(c.notes)
@@ -243,9 +243,8 @@ def _reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
         elif c.integer:
             notes.append(f"MAG[{inst}]: the logged integers were rounded, not truncated as AP_Compass's cast does "
                          f"({cast}); no half count added back")
-        ofs = _cols(table, ("OfsX", "OfsY", "OfsZ"), k) if f.has("OfsX", "OfsY", "OfsZ") else None
         suffix, slot_note = param_suffix(inst, params)
-        corr, desc = compass_correction(hist, suffix, t, ofs, c.motor, after, _interp(t, throttle),
+        corr, desc = compass_correction(hist, suffix, t, c.ofs, c.motor, after, _interp(t, throttle),
                                         _interp(t, current))
         ext = {"": "COMPASS_EXTERNAL", "2": "COMPASS_EXTERN2", "3": "COMPASS_EXTERN3"}[suffix]
         frame = (f"COMPASS_ORIENT{suffix}={params.get(f'COMPASS_ORIENT{suffix}', 0):.0f}" if params.get(ext)
@@ -281,7 +280,7 @@ class _Compass:
     ofs: FloatArray | None = None
 
 
-def _compass(inst: int, table: Table, clock: Clock, params: dict[str, float]) -> _Compass:
+def _compass(inst: int, table: Table, clock: Clock) -> _Compass:
     """The healthy records of one compass (all of them, with a note, when the firmware marked none healthy)."""
     f = table.fmt
     notes: list[str] = []
@@ -310,7 +309,7 @@ def _int16_cast(compasses: list[_Compass], hist: ParamHistory, throttle: Series 
     ints = [c for c in compasses if c.integer]
     zero_bin = truncation_evidence([c.logged / c.factor for c in ints], [c.t for c in ints]) if ints else 0.0
     motor = offset = 0.0
-    for c in (c for c in compasses if c.integer):
+    for c in ints:
         suffix = param_suffix(c.inst, params)[0]
         if c.motor is not None:
             product = motor_product(hist, suffix, c.t, _interp(c.t, throttle), _interp(c.t, current))[0]
