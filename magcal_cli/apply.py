@@ -38,9 +38,9 @@ def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | No
         raise StreamError(msg)
     u = unit_names.pop()
     rows: list[tuple[float, str, np.ndarray]] = []
+    told = cal.source.timing.get("magnetometer")
     for mag in (m for m in mags if m.id in have):
         stream = rec.select(Kind.MAGNETOMETER, mag.id)
-        told = cal.source.timing.get("magnetometer")
         if told in CHOICES:                # the fit's time convention, so a time offset means the same here
             stream = as_instants(stated(stream, Sampling(told)))
         y = stream.xyz * units.from_si(mag.unit)

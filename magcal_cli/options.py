@@ -117,7 +117,8 @@ def log_extension(out: Path) -> None:
         raise click.BadParameter(msg, param_hint="OUT")
 
 
-#: --imu-timing and --mag-timing: what a sample stands for (docs/timing.md)
+#: --imu-timing and --mag-timing: what a sample stands for (docs/timing.md); Sampling's values (timing.CHOICES),
+#: spelled out so that the command line starts without importing numpy (tests/test_timing.py checks they agree)
 TIMING_CHOICES = ("instant", "preceding", "following")
 TIMING_HELP = ("What each {what} sample stands for: instant (the value at its stamp), preceding (the mean over the "
                "interval that ends at its stamp{example}) or following (the mean over the interval that starts at "

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli import timing
+from magcal_cli import options, timing
 from magcal_cli.cli import cli
 from magcal_cli.config import Config
 from magcal_cli.logwriters import LOG_WRITERS, imu_sampling, write_log
@@ -24,6 +24,11 @@ from magcal_cli.synth import simulate
 def _gyro(t: np.ndarray, sampling: Sampling, window: float | None = None) -> Stream:
     return Stream(Kind.GYROSCOPE, "imu", t, np.zeros((t.size, 3)), "x#imu", "rad/s", sampling=sampling,
                   window_s=window)
+
+
+def test_the_options_offer_exactly_the_conventions_timing_converts() -> None:
+    """options.py spells the choices out so that the CLI starts without numpy; they must stay Sampling's."""
+    assert options.TIMING_CHOICES == timing.CHOICES
 
 
 def test_each_convention_becomes_the_estimators_interval_form() -> None:
