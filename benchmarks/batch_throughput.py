@@ -35,8 +35,8 @@ CORRUPT = "corrupt.bin"
 
 def make_logs(folder: Path, n: int, seed: int) -> dict[str, int]:
     """n-1 simulated handheld logs (40-60 s, formats in turn) and one corrupt DataFlash log; formats counted."""
-    from magcal_cli.logwriters import imu_sampling, write_log
-    from magcal_cli.synth import simulate
+    from magcal_cli.synth.logs import imu_sampling, write_log
+    from magcal_cli.synth.simulate import simulate
 
     rng = np.random.default_rng(seed)
     counts: dict[str, int] = {}

@@ -55,7 +55,7 @@ def current_rss_mb() -> float:
 def run_magcal(path: Path) -> dict[str, Any]:
     """Time magcal's reader (streams, raw field reconstruction, notes) on `path`."""
     from magcal_cli.readers import ReadOptions
-    from magcal_cli.readers.dataflash import DataflashReader
+    from magcal_cli.readers.dataflash.reader import DataflashReader
 
     base = current_rss_mb()
     t = time.perf_counter()
@@ -94,8 +94,8 @@ def run_pymavlink(path: Path) -> dict[str, Any]:
 
 def make_log(path: Path, size_mb: float, seed: int) -> None:
     """Simulate a handheld recording long enough for `size_mb` and write it with magcal's DataFlash writer."""
-    from magcal_cli.logwriters.dataflash import build
-    from magcal_cli.synth import simulate
+    from magcal_cli.synth.logs.dataflash import build
+    from magcal_cli.synth.simulate import simulate
 
     per_second = 8_350.0        # bytes per second: IMU 100 Hz, MAG 50 Hz, ATT/BAT/CTUN 10 Hz, GPS 5 Hz
     sim = simulate("handheld", seed, duration=size_mb * 1e6 / per_second)

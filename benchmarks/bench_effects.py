@@ -16,10 +16,10 @@ import time
 import numpy as np
 
 from magcal_cli.config import Config
-from magcal_cli.models import map as mapm
+from magcal_cli.models.map import fit as mapm
 from magcal_cli.pipeline import select_problem
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.simulate import simulate
 
 RATE, DECIMATE = 62.5, 3
 THREE = ("current_interference", "temperature_drift", "gyro_scale")

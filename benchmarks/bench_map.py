@@ -27,11 +27,12 @@ sys.path.insert(0, str(ROOT))
 
 from magcal_cli import so3  # noqa: E402
 from magcal_cli.config import Config  # noqa: E402
-from magcal_cli.models import map as mapm  # noqa: E402
-from magcal_cli.models import map_init, map_run  # noqa: E402
+from magcal_cli.methods import map_run  # noqa: E402
+from magcal_cli.models.map import fit as mapm  # noqa: E402
+from magcal_cli.models.map import init as map_init  # noqa: E402
 from magcal_cli.models.solve import Factor, Options, solve  # noqa: E402
 from magcal_cli.pipeline import select_problem  # noqa: E402
-from magcal_cli.synth import paper_trajectory, simulate  # noqa: E402
+from magcal_cli.synth.simulate import paper_trajectory, simulate  # noqa: E402
 from tests.models.mapsim import record  # noqa: E402
 
 RATE, DECIMATE = 62.5, 3

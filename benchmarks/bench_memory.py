@@ -57,10 +57,10 @@ def _gather_u64(buf: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.nd
 
 def make_log(path: Path, size_gb: float, filler: float, seed: int) -> dict[str, Any]:
     """Tile a simulated log (shifting TimeUS and MAG.S per tile) until the file holds `size_gb`."""
-    from magcal_cli.logwriters.dataflash import build
-    from magcal_cli.readers.dataflash_binary import parse_buffer
-    from magcal_cli.readers.dataflash_format import FMT_ID, FMT_LENGTH, HEAD1, HEAD2
-    from magcal_cli.synth import simulate
+    from magcal_cli.readers.dataflash.binary import parse_buffer
+    from magcal_cli.readers.dataflash.format import FMT_ID, FMT_LENGTH, HEAD1, HEAD2
+    from magcal_cli.synth.logs.dataflash import build
+    from magcal_cli.synth.simulate import simulate
 
     base = build(simulate("handheld", seed, rate=200.0, mag_rate=100.0))
     raw = parse_buffer(base)
@@ -113,8 +113,8 @@ def make_log(path: Path, size_gb: float, filler: float, seed: int) -> dict[str, 
 def run(kind: str, path: Path) -> dict[str, Any]:
     """One measurement (in its own process): wall time, peak RSS above the post-import baseline, stream bytes."""
     from magcal_cli.readers import ReadOptions, open_recording
-    from magcal_cli.readers.dataflash import WANTED
-    from magcal_cli.readers.dataflash_binary import parse_binary, parse_buffer
+    from magcal_cli.readers.dataflash.binary import parse_binary, parse_buffer
+    from magcal_cli.readers.dataflash.reader import WANTED
 
     base = current_rss_mb()
     t = time.perf_counter()

@@ -36,8 +36,8 @@ TOOLS = ("magcal auto", "magcal attitude", "magcal none")
 
 def fit_magcal(path: Path, tool: str) -> tuple[dict[str, Any], float]:
     """magcal's calibration document of `path` (as a dict) for one of TOOLS, and its time (s)."""
+    from magcal_cli.calibration.document import to_dict
     from magcal_cli.config import Config
-    from magcal_cli.document import to_dict
     from magcal_cli.pipeline import calibrate
 
     kind = tool.split()[1]

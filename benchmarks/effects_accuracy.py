@@ -28,8 +28,8 @@ from magcal_cli.effects import EFFECTS, get
 from magcal_cli.effects.base import Target
 from magcal_cli.pipeline import calibrate_recording
 from magcal_cli.streams import Kind
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.simulate import simulate
 
 #: the truth value of each fitted parameter (SI), by effect: name -> callable(injected params) -> value
 TRUTH = {
@@ -94,8 +94,10 @@ def ekf_batched(effect: str | None, method: str, seeds: list[int], none: bool) -
     """All seeds through one batched filter loop per model (as paper_study.py runs the EKFs; the method's own
     `fit_batch` on `prepare_all`, what `magcal fit` runs per log): with the effect (or clean logs when effect is
     None), and with --effects none unless not `none`."""
-    from magcal_cli.models import ekf, ekf_aug, ekf_ml
-    from magcal_cli.models.params import BASE
+    from magcal_cli.models.ekf import aug as ekf_aug
+    from magcal_cli.models.ekf import core as ekf
+    from magcal_cli.models.ekf import ml as ekf_ml
+    from magcal_cli.params import BASE
     from magcal_cli.pipeline import select_problem
 
     fit_batch = {"ekf-ml": ekf_ml.fit_batch, "ekf-aug": ekf_aug.fit_batch}[method]

@@ -60,7 +60,7 @@ def heading_change_deg(doc: dict[str, Any], log: Path) -> dict[str, float | None
     flew with (the log's parameters: the affine map raw -> field the firmware applied, `partial.flown_prior`) and
     the fitted one, None when the log has no firmware calibration."""
     from magcal_cli import units
-    from magcal_cli.document import from_dict
+    from magcal_cli.calibration.document import from_dict
     from magcal_cli.errors import MagcalError
     from magcal_cli.firmware.flown import flown_fields
     from magcal_cli.models.partial import flown_prior

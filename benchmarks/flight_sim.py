@@ -21,13 +21,13 @@ from typing import Any
 import numpy as np
 
 from magcal_cli import __version__
+from magcal_cli.calibration.document import dumps_json, load
 from magcal_cli.config import Config
-from magcal_cli.document import dumps_json, load
 from magcal_cli.errors import MagcalError
-from magcal_cli.logwriters import write_log
 from magcal_cli.pipeline import calibrate
 from magcal_cli.readers import open_recording
-from magcal_cli.synth import simulate, truth_calibration
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.simulate import simulate, truth_calibration
 
 SCENARIOS = ("multirotor", "rover")
 #: the fits compared: name -> Config; "auto" (magcal fit's default, with the diagnosis) only with --auto

@@ -17,7 +17,7 @@ from magcal_cli import so3
 from magcal_cli.config import Config
 from magcal_cli.pipeline import METHODS, select_problem
 from magcal_cli.registry import resolve
-from magcal_cli.synth import simulate
+from magcal_cli.synth.simulate import simulate
 
 
 def main() -> None:

@@ -28,12 +28,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from magcal_cli.config import Config  # noqa: E402
-from magcal_cli.models import map_run  # noqa: E402
-from magcal_cli.models.map import fit_map  # noqa: E402
+from magcal_cli.methods import map_run  # noqa: E402
+from magcal_cli.models.map.fit import fit_map  # noqa: E402
 from magcal_cli.models.result import MagFit  # noqa: E402
 from magcal_cli.pipeline import select_problem  # noqa: E402
-from magcal_cli.synth import Truth  # noqa: E402
-from magcal_cli.synth_array import simulate_array  # noqa: E402
+from magcal_cli.synth.array import simulate_array  # noqa: E402
+from magcal_cli.synth.simulate import Truth  # noqa: E402
 
 RATE, DECIMATE = 62.5, 3
 

@@ -20,9 +20,9 @@ from scipy import stats
 
 from magcal_cli.config import Config
 from magcal_cli.models import kok2012
-from magcal_cli.models import map as mapm
+from magcal_cli.models.map import fit as mapm
 from magcal_cli.pipeline import select_problem
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.simulate import Simulation, simulate
 
 #: parameter groups of theta = (b_a, b_g, vec D, o, dip) and the unit they are printed in
 GROUPS = {"b_a": (slice(0, 3), 1.0, "m/s^2"), "b_g": (slice(3, 6), 1.0, "rad/s"),

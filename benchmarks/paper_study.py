@@ -28,12 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from magcal_cli.config import Config
-from magcal_cli.models import ekf, ekf_aug, ekf_ml
+from magcal_cli.models.ekf import aug as ekf_aug
+from magcal_cli.models.ekf import core as ekf
+from magcal_cli.models.ekf import ml as ekf_ml
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import MethodResult
 from magcal_cli.pipeline import METHODS, select_problem
 from magcal_cli.registry import resolve
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.simulate import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 PUBLISHED = ROOT.parent / "shared" / "realdata" / "huang2025-results" / "computation_results"
@@ -89,7 +91,7 @@ def result_theta(res: MethodResult) -> np.ndarray:
 def crlb(sim: Simulation, problem: Problem) -> np.ndarray | None:
     """Inverse Fisher information (19, 19) of the joint MAP model at the truth, or None without `map`."""
     try:
-        from magcal_cli.models import map as mapm
+        from magcal_cli.models.map import fit as mapm
     except ImportError:
         return None
     info_at = getattr(mapm, "information_at", None)

@@ -63,7 +63,7 @@ def default(store: Any, msgtype: str, frame: str) -> Any:
 
 def payloads(store: Any, msgtype: str, ros1: bool, t_ns: np.ndarray, values: np.ndarray) -> np.ndarray:
     """(n, size) serialized messages with header stamps `t_ns` and the values magcal reads (numpy fill)."""
-    from magcal_cli.readers.rosvec import STAMP_PATHS, VALUE_PATHS, flatten, offsets
+    from magcal_cli.readers.ros.vec import STAMP_PATHS, VALUE_PATHS, flatten, offsets
 
     msg = default(store, msgtype, "imu_link")
     raw = np.frombuffer(bytes(store.serialize_ros1(msg, msgtype) if ros1 else store.serialize_cdr(msg, msgtype)),
@@ -163,9 +163,9 @@ def size_of(path: Path) -> int:
 def run_magcal(path: Path, fmt: str) -> dict[str, Any]:
     """magcal's reader: a Recording of every stream (cleaned, SI)."""
     from magcal_cli.readers import ReadOptions
-    from magcal_cli.readers.mcap import McapReader
-    from magcal_cli.readers.rosbag import RosbagReader
-    from magcal_cli.readers.rosmsg import Collector
+    from magcal_cli.readers.ros.bag import RosbagReader
+    from magcal_cli.readers.ros.mcap import McapReader
+    from magcal_cli.readers.ros.msg import Collector
 
     reader = McapReader() if fmt == "mcap" else RosbagReader()
     decoded: list[float] = []
@@ -188,7 +188,7 @@ def run_magcal(path: Path, fmt: str) -> dict[str, Any]:
 
 def run_baseline(path: Path, fmt: str) -> dict[str, Any]:
     """Per-message decoding of the same topics into arrays: mcap_ros2 for MCAP, rosbags for bags."""
-    from magcal_cli.readers.rosmsg import ROS_TYPES, stamp_ns
+    from magcal_cli.readers.ros.msg import ROS_TYPES, stamp_ns
 
     rows: dict[str, list[tuple[float, ...]]] = {t: [] for t, _, _ in TOPICS}
     stamps: dict[str, list[int]] = {t: [] for t, _, _ in TOPICS}

@@ -192,7 +192,7 @@ def log_context(log: Path) -> dict[str, Any]:
 
 def magfit_raw(ctx: dict[str, Any], mag: int) -> tuple[np.ndarray, np.ndarray] | None:
     """(t, raw mG) as magfit_WMM's remove_offsets computes it (no motor term: MOT is 0 on these logs)."""
-    from magcal_cli.readers.dataflash_mag import iron_matrix
+    from magcal_cli.readers.dataflash.compass import iron_matrix
 
     rows = ctx["mag"].get("MAG" if mag == 1 else f"MAG{mag}")
     if rows is None:
@@ -235,7 +235,7 @@ def magfit_field(rec: Any, mag_id: str, fit: dict[str, Any]) -> tuple[np.ndarray
     """The field magfit_WMM's correct() gives for the reader's raw readings: SCALE M (raw + OFS) + MOT I."""
     from magcal_cli import units
     from magcal_cli.firmware.flown import signal_at
-    from magcal_cli.readers.dataflash_mag import iron_matrix
+    from magcal_cli.readers.dataflash.compass import iron_matrix
     from magcal_cli.streams import Kind
 
     s = rec.select(Kind.MAGNETOMETER, mag_id)
@@ -251,7 +251,7 @@ def magfit_field(rec: Any, mag_id: str, fit: dict[str, Any]) -> tuple[np.ndarray
 def as_d_o_c(fit: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """magfit_WMM's field = S M (y + OFS) + MOT I as magcal's y = D m + o + c I: D ~ (S M)^-1, o = -OFS,
     c = -(S M)^-1 MOT (D up to scale, which the heading and the scale-free matrix error ignore)."""
-    from magcal_cli.readers.dataflash_mag import iron_matrix
+    from magcal_cli.readers.dataflash.compass import iron_matrix
 
     m_inv = np.linalg.inv(fit["SCALE"] * iron_matrix(np.array([fit["DIA"]]), np.array([fit["ODI"]]))[0])
     mot = np.array(fit["MOT"] or [0.0, 0.0, 0.0])

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 
 OUT = Path(__file__).resolve().parent / "cli-reference.md"
 #: a fixed width: the reference must not depend on the terminal it was generated in

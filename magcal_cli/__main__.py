@@ -1,5 +1,5 @@
 """`python -m magcal_cli` runs the command line."""
 
-from .cli import main
+from magcal_cli.cli.main import main
 
 main()

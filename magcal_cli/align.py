@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from . import so3
-from .errors import StreamError
-from .streams import Kind, Stream
+from magcal_cli import so3
+from magcal_cli.errors import StreamError
+from magcal_cli.streams import Kind, Stream
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]

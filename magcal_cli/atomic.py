@@ -13,7 +13,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from .errors import OutputError
+from magcal_cli.errors import OutputError
 
 
 def _cannot_write(target: Path, exc: OSError, hint: str) -> OutputError:

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from .streams import Sampling
+    from magcal_cli.streams import Sampling
 
 METHODS = ("auto", "kok2012", "map")
 

@@ -12,10 +12,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
-from .config import StillConfig
-from .errors import InsufficientDataError, StreamError
-from .models.accel import G
-from .streams import Stream
+from magcal_cli.config import StillConfig
+from magcal_cli.errors import InsufficientDataError, StreamError
+from magcal_cli.models.accel import G
+from magcal_cli.streams import Stream
 
 FloatArray = npt.NDArray[np.float64]
 

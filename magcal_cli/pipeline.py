@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from . import __version__, timing, units
-from .calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
-from .config import Config
-from .detect import (
+from magcal_cli import __version__, timing, units
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Quality, Source
+from magcal_cli.config import Config
+from magcal_cli.detect import (
     IMPACT,
     StillResult,
     check_signal,
@@ -25,19 +25,19 @@ from .detect import (
     pooled_std,
     unmeasured_windows,
 )
-from .errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
-from .findings import Finding, Severity
-from .models.accel import G
-from .models.params import MAG
-from .models.partial import MagPrior, flown_prior
-from .models.problem import Problem
-from .models.result import MagFit, MethodResult
-from .progress import Hook, active, current
-from .readers import ReadOptions, open_recording
-from .readers.checks import normalised_field
-from .registry import resolve
-from .streams import Kind, Recording, Stream
-from .wmm import ReferenceField, reference_for
+from magcal_cli.errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
+from magcal_cli.findings import Finding, Severity
+from magcal_cli.models.accel import G
+from magcal_cli.models.partial import MagPrior, flown_prior
+from magcal_cli.models.problem import Problem
+from magcal_cli.models.result import MagFit, MethodResult
+from magcal_cli.params import MAG
+from magcal_cli.progress import Hook, active, current
+from magcal_cli.readers import ReadOptions, open_recording
+from magcal_cli.readers.checks import normalised_field
+from magcal_cli.registry import resolve
+from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.wmm import ReferenceField, reference_for
 
 FloatArray = npt.NDArray[np.float64]
 Progress = Hook
@@ -46,9 +46,9 @@ MethodRun = Callable[[Problem, Config], MethodResult]
 #: method name -> "module:function(problem, config) -> MethodResult"
 METHODS: dict[str, str] = {
     "kok2012": "magcal_cli.models.kok2012:run",
-    "map": "magcal_cli.models.map_run:run",
-    "ekf-ml": "magcal_cli.models.ekf_ml:run",
-    "ekf-aug": "magcal_cli.models.ekf_aug:run",
+    "map": "magcal_cli.methods.map_run:run",
+    "ekf-ml": "magcal_cli.models.ekf.ml:run",
+    "ekf-aug": "magcal_cli.models.ekf.aug:run",
     "attitude": "magcal_cli.models.attitude_ref:run",
 }
 
@@ -98,7 +98,7 @@ def utc_now() -> str:
 
 def _known_physics(cfg: Config, aux: tuple[Stream, ...]) -> tuple[str, ...]:
     """Effects `--effects auto` models in every fit: a flight's acceleration where its position measured it."""
-    from .effects.nongravity import flying
+    from magcal_cli.effects.nongravity import flying
 
     return ("nongravity_acceleration",) if cfg.diagnose and flying(aux) else ()
 
@@ -174,8 +174,8 @@ def onboard_priors(rec: Recording, mags: list[Stream]) -> dict[str, MagPrior]:
     """The calibration each magnetometer flew with, from the log's own parameters (ArduPilot COMPASS_*, PX4
     CAL_MAGn_*; a firmware-corrected stream is its own): the prior of a partial calibration. None without
     parameters."""
-    from .firmware import FirmwareError
-    from .firmware.flown import flown_fields
+    from magcal_cli.firmware import FirmwareError
+    from magcal_cli.firmware.flown import flown_fields
 
     try:
         flown, source = flown_fields(rec, [m.id for m in mags], None, None)
@@ -217,7 +217,7 @@ def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = N
                      ) -> tuple[MagCalibration, MagSeries]:
     """Convert an SI fit to the stream's native unit and measure its quality on every reading, with the
     accepted magnetometer effects removed (the calibration is the base model plus them)."""
-    from .effects.correct import remove
+    from magcal_cli.effects.correct import remove
 
     f = units.from_si(stream.native_unit)
     scale = MAG.factors({"field": f, "angle": float(np.rad2deg(1.0))})
@@ -327,7 +327,7 @@ def _method_for(problem: Problem, cfg: Config) -> tuple[str, list[Finding]]:
 def diagnosis_block(blocks: tuple[dict[str, Any], ...], mags: dict[str, Stream]) -> dict[str, Any]:
     """The document's `diagnosis`: the magnetometer with the strongest mismatch at the top level (the contract's
     single block), every magnetometer's block under `sensors`; SI field values in each one's unit."""
-    from .diagnose.document import in_units
+    from magcal_cli.calibration.diagnosis import in_units
 
     per = [in_units(b, mags[b["sensor"]].native_unit) for b in blocks]
     top = min(per, key=lambda b: float(b["ppc"]["global_p"]))
@@ -336,7 +336,7 @@ def diagnosis_block(blocks: tuple[dict[str, Any], ...], mags: dict[str, Stream])
 
 def _effect_entries(result: MethodResult, mags: dict[str, Stream]) -> tuple[dict[str, object], ...]:
     """The document's `effects[]`: magnetometer effects in that magnetometer's unit."""
-    from .effects.document import entry
+    from magcal_cli.calibration.effects import entry
 
     return tuple(entry(f, mags[f.sensor].native_unit if f.sensor in mags else None) for f in result.effects)
 
@@ -393,7 +393,7 @@ def _attitude_instead(problem: Problem, cfg: Config, exc: InsufficientDataError
                       ) -> tuple[MethodResult, list[Finding]]:
     """--method auto on a log whose own motion cannot determine the calibration: the vehicle's attitude estimate
     and the World Magnetic Model as the reference, where the log has both (issue 12 item 2); else `exc`."""
-    from .models import attitude_ref
+    from magcal_cli.models import attitude_ref
 
     if cfg.method != "auto" or reference_for(cfg) is None:
         raise exc
@@ -426,7 +426,7 @@ def _not_carried(method: str, effects: tuple[str, ...]) -> tuple[str, ...]:
         return ()
     if method not in ("ekf-ml", "ekf-aug"):
         return effects
-    from .models.ekf_effects import not_carried
+    from magcal_cli.models.ekf.effects import not_carried
 
     return not_carried(effects, method)
 
@@ -445,7 +445,7 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None =
         cfg = replace(cfg, diagnose=False)
     refused = _not_carried(method, cfg.effects)
     if refused:
-        from .models.ekf_effects import carried
+        from magcal_cli.models.ekf.effects import carried
 
         what = f"carries only {', '.join(carried(method))}" if method.startswith("ekf") else "has no effect terms"
         msg = (f"{path.name}: --effects {','.join(refused)} is modelled by the joint MAP method only in magcal "

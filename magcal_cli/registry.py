@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from .errors import MissingDependencyError
+from magcal_cli.errors import MissingDependencyError
 
 
 def resolve(target: Any, purpose: str) -> Any:

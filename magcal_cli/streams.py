@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from .errors import StreamError
+from magcal_cli.errors import StreamError
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -18,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 import numpy.typing as npt
 
-from .streams import Kind, Sampling, Stream
+from magcal_cli.streams import Kind, Sampling, Stream
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .errors import StreamError
+from magcal_cli.errors import StreamError
 
 #: factor that turns a value in the named unit into SI (tesla, m/s^2, rad/s, s, degC, A, V, 1)
 TO_SI: dict[str, float] = {

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import MagcalError, MissingDependencyError
+from magcal_cli.errors import MagcalError, MissingDependencyError
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli.streams import Sampling
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.simulate import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 REALDATA = Path(os.environ.get("MAGCAL_REALDATA", ROOT.parent / "shared" / "realdata"))

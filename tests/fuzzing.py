@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from magcal_cli.synth import Simulation
+    from magcal_cli.synth.simulate import Simulation
 
 #: the formats fuzzed; "log" is a text DataFlash log, "ros2" a ROS 2 bag directory with MCAP storage, "db3" one
 #: with sqlite3 storage (its database read from the file's pages: sqlite_pages.py)
@@ -77,7 +77,7 @@ def random_mutation(rng: random.Random) -> Mutation:
 
 def text_log(raw_bin: Path, out: Path) -> None:
     """A text DataFlash log (`NAME, v1, v2, ...` lines, values scaled as Mission Planner prints them)."""
-    from magcal_cli.readers.dataflash_binary import parse_binary
+    from magcal_cli.readers.dataflash.binary import parse_binary
 
     raw = parse_binary(raw_bin)
     lines = [(-1, "FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns")]
@@ -100,17 +100,17 @@ def seed_simulation(path: Path) -> Simulation:
     """The simulation a seed at `path` is written from (handheld, 10 Hz IMU, 5 Hz field: about 80 s, fits in
     ~0.3 s): its IMU sampled as the format holds it (logwriters.IMU_SAMPLING), its field read on IMU stamps (phase
     0: a CSV log has one row per IMU sample)."""
-    from magcal_cli.logwriters import imu_sampling
-    from magcal_cli.synth import simulate
+    from magcal_cli.synth.logs import imu_sampling
+    from magcal_cli.synth.simulate import simulate
 
     return simulate("handheld", 0, rate=10.0, mag_rate=5.0, imu_sampling=imu_sampling(path), mag_phase_s=0.0)
 
 
 def make_seeds(root: Path) -> dict[str, Path]:
     """One small simulated log per format (seed_simulation)."""
-    from magcal_cli.logwriters import write_log
-    from magcal_cli.logwriters.mcap import write_mcap
-    from magcal_cli.logwriters.rosbag import write_bag, write_ros2
+    from magcal_cli.synth.logs import write_log
+    from magcal_cli.synth.logs.mcap import write_mcap
+    from magcal_cli.synth.logs.rosbag import write_bag, write_ros2
 
     root.mkdir(parents=True, exist_ok=True)
     sim = seed_simulation(root / "seed.bin")                  # instantaneous IMU samples: every format but .ulg
@@ -154,9 +154,9 @@ class DeadSensor:
 
         A dead ArduPilot compass logs MAG records whose fields are all zero (Health too): the .bin is patched
         after writing, since the writer would apply the simulated onboard calibration to a zero field."""
-        from magcal_cli.logwriters import write_log
-        from magcal_cli.readers.dataflash_binary import parse_binary
+        from magcal_cli.readers.dataflash.binary import parse_binary
         from magcal_cli.streams import Kind
+        from magcal_cli.synth.logs import write_log
 
         path = root / f"dead.{fmt}"
         binary = root / "dead.bin"                                 # a text log is made from a binary one
@@ -233,7 +233,7 @@ def check_contract(exit_code: int, stdout: str, stderr: str, outdir: Path | None
         if stray:
             return f"temporary files left: {stray}"
         if exit_code == 0:
-            from magcal_cli.document import load
+            from magcal_cli.calibration.document import load
 
             load(outdir / "calibration.json")            # raises CalibrationFileError when not valid
             json.loads((outdir / "calibration.json").read_text())
@@ -260,7 +260,7 @@ def cli_invoker() -> Callable[[list[str]], tuple[int, str, str]]:
     """A function that runs the magcal CLI in-process and returns (exit code, stdout, stderr)."""
     from click.testing import CliRunner
 
-    from magcal_cli.cli import cli
+    from magcal_cli.cli.main import cli
 
     runner = CliRunner()
 

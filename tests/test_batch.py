@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from magcal_cli import batch, batch_run
-from magcal_cli.batch import FitOptions, Job, discover, output_names
-from magcal_cli.cli import cli
-from magcal_cli.logwriters import write_log
-from magcal_cli.synth import simulate
+from magcal_cli.batch import plan as batch
+from magcal_cli.batch import run as batch_run
+from magcal_cli.batch.plan import FitOptions, Job, discover, output_names
+from magcal_cli.cli.main import cli
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.simulate import simulate
 
 #: short, slow-rate logs and the base model: a few seconds per fit
 FAST = ["--effects", "none", "--outputs", "json", "-q"]
@@ -133,7 +134,7 @@ def test_usage_errors(runner, logs: Path, tmp_path: Path, monkeypatch: pytest.Mo
 def test_run_one_exit_codes(logs: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A worker reports what magcal fit would exit with: 3 for a failed --fail-on gate (outputs written), 123
     with the traceback for a bug."""
-    from magcal_cli import gates
+    from magcal_cli.firmware import gates
     from magcal_cli.firmware.metrics import METRICS
 
     opts = FitOptions(effects=(), outputs=("json",), fail_on=gates.parse("field_norm_rms_pct>0.001", METRICS))

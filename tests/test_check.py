@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli import gates, so3
-from magcal_cli.check import CheckOptions, check_recording, heading_gap_deg
-from magcal_cli.cli import cli
-from magcal_cli.firmware import FirmwareError
+from magcal_cli import so3
+from magcal_cli.cli.main import cli
+from magcal_cli.firmware import FirmwareError, gates
+from magcal_cli.firmware.check import CheckOptions, check_recording, heading_gap_deg
 from magcal_cli.firmware.export import Options, export
 from magcal_cli.firmware.paramfile import render
 from magcal_cli.streams import Kind, Recording

@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli import __version__
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_logs" / "handheld.mcap"
@@ -53,7 +53,7 @@ def test_fit_recovers_the_sample_truth(runner: CliRunner, tmp_path: Path) -> Non
     """The shipped sample log calibrates to its truth file (D within 5 %, hard iron within 0.5 % of |F|)."""
     import numpy as np
 
-    from magcal_cli.document import load
+    from magcal_cli.calibration.document import load
 
     out = tmp_path / "o"
     assert runner.invoke(cli, ["fit", str(SAMPLE), "-o", str(out), "-q", "--outputs", "json"]).exit_code == 0

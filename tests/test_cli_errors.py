@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner, Result
 
-from magcal_cli.cli import cli
-from magcal_cli.document import dumps_json, load
+from magcal_cli.calibration.document import dumps_json, load
+from magcal_cli.cli.main import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 

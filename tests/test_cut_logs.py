@@ -10,14 +10,14 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner, Result
 
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.errors import TruncatedLogError
-from magcal_cli.logwriters import imu_sampling, write_log
-from magcal_cli.logwriters.mcap import write_mcap
-from magcal_cli.logwriters.rosbag import write_bag, write_ros2
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.streams import Kind
-from magcal_cli.synth import Simulation
+from magcal_cli.synth.logs import imu_sampling, write_log
+from magcal_cli.synth.logs.mcap import write_mcap
+from magcal_cli.synth.logs.rosbag import write_bag, write_ros2
+from magcal_cli.synth.simulate import Simulation
 
 from .fuzzing import seed_simulation, text_log
 

@@ -9,7 +9,7 @@ from magcal_cli.config import StillConfig
 from magcal_cli.detect import detect_still, window_means
 from magcal_cli.errors import StreamError
 from magcal_cli.streams import Kind, Stream
-from magcal_cli.synth import simulate
+from magcal_cli.synth.simulate import simulate
 
 #: a detected boundary within this many seconds of the true one counts as a hit (the window is 0.5 s)
 TOLERANCE_S = 0.3

@@ -12,10 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from magcal_cli import so3
-from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
-from magcal_cli.document import dumps_json, dumps_yaml, from_dict, load, to_dict
+from magcal_cli.calibration.document import dumps_json, dumps_yaml, from_dict, load, to_dict
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from magcal_cli.errors import CalibrationFileError
-from magcal_cli.models.params import MAG
+from magcal_cli.params import MAG
 
 SAMPLE_TRUTH = Path(__file__).resolve().parents[1] / "sample_logs" / "handheld.bin.truth.json"
 

@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from magcal_cli.calibration.document import to_dict
 from magcal_cli.config import Config
-from magcal_cli.document import to_dict
 from magcal_cli.pipeline import calibrate
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli.cli import cli
-from magcal_cli.inspect import rows, to_dict, to_table
-from magcal_cli.logwriters import write_log
+from magcal_cli.cli.main import cli
+from magcal_cli.readers.inspect import rows, to_dict, to_table
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import simulate
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.simulate import simulate
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 from click.testing import CliRunner
 
-from magcal_cli.logwriters.csvfile import write_csv
 from magcal_cli.streams import Kind
-from magcal_cli.synth import Simulation
+from magcal_cli.synth.logs.csvfile import write_csv
+from magcal_cli.synth.simulate import Simulation
 
 from .test_robustness import edited, fit, one_error
 

@@ -50,7 +50,7 @@ def test_one_uncalibratable_magnetometer_does_not_cost_the_others() -> None:
 
     from magcal_cli.config import Config
     from magcal_cli.pipeline import calibrate_recording
-    from magcal_cli.synth import simulate
+    from magcal_cli.synth.simulate import simulate
 
     sim = simulate("handheld", 2)
     good = sim.recording.select(Kind.MAGNETOMETER)
@@ -67,7 +67,7 @@ def test_a_dip_far_from_the_world_magnetic_model_is_flagged() -> None:
     """A fitted dip 10 deg from the WMM's is a warning that names both values (log171.bin in flight)."""
     import datetime as dt
 
-    from magcal_cli.calibration import MagCalibration
+    from magcal_cli.calibration.types import MagCalibration
     from magcal_cli.pipeline import _dip_check
     from magcal_cli.wmm import ReferenceField
 

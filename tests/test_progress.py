@@ -11,12 +11,12 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli import progress as progress_mod
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.diagnose.parallel import pmap
-from magcal_cli.logwriters import imu_sampling, write_log
 from magcal_cli.progress import Progress, active, current, duration, noop, within
 from magcal_cli.readers import open_recording
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.logs import imu_sampling, write_log
+from magcal_cli.synth.simulate import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_logs" / "handheld.csv"
@@ -172,7 +172,7 @@ def test_cli_progress_only_on_a_terminal_without_q(runner: CliRunner, tmp_path: 
 
 def test_warnings_grouped_one_line_per_kind_and_in_full_with_v() -> None:
     """log171's kinds: a long warning repeated per compass is one line naming them; a short single one stays whole."""
-    from magcal_cli.cli import _warning_lines
+    from magcal_cli.cli.main import _warning_lines
     from magcal_cli.findings import Finding, Severity
 
     long_tail = " (quantised readings, unmodelled motion or a disturbance); the uncertainty of D was widened" * 3
@@ -225,7 +225,8 @@ def test_reading_reports_fractions_that_rise_to_one(sim60: Simulation, tmp_path:
     """Issue 13 item 2: every reader reports the fraction read (bytes, chunks, then building the streams) through
     the active hook, from 0 up to 1 and never back; ULog and CSV per REPORT_BYTES / CSV_BLOCK (made small here so a
     1 MB log reports several times)."""
-    from magcal_cli.readers import csvfile, ulog_load
+    from magcal_cli.readers import csvfile
+    from magcal_cli.readers.ulog import load as ulog_load
     from tests.readers.test_dataflash import text_log
 
     monkeypatch.setattr(ulog_load, "REPORT_BYTES", 1 << 16)
@@ -245,7 +246,7 @@ def test_reading_reports_fractions_that_rise_to_one(sim60: Simulation, tmp_path:
 def test_the_map_fit_reports_its_noise_rounds(sim60: Simulation, tmp_path: Path) -> None:
     """Issue 13 item 2: the joint MAP's noise rounds report done/total through the active hook."""
     from magcal_cli.config import Config
-    from magcal_cli.models.map import fit_map
+    from magcal_cli.models.map.fit import fit_map
     from magcal_cli.pipeline import select_problem
 
     calls: list[tuple[str, float | None, float | None]] = []

@@ -21,17 +21,17 @@ import pytest
 from click.testing import CliRunner, Result
 
 from magcal_cli import so3
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.errors import LogReadError
-from magcal_cli.logwriters import write_log
-from magcal_cli.logwriters.csvfile import write_csv
-from magcal_cli.logwriters.mcap import write_mcap
-from magcal_cli.logwriters.rosbag import write_bag
 from magcal_cli.models.accel import G
 from magcal_cli.readers import ReadOptions, open_recording
-from magcal_cli.readers.dataflash_binary import parse_binary, parse_buffer
+from magcal_cli.readers.dataflash.binary import parse_binary, parse_buffer
 from magcal_cli.streams import Kind, Recording, Sampling, Stream
-from magcal_cli.synth import Simulation, draw_truth
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.logs.csvfile import write_csv
+from magcal_cli.synth.logs.mcap import write_mcap
+from magcal_cli.synth.logs.rosbag import write_bag
+from magcal_cli.synth.simulate import Simulation, draw_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -253,7 +253,7 @@ def test_corrupt_text_dataflash_fields_are_skipped(tmp_path: Path) -> None:
             "FMT, 132, 31, MAG, Qhhh, TimeUS,MagX,MagY,MagZ\n"
             "MAG, 1000, 1, 2, 3\nMAG, 2000, 1, 2x, 3\nMAG, 3000, 1, 2, 3, 4\nMAG, 4000, 4, 5, 6\n")
     (tmp_path / "x.log").write_text(text)
-    from magcal_cli.readers.dataflash_text import parse_text
+    from magcal_cli.readers.dataflash.text import parse_text
 
     raw = parse_text(tmp_path / "x.log", {"MAG"})
     assert raw.tables["MAG"].num("TimeUS").tolist() == [1000.0, 4000.0]
@@ -411,7 +411,8 @@ def test_dataflash_reads_in_bounded_windows(tmp_path: Path, sim: Simulation) -> 
 def test_text_logs_read_in_blocks(tmp_path: Path, sim: Simulation, fmt: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """CSV and text DataFlash logs are parsed in blocks of lines (memory: one block plus the numbers); the
     result does not depend on the block size."""
-    from magcal_cli.readers import csvfile, dataflash_text
+    from magcal_cli.readers import csvfile
+    from magcal_cli.readers.dataflash import text as dataflash_text
 
     write_log(sim, tmp_path / "x.bin")
     if fmt == "log":
@@ -549,7 +550,7 @@ def test_interrupt_while_writing_leaves_nothing(runner: CliRunner, tmp_path: Pat
 def test_interrupt_keeps_the_previous_outputs(runner: CliRunner, tmp_path: Path, sim: Simulation,
                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """With --force over an earlier run, an interrupted run leaves the earlier files exactly as they were."""
-    from magcal_cli.writers import report
+    from magcal_cli.writers.report import text as report
 
     write_log(sim, tmp_path / "x.bin")
     assert run(runner, "fit", tmp_path / "x.bin", "-o", tmp_path / "out", "--outputs", "json,report").exit_code == 0

@@ -9,7 +9,7 @@ from magcal_cli import so3
 from magcal_cli.errors import MagcalError
 from magcal_cli.models.accel import G
 from magcal_cli.streams import Kind
-from magcal_cli.synth import simulate
+from magcal_cli.synth.simulate import simulate
 
 
 @pytest.mark.parametrize("scenario", ["paper", "handheld"])
@@ -82,8 +82,8 @@ def test_logged_scenarios_carry_the_field_of_their_place_and_date(scenario: str)
     points that way in the (true-north) NED frame the trajectory uses."""
     import datetime as dt
 
-    from magcal_cli.synth import T0_ROS
-    from magcal_cli.synth_physics import HOME
+    from magcal_cli.synth.physics import HOME
+    from magcal_cli.synth.simulate import T0_ROS
     from magcal_cli.wmm import reference_field
 
     sim = simulate(scenario, 3, duration=None if scenario == "handheld" else 100.0)

@@ -12,16 +12,16 @@ from click.testing import CliRunner
 from scipy.spatial.transform import Rotation, Slerp
 
 from magcal_cli import so3
-from magcal_cli.cli import cli
-from magcal_cli.logwriters import imu_sampling, write_log
+from magcal_cli.cli.main import cli
 from magcal_cli.models.accel import G
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind
-from magcal_cli.synth import Simulation, simulate, truth_calibration
-from magcal_cli.synth_effects import EFFECTS, EffectSpec, EffectSpecError, parse_effect
-from magcal_cli.synth_inject import InjectedEffect
-from magcal_cli.synth_motion import Trajectory
-from magcal_cli.synth_physics import geodetic
+from magcal_cli.synth.effects import EFFECTS, EffectSpec, EffectSpecError, parse_effect
+from magcal_cli.synth.inject import InjectedEffect
+from magcal_cli.synth.logs import imu_sampling, write_log
+from magcal_cli.synth.motion import Trajectory
+from magcal_cli.synth.physics import geodetic
+from magcal_cli.synth.simulate import Simulation, simulate, truth_calibration
 
 RATE = 100.0
 W = np.array([0.3, -0.5, 0.8])                                 # rad/s, a constant-rate rotation

@@ -13,19 +13,19 @@ import pytest
 
 from magcal_cli import so3
 from magcal_cli.errors import MagcalError
-from magcal_cli.logwriters import imu_sampling, write_log
-from magcal_cli.logwriters.dataflash import DEV_IDS, build, default_offsets
 from magcal_cli.models.accel import G
 from magcal_cli.readers import open_recording
-from magcal_cli.readers.dataflash import load, reconstruct_mags
-from magcal_cli.readers.dataflash_mag import Correction
+from magcal_cli.readers.dataflash.compass import Correction
+from magcal_cli.readers.dataflash.reader import load, reconstruct_mags
 from magcal_cli.streams import Kind, Sampling
-from magcal_cli.synth import NOISE_DENSITY, Simulation, simulate, truth_calibration
-from magcal_cli.synth_effects import EffectSpec
-from magcal_cli.synth_firmware import STALE_CURRENT_COMPENSATION, PreviousCalibration
-from magcal_cli.synth_motion import OVERSAMPLE
-from magcal_cli.synth_rotation import PAPER_BAND, PAPER_RATE_STD
-from magcal_cli.synth_vibration import SPIN_S, VIBRATION_STD
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.firmware import STALE_CURRENT_COMPENSATION, PreviousCalibration
+from magcal_cli.synth.logs import imu_sampling, write_log
+from magcal_cli.synth.logs.dataflash import DEV_IDS, build, default_offsets
+from magcal_cli.synth.motion import OVERSAMPLE
+from magcal_cli.synth.rotation import PAPER_BAND, PAPER_RATE_STD
+from magcal_cli.synth.simulate import NOISE_DENSITY, Simulation, simulate, truth_calibration
+from magcal_cli.synth.vibration import SPIN_S, VIBRATION_STD
 
 
 def imu_noise(sim: Simulation, quiet: Simulation, kind: Kind) -> np.ndarray:

@@ -12,15 +12,15 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli import so3
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.errors import MagcalError
-from magcal_cli.logwriters import IMU_SAMPLING, LOG_WRITERS, imu_sampling, write_log
 from magcal_cli.models.accel import G
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind, Sampling
-from magcal_cli.synth import Simulation, simulate, truth_calibration
-from magcal_cli.synth_effects import EffectSpec
-from magcal_cli.synth_motion import Trajectory
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.logs import IMU_SAMPLING, LOG_WRITERS, imu_sampling, write_log
+from magcal_cli.synth.motion import Trajectory
+from magcal_cli.synth.simulate import Simulation, simulate, truth_calibration
 
 RATE = 100.0
 W = np.array([0.3, -0.5, 0.8])                                 # rad/s, a constant-rate rotation
@@ -161,9 +161,9 @@ def test_imu_effects_act_before_the_averaging() -> None:
 def test_paper_draws_keep_their_statistics_at_any_oversampling(monkeypatch: pytest.MonkeyPatch) -> None:
     """methods.md's rate v + 0.05 randn(3) is drawn once per IMU sample: with 10 or 20 fine knots per IMU period the
     noise-free gyro has the same draws (std 0.05 rad/s about v, equal to 1 %) and differs by far less than a draw."""
-    import magcal_cli.synth as synth
-    import magcal_cli.synth_motion as motion
-    import magcal_cli.synth_rotation as rotation
+    import magcal_cli.synth.motion as motion
+    import magcal_cli.synth.rotation as rotation
+    import magcal_cli.synth.simulate as synth
 
     gyros = []
     for factor in (10, 20):

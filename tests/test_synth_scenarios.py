@@ -11,15 +11,15 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli import so3
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.errors import MagcalError
-from magcal_cli.logwriters import write_log
 from magcal_cli.models.accel import G
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind
-from magcal_cli.synth import Simulation, simulate
-from magcal_cli.synth_effects import EffectSpec
-from magcal_cli.synth_physics import local
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.physics import local
+from magcal_cli.synth.simulate import Simulation, simulate
 
 RATE = 100.0
 
@@ -195,10 +195,10 @@ def test_flat_rover_with_nongravity_is_within_its_uncertainty(tmp_path: Path) ->
     """Rover seed 0 (tilt within 5 deg) with --effects nongravity_acceleration: the partial path must hold the
     base entries where the effect's layout puts them. It held two accelerometer-bias entries and o.y instead of
     the gyro biases and dip, and D came out 70 % off (max |z| 279)."""
+    from magcal_cli.calibration.document import dumps_json, load
     from magcal_cli.config import Config
-    from magcal_cli.document import dumps_json, load
     from magcal_cli.pipeline import calibrate
-    from magcal_cli.synth import truth_calibration
+    from magcal_cli.synth.simulate import truth_calibration
 
     log = tmp_path / "rover.bin"
     sim = simulate("rover", 0)

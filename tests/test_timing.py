@@ -11,14 +11,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli import options, timing
-from magcal_cli.cli import cli
+from magcal_cli import timing
+from magcal_cli.cli import options
+from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
-from magcal_cli.logwriters import LOG_WRITERS, imu_sampling, write_log
 from magcal_cli.pipeline import calibrate
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind, Sampling, Stream
-from magcal_cli.synth import simulate
+from magcal_cli.synth.logs import LOG_WRITERS, imu_sampling, write_log
+from magcal_cli.synth.simulate import simulate
 
 
 def _gyro(t: np.ndarray, sampling: Sampling, window: float | None = None) -> Stream:

@@ -66,11 +66,11 @@ def generate(case: Case, seed: int, log: Path) -> dict[str, Any]:
     """Write the case's log for `seed` (its format: `log`'s suffix) and return its truth document (the reader's ids
     and magnetometer unit) with the concealment figures under "concealment"."""
     from magcal_cli import __version__
-    from magcal_cli.document import dumps_json
-    from magcal_cli.logwriters import imu_sampling, write_log
+    from magcal_cli.calibration.document import dumps_json
     from magcal_cli.readers import open_recording
-    from magcal_cli.synth import simulate, truth_calibration
-    from magcal_cli.synth_effects import parse_effect
+    from magcal_cli.synth.effects import parse_effect
+    from magcal_cli.synth.logs import imu_sampling, write_log
+    from magcal_cli.synth.simulate import simulate, truth_calibration
 
     st = case.settings(seed)
     specs = tuple(parse_effect(e) for e in st.effects)
@@ -78,7 +78,7 @@ def generate(case: Case, seed: int, log: Path) -> dict[str, Any]:
                    power_profile=case.power_profile, imu_sampling=imu_sampling(log), mag_phase_s=st.mag_phase_s,
                    **dict(case.simulate))
     if case.firmware == "stale":
-        from magcal_cli.synth_firmware import STALE_CURRENT_COMPENSATION
+        from magcal_cli.synth.firmware import STALE_CURRENT_COMPENSATION
 
         sim = replace(sim, previous=STALE_CURRENT_COMPENSATION)
     write_log(sim, log)

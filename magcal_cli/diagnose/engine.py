@@ -13,14 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from .. import effects as registry
-from ..models.map import MapEstimate, fit_map
-from ..models.problem import Problem
-from ..progress import Hook, current
-from ..streams import Stream
-from . import ppc
-from .select import Selection, select
-from .summary import paragraph
+from magcal_cli import effects as registry
+from magcal_cli.diagnose import ppc
+from magcal_cli.diagnose.select import Selection, select
+from magcal_cli.diagnose.summary import paragraph
+from magcal_cli.models.map.fit import MapEstimate, fit_map
+from magcal_cli.models.problem import Problem
+from magcal_cli.progress import Hook, current
+from magcal_cli.streams import Stream
 
 #: magnetometer readings beyond which the diagnosis runs on every k-th one
 DIAGNOSIS_EPOCHS = 12_000

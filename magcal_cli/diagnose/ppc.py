@@ -19,14 +19,14 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
-from .. import so3
-from ..models.epochs import Epochs
-from ..models.map import FitContext, MapEstimate, point_at
-from ..models.problem import Problem
-from ..models.solve import Factor, Options, solve
-from ..progress import Hook, current
-from ..streams import Kind, Stream
-from .parallel import pmap
+from magcal_cli import so3
+from magcal_cli.diagnose.parallel import pmap
+from magcal_cli.models.epochs import Epochs
+from magcal_cli.models.map.fit import FitContext, MapEstimate, point_at
+from magcal_cli.models.problem import Problem
+from magcal_cli.models.solve import Factor, Options, solve
+from magcal_cli.progress import Hook, current
+from magcal_cli.streams import Kind, Stream
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -21,22 +21,22 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
-from .. import effects as registry
-from ..models.gyro import Preintegrated, preintegrate_log
-from ..models.map import MapEstimate
-from ..models.map_effects import Bound, bind, layout_for
-from ..models.params import Layout
-from ..models.problem import Problem
-from ..models.result import EffectFit
-from ..models.sandwich import (
+from magcal_cli import effects as registry
+from magcal_cli.models.gyro import Preintegrated, preintegrate_log
+from magcal_cli.models.map.effects import Bound, bind, layout_for
+from magcal_cli.models.map.fit import MapEstimate
+from magcal_cli.models.problem import Problem
+from magcal_cli.models.result import EffectFit
+from magcal_cli.models.sandwich import (
     bartlett_dof,
     cluster_scores_and_information,
     factor_clusters,
     newey_west,
     time_clusters,
 )
-from ..models.solve import Options, Solution, solve
-from ..streams import Stream
+from magcal_cli.models.solve import Options, Solution, solve
+from magcal_cli.params import Layout
+from magcal_cli.streams import Stream
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

@@ -23,17 +23,17 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from .. import effects as registry
-from ..effects.base import Target
-from ..errors import reason
-from ..models.map import MapEstimate, fit_map, point_at
-from ..models.map_effects import Bound
-from ..models.problem import Problem
-from ..models.result import EffectFit
-from ..progress import Hook, current
-from ..streams import Stream
-from .score import Score, Screen, screen
-from .validate import FOLD_NOISE_ROUNDS, REFIT_ERRORS, Heldout, crossvalidate
+from magcal_cli import effects as registry
+from magcal_cli.diagnose.score import Score, Screen, screen
+from magcal_cli.diagnose.validate import FOLD_NOISE_ROUNDS, REFIT_ERRORS, Heldout, crossvalidate
+from magcal_cli.effects.base import Target
+from magcal_cli.errors import reason
+from magcal_cli.models.map.effects import Bound
+from magcal_cli.models.map.fit import MapEstimate, fit_map, point_at
+from magcal_cli.models.problem import Problem
+from magcal_cli.models.result import EffectFit
+from magcal_cli.progress import Hook, current
+from magcal_cli.streams import Stream
 
 FloatArray = npt.NDArray[np.float64]
 

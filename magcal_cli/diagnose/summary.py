@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from .. import effects as registry
-from .. import units
-from ..models.result import EffectFit
+from magcal_cli import effects as registry
+from magcal_cli import units
+from magcal_cli.models.result import EffectFit
 
 if TYPE_CHECKING:
-    from .ppc import Check
-    from .select import Selection
+    from magcal_cli.diagnose.ppc import Check
+    from magcal_cli.diagnose.select import Selection
 
 #: short display names of the field units
 SHORT = {"tesla": "T", "gauss": "G", "milligauss": "mG", "microtesla": "uT", "nanotesla": "nT"}

@@ -16,14 +16,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import InsufficientDataError
-from ..models.map import FitContext, MapEstimate, fit_map
-from ..models.map_effects import row_weights
-from ..models.problem import Problem
-from ..models.solve import Factor, Linearize, Options, solve
-from ..progress import Hook, current
-from ..streams import Stream
-from .parallel import pmap
+from magcal_cli.diagnose.parallel import pmap
+from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models.map.effects import row_weights
+from magcal_cli.models.map.fit import FitContext, MapEstimate, fit_map
+from magcal_cli.models.problem import Problem
+from magcal_cli.models.solve import Factor, Linearize, Options, solve
+from magcal_cli.progress import Hook, current
+from magcal_cli.streams import Stream
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -5,9 +5,9 @@ Ids and parameters: spec/calibration-file.md ("Effects"). Each module defines `E
 
 from __future__ import annotations
 
-from ..errors import MagcalError
-from ..registry import resolve
-from .base import Effect
+from magcal_cli.effects.base import Effect
+from magcal_cli.errors import MagcalError
+from magcal_cli.registry import resolve
 
 #: id -> "module:EFFECT", imported on use
 EFFECTS: dict[str, str] = {

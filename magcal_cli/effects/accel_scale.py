@@ -6,10 +6,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from .. import so3
-from ..models.params import XYZ, ParamBlock
-from ..streams import Stream
-from .base import Effect, FloatArray, Inputs, Kinematics, Point, Target, Term
+from magcal_cli import so3
+from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, Point, Target, Term
+from magcal_cli.params import XYZ, ParamBlock
+from magcal_cli.streams import Stream
 
 
 class AccelScale(Effect):

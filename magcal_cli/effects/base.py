@@ -14,8 +14,8 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from ..models.params import ParamBlock
-from ..streams import Kind, Stream
+from magcal_cli.params import ParamBlock
+from magcal_cli.streams import Kind, Stream
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -15,9 +15,9 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from ..streams import Kind, Stream
-from . import EFFECTS, get
-from .base import Effect, Target
+from magcal_cli.effects import EFFECTS, get
+from magcal_cli.effects.base import Effect, Target
+from magcal_cli.streams import Kind, Stream
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -7,11 +7,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from .. import so3
-from ..models.params import XYZ, ParamBlock
-from ..streams import Stream
-from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
-from .nongravity import flying
+from magcal_cli import so3
+from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.effects.nongravity import flying
+from magcal_cli.params import XYZ, ParamBlock
+from magcal_cli.streams import Stream
 
 #: the kinematic regressors must reach this RMS (1/s^2) for a lever arm of a few cm to show
 MIN_EXCITATION = 0.2

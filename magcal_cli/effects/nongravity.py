@@ -17,10 +17,20 @@ import numpy.typing as npt
 from scipy.interpolate import CubicSpline
 from scipy.signal import savgol_filter
 
-from .. import so3
-from ..models.params import ParamBlock
-from ..streams import Kind, Stream
-from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term, pick
+from magcal_cli import so3
+from magcal_cli.effects.base import (
+    Effect,
+    FloatArray,
+    Inputs,
+    Kinematics,
+    NotTestable,
+    Point,
+    Target,
+    Term,
+    pick,
+)
+from magcal_cli.params import ParamBlock
+from magcal_cli.streams import Kind, Stream
 
 #: WGS84 semi-major axis (m) and first eccentricity squared (meridian and prime-vertical radii at the log's latitude)
 WGS84_A, WGS84_E2 = 6378137.0, 6.69437999014e-3

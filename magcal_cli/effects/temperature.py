@@ -6,9 +6,20 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..models.params import XYZ, ParamBlock
-from ..streams import Kind, Stream
-from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term, pick, resample
+from magcal_cli.effects.base import (
+    Effect,
+    FloatArray,
+    Inputs,
+    Kinematics,
+    NotTestable,
+    Point,
+    Target,
+    Term,
+    pick,
+    resample,
+)
+from magcal_cli.params import XYZ, ParamBlock
+from magcal_cli.streams import Kind, Stream
 
 #: a span below this (degC) cannot separate a slope from the offset
 MIN_SPAN_C = 2.0

@@ -13,10 +13,10 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from ..models.params import ParamBlock
-from ..streams import Stream
-from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli import so3
+from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.params import ParamBlock
+from magcal_cli.streams import Stream
 
 #: the rotation rate must change by at least this (rad/s, std of |omega|): a constant rate about a fixed axis
 #: turns a delay into a constant rotation that D absorbs

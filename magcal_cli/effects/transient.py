@@ -14,10 +14,10 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.ndimage import median_filter
 
-from ..detect import padded_runs
-from ..errors import MagcalError
-from ..streams import Stream
-from .base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.detect import padded_runs
+from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.errors import MagcalError
+from magcal_cli.streams import Stream
 
 SMOOTH_S = 0.5
 K_MAD = 6.0
@@ -32,7 +32,7 @@ PAD_S = 0.5
 
 def _rho(y: FloatArray, keep: np.ndarray) -> FloatArray:
     """Norm residual of an ellipsoid fitted to the kept readings."""
-    from ..models.ellipsoid import fit_ellipsoid
+    from magcal_cli.ellipsoid import fit_ellipsoid
 
     ell = fit_ellipsoid(y[keep])
     return np.asarray(np.linalg.norm((y - ell.o0) @ np.linalg.inv(ell.D0).T, axis=1) - 1.0)

@@ -7,7 +7,7 @@ The conventions (correction order, signs, units, frames, slot mapping) are those
 
 from __future__ import annotations
 
-from ..errors import MagcalError
+from magcal_cli.errors import MagcalError
 
 
 class FirmwareError(MagcalError):

@@ -15,12 +15,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from ..calibration import Calibration, MagCalibration
-from ..readers.dataflash_mag import param_suffix
-from . import FirmwareError, NotExportableError, rotations
-from .effects import carried
-from .export import (
+from magcal_cli import so3
+from magcal_cli.calibration.types import Calibration, MagCalibration
+from magcal_cli.firmware import FirmwareError, NotExportableError, rotations
+from magcal_cli.firmware.effects import carried
+from magcal_cli.firmware.export import (
     Collected,
     Export,
     MagExport,
@@ -32,7 +31,8 @@ from .export import (
     shared_signal,
     soft_range,
 )
-from .split import choose_rotation, split_rotation_first
+from magcal_cli.firmware.split import choose_rotation, split_rotation_first
+from magcal_cli.readers.dataflash.compass import param_suffix
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -276,7 +276,7 @@ def correct(raw: FloatArray, params: Mapping[str, float], suffix: str, signal: F
 
     `signal` is throttle (0..1) or current (A) at the samples, as COMPASS_MOTCT selects; MOT is added after M.
     """
-    from ..readers.dataflash_mag import effective_scale, iron_matrix
+    from magcal_cli.readers.dataflash.compass import effective_scale, iron_matrix
 
     def vec(stem: str) -> FloatArray:
         return np.array([[params.get(f"COMPASS_{stem}{suffix}_{a}", 0.0) for a in AXES]])

@@ -14,17 +14,17 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .. import units
-from ..calibration import Calibration, MagCalibration
-from ..errors import StreamError
-from . import FirmwareError
+from magcal_cli import units
+from magcal_cli.calibration.types import Calibration, MagCalibration
+from magcal_cli.errors import StreamError
+from magcal_cli.firmware import FirmwareError
 
 FloatArray = npt.NDArray[np.float64]
 
 def kind_of(effect_id: str) -> str | None:
     """The signal ("current", "throttle") the firmware's compensation multiplies for this effect, from its
     plug-in (None: no firmware knob, or not an effect id)."""
-    from ..effects import EFFECTS, get
+    from magcal_cli.effects import EFFECTS, get
 
     return get(effect_id).compensates if effect_id in EFFECTS else None
 
@@ -61,8 +61,8 @@ def _c_in_mag_unit(effect: dict[str, Any], mag: MagCalibration, where: str) -> F
 def carried(cal: Calibration, mag: MagCalibration) -> tuple[Interference | None, list[str]]:
     """The interference effect of `mag` the calibration carries (accepted, else ambiguous with an estimate;
     current preferred over throttle) and notes on what was left."""
-    from ..effects import get
-    from ..effects.correct import has_estimate
+    from magcal_cli.effects import get
+    from magcal_cli.effects.correct import has_estimate
 
     found: dict[str, Interference] = {}
     for status in ("ambiguous", "accepted"):          # an accepted entry replaces an ambiguous one of its kind

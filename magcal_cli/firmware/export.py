@@ -15,10 +15,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
-from .. import units
-from ..calibration import Calibration, MagCalibration
-from . import FirmwareError, FirmwareLimitError, NotExportableError
-from .split import Split
+from magcal_cli import units
+from magcal_cli.calibration.types import Calibration, MagCalibration
+from magcal_cli.firmware import FirmwareError, FirmwareLimitError, NotExportableError
+from magcal_cli.firmware.split import Split
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -129,11 +129,11 @@ def export(cal: Calibration, firmware: str, params: Mapping[str, float], options
     """Export a calibration document for `firmware` ("ardupilot" or "px4") given the vehicle's parameters."""
     options = options or Options()
     if firmware == "ardupilot":
-        from .ardupilot import export_ardupilot
+        from magcal_cli.firmware.ardupilot import export_ardupilot
 
         return export_ardupilot(cal, params, options, mag_ids)
     if firmware == "px4":
-        from .px4 import export_px4
+        from magcal_cli.firmware.px4 import export_px4
 
         return export_px4(cal, params, options, mag_ids)
     msg = f"firmware {firmware!r} is not known; use ardupilot or px4"

@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3, units
-from ..align import onto
-from ..calibration import Calibration
-from ..streams import Kind, Recording, Stream
-from . import FirmwareError, ardupilot, px4
-from .effects import carried
+from magcal_cli import so3, units
+from magcal_cli.align import onto
+from magcal_cli.calibration.types import Calibration
+from magcal_cli.firmware import FirmwareError, ardupilot, px4
+from magcal_cli.firmware.effects import carried
+from magcal_cli.streams import Kind, Recording, Stream
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -61,7 +61,7 @@ def signal_at(rec: Recording, kind: Kind, t: FloatArray) -> FloatArray | None:
 
 def _ardupilot(rec: Recording, mag: Stream, index: int, params: Mapping[str, float]) -> Flown:
     """A MAG[i] stream corrected with the COMPASS_* parameters of its slot (log instance -> priority)."""
-    from ..readers.dataflash_mag import param_suffix
+    from magcal_cli.readers.dataflash.compass import param_suffix
 
     m = re.fullmatch(r"MAG\[(\d)\]", mag.id)
     suffix, _ = param_suffix(int(m.group(1)) if m else index, dict(params))
@@ -171,11 +171,11 @@ def slow(rec: Recording, t: FloatArray, max_rate_dps: float) -> BoolArray:
 
 def load_params(path: Path) -> dict[str, float]:
     """A parameter file, or the parameters of a log (any format the readers open)."""
-    from . import paramfile
+    from magcal_cli.firmware import paramfile
 
     if path.suffix.lower() in (".param", ".parm", ".params", ".txt", ".sh"):
         return paramfile.load(path)
-    from ..readers import open_recording
+    from magcal_cli.readers import open_recording
 
     params = dict(open_recording(path).params)
     if not params:

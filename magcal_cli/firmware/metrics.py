@@ -7,16 +7,16 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from ..calibration import Calibration, MagCalibration
-from ..errors import MagcalError
-from ..models.params import MAG
-from ..streams import Kind
-from .effects import carried, tested
-from .split import HEADINGS_DEG
+from magcal_cli import so3
+from magcal_cli.calibration.types import Calibration, MagCalibration
+from magcal_cli.errors import MagcalError
+from magcal_cli.firmware.effects import carried, tested
+from magcal_cli.firmware.split import HEADINGS_DEG
+from magcal_cli.params import MAG
+from magcal_cli.streams import Kind
 
 if TYPE_CHECKING:
-    from ..pipeline import RunResult
+    from magcal_cli.pipeline import RunResult
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -86,7 +86,7 @@ def _interference(cal: Calibration, mag: MagCalibration, peak_current: float | N
 
 def fit_metrics(result: RunResult) -> dict[str, tuple[dict[str, float | None], dict[str, str]]]:
     """mag id -> (metrics, reasons for the ones that are None)."""
-    from .export import Options, export
+    from magcal_cli.firmware.export import Options, export
 
     cal = result.calibration
     rec = result.recording

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import FirmwareError
+from magcal_cli.firmware import FirmwareError
 
 #: MAV_PARAM_TYPE values written in QGC files
 MAV_PARAM_TYPE_INT32 = 6

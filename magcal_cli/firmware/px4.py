@@ -15,11 +15,11 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from ..calibration import Calibration, MagCalibration
-from . import FirmwareError, NotExportableError, rotations
-from .effects import carried
-from .export import (
+from magcal_cli import so3
+from magcal_cli.calibration.types import Calibration, MagCalibration
+from magcal_cli.firmware import FirmwareError, NotExportableError, rotations
+from magcal_cli.firmware.effects import carried
+from magcal_cli.firmware.export import (
     Collected,
     Export,
     MagExport,
@@ -31,7 +31,7 @@ from .export import (
     shared_signal,
     soft_range,
 )
-from .split import choose_rotation, split_symmetric_first
+from magcal_cli.firmware.split import choose_rotation, split_symmetric_first
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -21,11 +21,11 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import least_squares
 
-from .. import so3
-from ..errors import InsufficientDataError
-from ..models.params import XYZ, Layout, ParamBlock
-from ..models.sandwich import newey_west, std_factors, time_clusters
-from .split import heading_error_deg
+from magcal_cli import so3
+from magcal_cli.errors import InsufficientDataError
+from magcal_cli.firmware.split import heading_error_deg
+from magcal_cli.models.sandwich import newey_west, std_factors, time_clusters
+from magcal_cli.params import XYZ, Layout, ParamBlock
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -12,8 +12,8 @@ from collections.abc import Iterable
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from . import FirmwareError
+from magcal_cli import so3
+from magcal_cli.firmware import FirmwareError
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from . import rotations
+from magcal_cli import so3
+from magcal_cli.firmware import rotations
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -16,19 +16,19 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
-from .. import align, so3
-from ..config import Config
-from ..effects.base import NotTestable
-from ..effects.current import Current, varying_current
-from ..errors import InsufficientDataError
-from ..streams import Kind, Stream
-from ..wmm import ReferenceField, reference_for
-from .kok2012 import gyro_bias_from_still
-from .map_effects import ALPHA
-from .params import MAG, Estimate, Layout
-from .partial import MagPrior, sphere_prior
-from .problem import Problem
-from .result import EffectFit, HeldEntry, MagFit, MethodResult
+from magcal_cli import align, so3
+from magcal_cli.config import Config
+from magcal_cli.effects.base import NotTestable
+from magcal_cli.effects.current import Current, varying_current
+from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models.kok2012 import gyro_bias_from_still
+from magcal_cli.models.map.effects import ALPHA
+from magcal_cli.models.partial import MagPrior, sphere_prior
+from magcal_cli.models.problem import Problem
+from magcal_cli.models.result import EffectFit, HeldEntry, MagFit, MethodResult
+from magcal_cli.params import MAG, Estimate, Layout
+from magcal_cli.streams import Kind, Stream
+from magcal_cli.wmm import ReferenceField, reference_for
 
 FloatArray = npt.NDArray[np.float64]
 

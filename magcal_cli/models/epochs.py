@@ -8,11 +8,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from ..align import interpolate
-from ..detect import pooled_std
-from ..errors import InsufficientDataError
-from ..streams import Stream
-from .problem import Problem
+from magcal_cli.align import interpolate
+from magcal_cli.detect import pooled_std
+from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models.problem import Problem
+from magcal_cli.streams import Stream
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -18,13 +18,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from ..errors import InsufficientDataError
-from . import stacks
-from .solve import Factor
+from magcal_cli import so3
+from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models import stacks
+from magcal_cli.models.solve import Factor
 
 if TYPE_CHECKING:
-    from .problem import Problem
+    from magcal_cli.models.problem import Problem
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

@@ -13,20 +13,20 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from ..align import interpolate
-from ..config import Config
-from ..detect import window_means
-from ..errors import ConvergenceError, InsufficientDataError
-from ..streams import Stream
-from .accel import UP_N, G, vertical_factor
-from .ellipsoid import Ellipsoid, fit_ellipsoid
-from .mag import MagLayout, field_nav, mag_factor
-from .params import MAG
-from .problem import Problem
-from .result import ImuFit, MagFit, MethodResult
-from .sandwich import cluster_robust_cov, time_clusters
-from .solve import Factor, Linearize, Options, Solution, solve
+from magcal_cli import so3
+from magcal_cli.align import interpolate
+from magcal_cli.config import Config
+from magcal_cli.detect import window_means
+from magcal_cli.ellipsoid import Ellipsoid, fit_ellipsoid
+from magcal_cli.errors import ConvergenceError, InsufficientDataError
+from magcal_cli.models.accel import UP_N, G, vertical_factor
+from magcal_cli.models.mag import MagLayout, field_nav, mag_factor
+from magcal_cli.models.problem import Problem
+from magcal_cli.models.result import ImuFit, MagFit, MethodResult
+from magcal_cli.models.sandwich import cluster_robust_cov, time_clusters
+from magcal_cli.models.solve import Factor, Linearize, Options, Solution, solve
+from magcal_cli.params import MAG
+from magcal_cli.streams import Stream
 
 FloatArray = npt.NDArray[np.float64]
 #: theta = (vec D column-major, o, dip): `params.MAG`, the calibration document's covariance order

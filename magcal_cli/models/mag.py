@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from .solve import Factor, diagonal_of
+from magcal_cli import so3
+from magcal_cli.models.solve import Factor, diagonal_of
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

@@ -12,9 +12,9 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import InsufficientDataError
-from ..findings import Finding, Severity
-from .params import BASE
+from magcal_cli.errors import InsufficientDataError
+from magcal_cli.findings import Finding, Severity
+from magcal_cli.params import BASE
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

@@ -20,10 +20,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from .map_init import despike
-from .params import BASE, Layout
-from .solve import Factor, gaussian_factor
+from magcal_cli import so3
+from magcal_cli.models.map.init import despike
+from magcal_cli.models.solve import Factor, gaussian_factor
+from magcal_cli.params import BASE, Layout
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from ..detect import StillResult
-from ..streams import Kind, Stream
-from .partial import MagPrior
+from magcal_cli.detect import StillResult
+from magcal_cli.models.partial import MagPrior
+from magcal_cli.streams import Kind, Stream
 
 FloatArray = npt.NDArray[np.float64]
 

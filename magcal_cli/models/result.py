@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ..findings import Finding
-from .params import Estimate
+from magcal_cli.findings import Finding
+from magcal_cli.params import Estimate
 
 FloatArray = npt.NDArray[np.float64]
 

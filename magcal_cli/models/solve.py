@@ -20,8 +20,8 @@ from scipy import linalg
 from scipy.linalg import lapack
 from threadpoolctl import ThreadpoolController
 
-from .. import so3
-from . import stacks
+from magcal_cli import so3
+from magcal_cli.models import stacks
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]

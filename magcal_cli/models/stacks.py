@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
+from magcal_cli import so3
 
 FloatArray = npt.NDArray[np.float64]
 

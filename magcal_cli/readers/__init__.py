@@ -6,10 +6,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Protocol
 
-from ..errors import LogReadError, UnsupportedFormatError
-from ..progress import current
-from ..registry import resolve
-from ..streams import Recording
+from magcal_cli.errors import LogReadError, UnsupportedFormatError
+from magcal_cli.progress import current
+from magcal_cli.registry import resolve
+from magcal_cli.streams import Recording
 
 
 @dataclass(frozen=True)
@@ -36,11 +36,11 @@ class Reader(Protocol):
 
 #: format name -> "module:Class" (imported on use, so `magcal --help` stays fast)
 READERS: dict[str, str | type[Reader]] = {
-    "mcap": "magcal_cli.readers.mcap:McapReader",
-    "dataflash": "magcal_cli.readers.dataflash:DataflashReader",
-    "rosbag": "magcal_cli.readers.rosbag:RosbagReader",
+    "mcap": "magcal_cli.readers.ros.mcap:McapReader",
+    "dataflash": "magcal_cli.readers.dataflash.reader:DataflashReader",
+    "rosbag": "magcal_cli.readers.ros.bag:RosbagReader",
     "csv": "magcal_cli.readers.csvfile:CsvReader",
-    "ulog": "magcal_cli.readers.ulog:UlogReader",
+    "ulog": "magcal_cli.readers.ulog.reader:UlogReader",
     "broad": "magcal_cli.readers.broad:BroadReader",
 }
 

@@ -14,11 +14,11 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from .. import so3
-from ..align import clean_time
-from ..errors import LogReadError, UnsupportedFormatError
-from ..streams import Kind, Recording, Sampling, Stream
-from . import ReadOptions
+from magcal_cli import so3
+from magcal_cli.align import clean_time
+from magcal_cli.errors import LogReadError, UnsupportedFormatError
+from magcal_cli.readers import ReadOptions
+from magcal_cli.streams import Kind, Recording, Sampling, Stream
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from ..streams import Kind
+from magcal_cli.streams import Kind
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -15,14 +15,14 @@ from typing import IO, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from .. import units
-from ..align import clean_time
-from ..errors import LogReadError, StreamError
-from ..progress import active, current, within
-from ..streams import Cut, Kind, Recording, Sampling, Stream
-from . import ReadOptions
-from .checks import drop_held, normalised_field, normalised_note, sensor_checks
-from .cut import mark_cut, refuse_if_strict
+from magcal_cli import units
+from magcal_cli.align import clean_time
+from magcal_cli.errors import LogReadError, StreamError
+from magcal_cli.progress import active, current, within
+from magcal_cli.readers import ReadOptions
+from magcal_cli.readers.checks import drop_held, normalised_field, normalised_note, sensor_checks
+from magcal_cli.readers.cut import mark_cut, refuse_if_strict
+from magcal_cli.streams import Cut, Kind, Recording, Sampling, Stream
 
 FloatArray = npt.NDArray[np.float64]
 

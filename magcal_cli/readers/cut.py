@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-from ..errors import TruncatedLogError
-from ..streams import Cut, Recording
-from . import ReadOptions
+from magcal_cli.errors import TruncatedLogError
+from magcal_cli.readers import ReadOptions
+from magcal_cli.streams import Cut, Recording
 
 
 def refuse_if_strict(path: Path, options: ReadOptions, cut: Cut | None) -> None:

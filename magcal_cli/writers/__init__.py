@@ -11,11 +11,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
-from ..errors import OutputError
-from ..registry import resolve
+from magcal_cli.errors import OutputError
+from magcal_cli.registry import resolve
 
 if TYPE_CHECKING:
-    from ..pipeline import RunResult
+    from magcal_cli.pipeline import RunResult
 
 
 class Writer(Protocol):
@@ -33,8 +33,8 @@ class Writer(Protocol):
 WRITERS: dict[str, str | type[Writer]] = {
     "json": "magcal_cli.writers.calfile:JsonWriter",
     "yaml": "magcal_cli.writers.calfile:YamlWriter",
-    "report": "magcal_cli.writers.report:TextReport",
-    "plots": "magcal_cli.writers.report_html:HtmlReport",
+    "report": "magcal_cli.writers.report.text:TextReport",
+    "plots": "magcal_cli.writers.report.html:HtmlReport",
     "ardupilot": "magcal_cli.writers.ardupilot:ArduPilotWriter",
     "px4": "magcal_cli.writers.px4:Px4Writer",
 }

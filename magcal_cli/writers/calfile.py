@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
-from ..atomic import write_text
-from ..document import dumps_json, dumps_yaml
+from magcal_cli.atomic import write_text
+from magcal_cli.calibration.document import dumps_json, dumps_yaml
 
 if TYPE_CHECKING:
-    from ..pipeline import RunResult
+    from magcal_cli.pipeline import RunResult
 
 
 class JsonWriter:

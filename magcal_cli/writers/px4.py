@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
-from ..atomic import write_text
-from ..firmware.export import Options, export
-from ..firmware.paramfile import render
+from magcal_cli.atomic import write_text
+from magcal_cli.firmware.export import Options, export
+from magcal_cli.firmware.paramfile import render
 
 if TYPE_CHECKING:
-    from ..pipeline import RunResult
+    from magcal_cli.pipeline import RunResult
 
 
 class Px4Writer:

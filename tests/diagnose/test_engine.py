@@ -11,17 +11,17 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli import effects as registry
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
 from magcal_cli.diagnose import ppc
 from magcal_cli.diagnose.score import Score, Screen, screen
 from magcal_cli.diagnose.select import Selection, _modelled, _relevant, holm, select
 from magcal_cli.diagnose.validate import blocks, folds
-from magcal_cli.models.map import MapEstimate, fit_map
+from magcal_cli.models.map.fit import MapEstimate, fit_map
 from magcal_cli.models.problem import Problem
 from magcal_cli.pipeline import _select
-from magcal_cli.synth import Simulation, simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.simulate import Simulation, simulate
 
 ZERO = (0.0, 0.0, 0.0)
 #: channels logged with no effect: current, voltage, throttle (power) and temperature
@@ -204,7 +204,7 @@ def test_a_failing_diagnosis_keeps_the_calibration(monkeypatch: pytest.MonkeyPat
     from magcal_cli.config import Config
     from magcal_cli.errors import InsufficientDataError
     from magcal_cli.pipeline import calibrate_recording
-    from magcal_cli.synth import simulate
+    from magcal_cli.synth.simulate import simulate
 
     def fail(*args: object, **kwargs: object) -> None:
         raise InsufficientDataError("x: the motion in this fold cannot determine D")
@@ -250,7 +250,7 @@ def test_the_step_zeroes_the_candidates_summed_score() -> None:
     """After a candidate's own Gauss-Newton step (first order, from the per-cluster information) its summed
     score and the base's are zero: the step the robust variance is taken after is the one-step fit."""
     from magcal_cli.diagnose.score import _after_step, _extend
-    from magcal_cli.models.map_effects import bind
+    from magcal_cli.models.map.effects import bind
     from magcal_cli.models.sandwich import cluster_scores, cluster_scores_and_information
 
     _, problem, est = _fit("current", 3)

@@ -6,8 +6,8 @@ import numpy as np
 
 from magcal_cli.effects.correct import remove
 from magcal_cli.streams import Kind
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.simulate import simulate
 
 
 def test_an_unmodelled_ambiguous_entry_is_left_alone() -> None:

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
 from magcal_cli.pipeline import calibrate_recording
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.simulate import simulate
 
 #: |estimate - truth| / std beyond this fails (chi-square-free: 3.5 sigma per entry over a handful of entries)
 Z_MAX = 3.5
@@ -121,7 +121,7 @@ def test_a_new_effect_is_one_class_and_one_registry_line() -> None:
 
     from magcal_cli.effects import EFFECTS
     from magcal_cli.effects.base import Effect, Inputs, Target, Term, pick, resample
-    from magcal_cli.models.params import XYZ, ParamBlock
+    from magcal_cli.params import XYZ, ParamBlock
     from magcal_cli.streams import Kind
 
     class Voltage(Effect):

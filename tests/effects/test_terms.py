@@ -10,11 +10,11 @@ import pytest
 from magcal_cli import effects, so3
 from magcal_cli.effects.base import Effect, Inputs, Point, Target
 from magcal_cli.models.gyro import preintegrate
-from magcal_cli.models.map_effects import bind
+from magcal_cli.models.map.effects import bind
 from magcal_cli.models.problem import Problem
 from magcal_cli.streams import Kind
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.simulate import simulate
 
 #: relative tolerance of a central difference with step 1e-6 on these smooth terms
 RTOL = 1e-5

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Source
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.firmware.split import heading_errors_deg
 from magcal_cli.streams import Kind, Recording, Sampling, Stream
 

@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from magcal_cli import so3
-from magcal_cli.apply import apply_to_recording
-from magcal_cli.cli import cli
+from magcal_cli.calibration.apply import apply_to_recording
+from magcal_cli.cli.main import cli
 from magcal_cli.errors import StreamError
 from magcal_cli.streams import Kind
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from click.testing import CliRunner
 
-from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Source
-from magcal_cli.cli import cli
-from magcal_cli.document import dumps_json
+from magcal_cli.calibration.document import dumps_json
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
+from magcal_cli.cli.main import cli
 
 from . import fwsim
 

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Source
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.firmware import FirmwareError, FirmwareLimitError, NotExportableError
 from magcal_cli.firmware.export import Options, export
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from magcal_cli.gates import Condition, GateSyntaxError, failures, parse
+from magcal_cli.firmware.gates import Condition, GateSyntaxError, failures, parse
 
 KNOWN = {"heading_error_deg": "", "field_norm_rms_pct": "", "coverage_pct": ""}
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from magcal_cli import so3
-from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Quality, Source
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Quality, Source
 from magcal_cli.firmware.metrics import fit_metrics, heading_std_deg
 from magcal_cli.streams import Kind, Recording, Stream
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from magcal_cli import so3
-from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Source
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.firmware.export import Export, Options, export
 from magcal_cli.firmware.paramfile import render
 

@@ -12,7 +12,7 @@ from magcal_cli.models.accel import G
 from magcal_cli.models.problem import Problem
 from magcal_cli.pipeline import select_problem
 from magcal_cli.streams import Kind, Recording, Sampling, Stream
-from magcal_cli.synth import Truth, draw_truth
+from magcal_cli.synth.simulate import Truth, draw_truth
 
 
 def theta_of(truth: Truth) -> np.ndarray:

@@ -12,10 +12,10 @@ import pytest
 from magcal_cli import pipeline
 from magcal_cli.config import Config
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.logwriters import write_log
 from magcal_cli.readers import open_recording
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.simulate import simulate
 
 
 @pytest.fixture(scope="module")

@@ -9,13 +9,14 @@ import pytest
 
 from magcal_cli import so3
 from magcal_cli.config import Config
-from magcal_cli.models import ekf, ekf_ml
 from magcal_cli.models.accel import accel_factor
+from magcal_cli.models.ekf import core as ekf
+from magcal_cli.models.ekf import ml as ekf_ml
 from magcal_cli.models.gyro import preintegrate
 from magcal_cli.models.mag import MagLayout, mag_factor
-from magcal_cli.models.params import BASE, MAG
+from magcal_cli.params import BASE, MAG
 from magcal_cli.pipeline import select_problem
-from magcal_cli.synth import simulate
+from magcal_cli.synth.simulate import simulate
 
 
 @pytest.fixture(scope="module")

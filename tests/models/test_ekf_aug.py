@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli.cli import cli
+from magcal_cli.calibration.document import load
+from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
-from magcal_cli.document import load
-from magcal_cli.models import ekf, ekf_aug
-from magcal_cli.models.params import BASE
+from magcal_cli.models.ekf import aug as ekf_aug
+from magcal_cli.models.ekf import core as ekf
+from magcal_cli.params import BASE
 from magcal_cli.pipeline import select_problem
-from magcal_cli.synth import simulate
+from magcal_cli.synth.simulate import simulate
 
 SAMPLES = Path(__file__).resolve().parents[2] / "sample_logs"
 

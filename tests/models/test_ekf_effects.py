@@ -9,11 +9,13 @@ import pytest
 from magcal_cli import so3
 from magcal_cli.config import Config
 from magcal_cli.errors import MagcalError
-from magcal_cli.models import ekf, ekf_aug, ekf_ml
-from magcal_cli.models.ekf_effects import bind_prepared
+from magcal_cli.models.ekf import aug as ekf_aug
+from magcal_cli.models.ekf import core as ekf
+from magcal_cli.models.ekf import ml as ekf_ml
+from magcal_cli.models.ekf.effects import bind_prepared
 from magcal_cli.pipeline import calibrate_recording, select_problem
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import EffectSpec
+from magcal_cli.synth.effects import EffectSpec
+from magcal_cli.synth.simulate import simulate
 from tests.models.test_ekf import truncated
 
 ADDITIVE = ("current_interference", "throttle_interference", "temperature_drift")

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from magcal_cli.config import Config
-from magcal_cli.models import ekf, ekf_ml
-from magcal_cli.models.params import BASE
+from magcal_cli.models.ekf import core as ekf
+from magcal_cli.models.ekf import ml as ekf_ml
+from magcal_cli.params import BASE
 from magcal_cli.pipeline import select_problem
-from magcal_cli.synth import simulate
+from magcal_cli.synth.simulate import simulate
 from tests.models.test_ekf import truncated
 
 

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from magcal_cli.ellipsoid import fit_ellipsoid
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.models.ellipsoid import fit_ellipsoid
 
 
 def _sphere(n: int, rng: np.random.Generator) -> np.ndarray:

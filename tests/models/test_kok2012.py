@@ -13,7 +13,7 @@ from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models.kok2012 import KokData, fit_kok2012, rotate_ellipsoid, run
 from magcal_cli.pipeline import select_problem
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import simulate
+from magcal_cli.synth.simulate import simulate
 
 
 def _theta(d: np.ndarray, o: np.ndarray, dip: float) -> np.ndarray:

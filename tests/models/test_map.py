@@ -10,10 +10,10 @@ from scipy import stats
 from magcal_cli import so3
 from magcal_cli.config import Config
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.models import map as mapm
 from magcal_cli.models.gyro import preintegrate
+from magcal_cli.models.map import fit as mapm
 from magcal_cli.pipeline import select_problem
-from magcal_cli.synth import paper_trajectory, simulate
+from magcal_cli.synth.simulate import paper_trajectory, simulate
 
 from .mapsim import noise_of, record, theta_of
 
@@ -153,7 +153,7 @@ def test_robust_loss_resists_magnetometer_outliers() -> None:
 
 def test_start_noise_is_the_residuals_white_part_not_a_slow_disturbance() -> None:
     """A slow offset drift (current, temperature) inflates the ellipsoid residual but not the start noise."""
-    from magcal_cli.models.map_init import white_rms
+    from magcal_cli.models.map.init import white_rms
 
     rng = np.random.default_rng(3)
     k = 6000

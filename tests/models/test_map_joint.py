@@ -7,13 +7,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from magcal_cli import consistency, so3
+from magcal_cli import so3
 from magcal_cli.config import Config
-from magcal_cli.models import map_init, map_joint, map_run, solve
-from magcal_cli.models import map_joint_solve as mjs
-from magcal_cli.models.map_joint_cov import factors
+from magcal_cli.methods import map_run
+from magcal_cli.models import consistency, solve
+from magcal_cli.models.map import init as map_init
+from magcal_cli.models.map import joint as map_joint
+from magcal_cli.models.map import joint_solve as mjs
+from magcal_cli.models.map.joint_cov import factors
 from magcal_cli.pipeline import select_problem
-from magcal_cli.synth_array import simulate_array
+from magcal_cli.synth.array import simulate_array
 
 
 @pytest.fixture(scope="module")

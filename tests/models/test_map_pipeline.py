@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
-from magcal_cli.models import map_run
+from magcal_cli.methods import map_run
 from magcal_cli.pipeline import calibrate
-from magcal_cli.synth import paper_trajectory
+from magcal_cli.synth.simulate import paper_trajectory
 from magcal_cli.wmm import reference_field
 
 from .mapsim import record

@@ -8,7 +8,7 @@ import pytest
 
 from magcal_cli import so3
 from magcal_cli.models import partial
-from magcal_cli.models.params import BASE
+from magcal_cli.params import BASE
 
 
 def _yaw_only_information(tilt_deg: float, dip: float = 1.1, sigma: float = 0.01) -> np.ndarray:
@@ -115,7 +115,7 @@ def test_held_entries_follow_the_layout_when_effect_blocks_come_first() -> None:
     dip's neighbours, and a flat rover's D came out 70 % off)."""
     from magcal_cli.effects import get
     from magcal_cli.effects.base import Inputs
-    from magcal_cli.models.map_effects import Bound, layout_for
+    from magcal_cli.models.map.effects import Bound, layout_for
 
     layout = layout_for([Bound(get("nongravity_acceleration"), Inputs(np.zeros(1), np.zeros((1, 3)),
                                                                       np.zeros((1, 3)), {}, (), {}))])

@@ -11,11 +11,11 @@ import pytest
 
 from magcal_cli import so3
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.models import map as mapm
 from magcal_cli.models import partial
-from magcal_cli.models.params import BASE
+from magcal_cli.models.map import fit as mapm
 from magcal_cli.models.problem import Problem
-from magcal_cli.synth import Truth
+from magcal_cli.params import BASE
+from magcal_cli.synth.simulate import Truth
 
 from .mapsim import record, theta_of
 

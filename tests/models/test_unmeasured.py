@@ -13,12 +13,12 @@ from magcal_cli.detect import unmeasured_windows
 from magcal_cli.effects.base import Kinematics
 from magcal_cli.effects.nongravity import NonGravity, acceleration_ned, flying, known
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.models import map as map_model
-from magcal_cli.models import map_run
+from magcal_cli.methods import map_run
 from magcal_cli.models.gyro import preintegrate
+from magcal_cli.models.map import fit as map_model
 from magcal_cli.pipeline import select_problem
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import Truth, simulate
+from magcal_cli.synth.simulate import Truth, simulate
 
 
 def _crashed(seed: int) -> tuple[Recording, Truth, tuple[float, float]]:

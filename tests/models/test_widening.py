@@ -7,10 +7,10 @@ from dataclasses import replace
 import numpy as np
 
 from magcal_cli.config import Config
-from magcal_cli.models.map import fit_map
+from magcal_cli.models.map.fit import fit_map
 from magcal_cli.pipeline import select_problem
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.simulate import Simulation, simulate
 
 
 def _drifted(seed: int, amplitude_t: float) -> tuple[Simulation, Recording]:

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from magcal_cli.errors import LogReadError
-from magcal_cli.logwriters import write_log
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind
-from magcal_cli.synth import simulate
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.simulate import simulate
 
 CANONICAL = "t [s],gx [rad/s],gy [rad/s],gz [rad/s],ax [m/s^2],ay [m/s^2],az [m/s^2],mx [uT],my [uT],mz [uT]"
 

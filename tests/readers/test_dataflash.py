@@ -9,14 +9,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.errors import LogReadError, StreamError, UnsupportedFormatError
-from magcal_cli.logwriters import write_log
-from magcal_cli.logwriters.dataflash import PreviousCalibration, build
 from magcal_cli.readers import ReadOptions, open_recording
-from magcal_cli.readers.dataflash import _sample_time, reconstruct_mags
-from magcal_cli.readers.dataflash_binary import follow_chain, parse_buffer
-from magcal_cli.readers.dataflash_mag import (
+from magcal_cli.readers.dataflash.binary import follow_chain, parse_buffer
+from magcal_cli.readers.dataflash.compass import (
     Correction,
     ParamHistory,
     apply_correction,
@@ -25,8 +22,11 @@ from magcal_cli.readers.dataflash_mag import (
     param_suffix,
     undo_correction,
 )
+from magcal_cli.readers.dataflash.reader import _sample_time, reconstruct_mags
 from magcal_cli.streams import Kind
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.logs.dataflash import PreviousCalibration, build
+from magcal_cli.synth.simulate import Simulation, simulate
 
 from ..fuzzing import DeadSensor
 
@@ -336,7 +336,7 @@ def test_log171_reconstruction_fits_as_well_and_reapplies_exactly(realdata: Path
     of the same points: equal up to the algebraic fit's 1 % non-invariance), MAG3 (uncalibrated) is its
     logged sphere (centre (484, 263, 466), radius 569, residual 56 mG), and re-applying the logged
     parameters reproduces the logged field within 1 mG."""
-    from magcal_cli.models.ellipsoid import fit_ellipsoid
+    from magcal_cli.ellipsoid import fit_ellipsoid
 
     mags = reconstruct_mags(realdata / "ardupilot" / "log171.bin")
     assert [m.instance for m in mags] == [0, 1, 2]
@@ -400,7 +400,7 @@ def test_fit_on_real_logs_writes_results_or_one_clean_line(realdata: Path, tmp_p
     only: this is the reader's test; the default diagnosis of log171 runs in test_report_browser (a minute each)."""
     from click.testing import CliRunner
 
-    from magcal_cli.cli import cli
+    from magcal_cli.cli.main import cli
 
     out = tmp_path / "out"
     result = CliRunner().invoke(cli, ["fit", str(realdata / "ardupilot" / name), "-o", str(out), "-q",
@@ -475,7 +475,7 @@ def _sweeps(n: int = 6000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def test_the_zero_bin_tells_a_truncating_cast_from_rounding() -> None:
     """Issue 25: AP_Compass's (int16_t) truncates toward zero (half a count is added back); a log rounded to the
     count (the independent simulator's flight) has no dead zone at zero, and nothing may be added."""
-    from magcal_cli.readers.dataflash_mag import ROUNDED_EVIDENCE, truncation_evidence
+    from magcal_cli.readers.dataflash.compass import ROUNDED_EVIDENCE, truncation_evidence
 
     t, x = _sweeps()
     assert truncation_evidence([np.trunc(x)], [t]) > 2.0                     # the firmware's cast stands
@@ -488,7 +488,7 @@ def test_the_zero_bin_tells_a_truncating_cast_from_rounding() -> None:
 
 def test_motor_offsets_show_the_cast_they_went_through() -> None:
     """MO = COMPASS_MOT x current, logged as an int16: which of trunc and round it matches where they differ."""
-    from magcal_cli.readers.dataflash_mag import motor_cast_evidence
+    from magcal_cli.readers.dataflash.compass import motor_cast_evidence
 
     product = np.outer(np.linspace(0.5, 18.0, 500), [0.255, 0.126, -0.247])
     assert motor_cast_evidence(np.trunc(product), product) > 20.0
@@ -498,7 +498,7 @@ def test_motor_offsets_show_the_cast_they_went_through() -> None:
 
 def test_logged_offsets_show_the_cast_each_distinct_value_once() -> None:
     """OfsX.. = (int16_t)COMPASS_OFS in every record: one distinct pair per axis counts, however many records."""
-    from magcal_cli.readers.dataflash_mag import ROUNDED_EVIDENCE, offset_cast_evidence
+    from magcal_cli.readers.dataflash.compass import ROUNDED_EVIDENCE, offset_cast_evidence
 
     params = np.repeat([[-11.40, -137.32, -27.70]], 500, axis=0)          # only z tells the casts apart
     assert offset_cast_evidence(np.trunc(params), params) == pytest.approx(np.log(ROUNDED_EVIDENCE))

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from magcal_cli.errors import LogReadError
-from magcal_cli.logwriters import write_log
-from magcal_cli.logwriters.rosbag import Builder, messages, topics
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.logs.rosbag import Builder, messages, topics
+from magcal_cli.synth.simulate import Simulation, simulate
 
 SCHEMA_ENCODING = {"cdr": "ros2msg", "ros1": "ros1msg", "json": "jsonschema"}
 
@@ -214,7 +214,7 @@ def test_chunks_read_from_their_message_indexes_as_by_the_record_walk(tmp_path: 
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """Every chunk of message records only is read from its indexes (the first, which also holds the schema and
     channel records, by the walk), with the same streams as the walk gives."""
-    from magcal_cli.readers import mcap_chunk
+    from magcal_cli.readers.ros import mcap_chunk
 
     path = tmp_path / "x.mcap"
     write_mcap(sim, path, "cdr", chunk_size=32_000)
@@ -240,7 +240,7 @@ def test_chunks_read_from_their_message_indexes_as_by_the_record_walk(tmp_path: 
 
 def test_an_index_that_disagrees_with_its_chunk_is_not_used() -> None:
     """Offsets that skip a record, point past the chunk or at another opcode: the walk reads the chunk."""
-    from magcal_cli.readers.mcap_chunk import MESSAGE_OPCODE, RawIndex, indexed
+    from magcal_cli.readers.ros.mcap_chunk import MESSAGE_OPCODE, RawIndex, indexed
 
     def record(channel: int, payload: bytes) -> bytes:
         body = channel.to_bytes(2, "little") + bytes(4) + (7).to_bytes(8, "little") * 2 + payload

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from magcal_cli.readers.ros2_types import DEFINITIONS, humble_subset
-from magcal_cli.readers.rosmsg import ROS_TYPES
+from magcal_cli.readers.ros.msg import ROS_TYPES
+from magcal_cli.readers.ros.types2 import DEFINITIONS, humble_subset
 
 
 def test_the_subset_is_humbles_wanted_types_and_what_they_contain() -> None:

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from magcal_cli.errors import LogReadError, UnsupportedFormatError
-from magcal_cli.logwriters import write_log
-from magcal_cli.logwriters.rosbag import write_bag, write_ros2
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.logs.rosbag import write_bag, write_ros2
+from magcal_cli.synth.simulate import Simulation, simulate
 
 ROS = "ros"
 
@@ -312,7 +312,7 @@ def test_real_phidgets_refusal_names_the_non_uniform_field(realdata: Path, tmp_p
     before), exit 1, no traceback and no output folder."""
     from click.testing import CliRunner
 
-    from magcal_cli.cli import cli
+    from magcal_cli.cli.main import cli
 
     out = tmp_path / "out"
     res = CliRunner().invoke(cli, ["fit", str(realdata / ROS / PHIDGETS[0]), "-o", str(out), "-q"])
@@ -349,7 +349,8 @@ def _forbid_rosbags_queries(monkeypatch: pytest.MonkeyPatch) -> None:
     on damage of their own) and rosbags' message query fail the test if it runs."""
     from rosbags.highlevel import AnyReader
 
-    from magcal_cli.readers import rosbag, rosbag_batch
+    from magcal_cli.readers.ros import bag as rosbag
+    from magcal_cli.readers.ros import bag_batch as rosbag_batch
 
     def never(*_a: object, **_k: object) -> None:
         raise AssertionError("rosbags' message query must not run on a damaged database")
@@ -386,8 +387,8 @@ def test_a_db3_whose_ordered_query_fails_is_read_by_row_ids_not_through_rosbags(
     from rosbags.typesys import Stores, get_typestore
 
     from magcal_cli.readers import ReadOptions
-    from magcal_cli.readers.rosbag_batch import read_ros2_storage
-    from magcal_cli.readers.rosmsg import Collector, wanted
+    from magcal_cli.readers.ros.bag_batch import read_ros2_storage
+    from magcal_cli.readers.ros.msg import Collector, wanted
 
     bag = tmp_path / "bag"
     write_ros2(sim, bag, storage="sqlite3")

@@ -8,13 +8,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcal_cli.logwriters.mcap import write_mcap
-from magcal_cli.logwriters.rosbag import register_types, write_bag, write_ros2
-from magcal_cli.readers import ReadOptions, open_recording, rosvec
-from magcal_cli.readers.mcap import ros_decoder
-from magcal_cli.readers.rosmsg import ROS_TYPES, Collector, stamp_ns, wanted
+from magcal_cli.readers import ReadOptions, open_recording
+from magcal_cli.readers.ros import vec as rosvec
+from magcal_cli.readers.ros.mcap import ros_decoder
+from magcal_cli.readers.ros.msg import ROS_TYPES, Collector, stamp_ns, wanted
 from magcal_cli.streams import Recording
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.logs.mcap import write_mcap
+from magcal_cli.synth.logs.rosbag import register_types, write_bag, write_ros2
+from magcal_cli.synth.simulate import Simulation, simulate
 
 TYPES = list(rosvec.VALUE_PATHS)
 #: frame_id lengths 0..11 move every later field across CDR's 4- and 8-byte alignment boundaries
@@ -246,7 +247,7 @@ def test_real_logs_read_like_per_message_decoding(realdata: Path, name: str) -> 
 @pytest.mark.parametrize("kind", ["bag", "ros2-mcap", "ros2-sqlite3"])
 def test_bags_take_the_fast_paths(tmp_path: Path, sim: Simulation, kind: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Whole bags are read chunk by chunk (ROS 1 index) or from their storage, not message by message."""
-    from magcal_cli.readers import rosbag
+    from magcal_cli.readers.ros import bag as rosbag
 
     path = tmp_path / ("x.bag" if kind == "bag" else "bag")
     if kind == "bag":
@@ -264,7 +265,7 @@ def test_bags_take_the_fast_paths(tmp_path: Path, sim: Simulation, kind: str, mo
 
 def test_ros1_fast_path_gives_way_on_a_corrupt_chunk(tmp_path: Path, sim: Simulation) -> None:
     """A damaged chunk: the chunk reader declines and rosbags' iteration resumes after it, as before."""
-    from magcal_cli.readers.rosbag1_fast import read_indexed_bag1
+    from magcal_cli.readers.ros.bag1_fast import read_indexed_bag1
 
     write_bag(sim, tmp_path / "x.bag", chunk_size=20_000)
     data = bytearray((tmp_path / "x.bag").read_bytes())

@@ -10,18 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import magcal_cli.readers.rosbag as rosbag
-import magcal_cli.readers.rosbag_batch as rosbag_batch
-import magcal_cli.readers.sqlite_pages as sqlite_pages
+import magcal_cli.readers.ros.bag as rosbag
+import magcal_cli.readers.ros.bag_batch as rosbag_batch
+import magcal_cli.readers.ros.sqlite_pages as sqlite_pages
 from magcal_cli.errors import LogReadError
-from magcal_cli.logwriters.rosbag import write_ros2
 from magcal_cli.readers import ReadOptions
-from magcal_cli.readers.rosbag import RosbagReader
-from magcal_cli.readers.rosbag2_direct import read_direct
-from magcal_cli.readers.rosmsg import Collector
-from magcal_cli.readers.sqlite_pages import Rows, message_rows, scan_rows
+from magcal_cli.readers.ros.bag import RosbagReader
+from magcal_cli.readers.ros.bag2_direct import read_direct
+from magcal_cli.readers.ros.msg import Collector
+from magcal_cli.readers.ros.sqlite_pages import Rows, message_rows, scan_rows
 from magcal_cli.streams import Kind, Recording, Stream
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.logs.rosbag import write_ros2
+from magcal_cli.synth.simulate import Simulation, simulate
 
 SCHEMA = ("CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, timestamp INTEGER NOT NULL, "
           "data BLOB NOT NULL)")

@@ -12,14 +12,14 @@ import pytest
 from magcal_cli import so3
 from magcal_cli.config import Config
 from magcal_cli.errors import LogReadError, MagcalError, StreamError
-from magcal_cli.logwriters import write_log
-from magcal_cli.logwriters.ulog import START_US, Topic, UlogContent, sim_content, ulog_bytes, write_content
 from magcal_cli.pipeline import calibrate
 from magcal_cli.readers import ReadOptions, open_recording, sniff
-from magcal_cli.readers.ulog import device_text
-from magcal_cli.readers.ulog_load import STUCK_READS, GuardFile, _StuckError
+from magcal_cli.readers.ulog.load import STUCK_READS, GuardFile, _StuckError
+from magcal_cli.readers.ulog.reader import device_text
 from magcal_cli.streams import Kind, Recording, Sampling
-from magcal_cli.synth import Simulation, simulate
+from magcal_cli.synth.logs import write_log
+from magcal_cli.synth.logs.ulog import START_US, Topic, UlogContent, sim_content, ulog_bytes, write_content
+from magcal_cli.synth.simulate import Simulation, simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 GAUSS = 1e-4

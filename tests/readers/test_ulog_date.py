@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from magcal_cli.config import Config
-from magcal_cli.logwriters.ulog import START_US, Topic, UlogContent, write_content
 from magcal_cli.pipeline import _with_position
 from magcal_cli.readers import open_recording
+from magcal_cli.synth.logs.ulog import START_US, Topic, UlogContent, write_content
 
 GPS = (("uint64_t", "timestamp"), ("uint64_t", "time_utc_usec"), ("double", "latitude_deg"),
        ("double", "longitude_deg"), ("double", "altitude_msl_m"))
@@ -67,9 +67,9 @@ def test_real_ulogs_are_dated_by_their_gps(realdata: Path, name: str, day: str |
 def test_simulated_flight_ulog_is_dated_by_its_gps(tmp_path: Path) -> None:
     """`magcal simulate x.ulg` of a flight writes the receiver's UTC, so the log carries the date its truth's WMM
     field was taken at (T0_ROS), not today's."""
-    from magcal_cli.logwriters.ulog import write_ulg
     from magcal_cli.streams import Sampling
-    from magcal_cli.synth import T0_ROS, simulate
+    from magcal_cli.synth.logs.ulog import write_ulg
+    from magcal_cli.synth.simulate import T0_ROS, simulate
 
     path = tmp_path / "flight.ulg"
     write_ulg(simulate("multirotor", 0, duration=90.0, imu_sampling=Sampling.PRECEDING), path)

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.calibration import Calibration, ImuCalibration, MagCalibration, Source
+from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.firmware.export import export
 from magcal_cli.firmware.paramfile import render
 from magcal_cli.writers import WRITERS, get_writer

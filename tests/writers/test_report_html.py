@@ -13,12 +13,12 @@ from magcal_cli.config import Config
 from magcal_cli.findings import Finding, Severity
 from magcal_cli.firmware.metrics import heading_std_curve_deg, heading_std_deg
 from magcal_cli.pipeline import RunResult, calibrate_recording
-from magcal_cli.synth import Simulation
+from magcal_cli.synth.simulate import Simulation
 from magcal_cli.writers import get_writer
-from magcal_cli.writers import report_summary as rs
-from magcal_cli.writers.report_data import heading_view, mag_view
-from magcal_cli.writers.report_html import render_html
-from magcal_cli.writers.report_summary import groups, verdicts
+from magcal_cli.writers.report import summary as rs
+from magcal_cli.writers.report.data import heading_view, mag_view
+from magcal_cli.writers.report.html import render_html
+from magcal_cli.writers.report.summary import groups, verdicts
 
 
 @pytest.fixture(scope="module")
@@ -124,7 +124,7 @@ def test_dip_view_recovers_the_fitted_dip(result: RunResult) -> None:
 def test_the_apply_step_names_the_terms_the_calibration_carries(result: RunResult) -> None:
     """A calibration that carries a magnetometer effect (here an ambiguous current term with its estimate) tells
     the reader to correct for it before A; its unmodelled rival and a calibration without terms do not."""
-    from magcal_cli.writers.report import render
+    from magcal_cli.writers.report.text import render
 
     mag = result.calibration.magnetometers[0]
     plain = render(result)

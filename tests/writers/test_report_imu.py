@@ -12,18 +12,18 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from magcal_cli.cli import cli
+from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
 from magcal_cli.effects import EFFECTS, get
 from magcal_cli.effects.base import Target
 from magcal_cli.models.accel import G
 from magcal_cli.pipeline import RunResult, calibrate_recording
 from magcal_cli.registry import resolve
-from magcal_cli.synth import simulate
-from magcal_cli.synth_effects import parse_effect
-from magcal_cli.writers.report_data import EffectView
-from magcal_cli.writers.report_html import render_html
-from magcal_cli.writers.report_imu import IMU_VIEWS, imu_effect_views
+from magcal_cli.synth.effects import parse_effect
+from magcal_cli.synth.simulate import simulate
+from magcal_cli.writers.report.data import EffectView
+from magcal_cli.writers.report.html import render_html
+from magcal_cli.writers.report.imu import IMU_VIEWS, imu_effect_views
 
 IMU_EFFECTS = ("gyro_scale", "accel_scale", "lever_arm")
 #: the figure's <img> in the effects section, as render_html writes it

@@ -1,0 +1,284 @@
+"""Running batch jobs: one log's fit as `magcal fit` would run it (`run_one`, also the Dask task), and a pool of
+local worker processes that fit one log at a time each and are replaced after every log, so a huge log's
+memory goes back to the system."""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+import warnings
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+from magcal_cli.batch.plan import AUTO_EFFECTS, Job, LogReport, write_status
+from magcal_cli.errors import MagcalError
+from magcal_cli.writers.fitrun import USER_ERRNOS
+
+#: logs a local worker fits before it is replaced (its memory returned); forked from a preloaded server, a new
+#: worker costs milliseconds, not the seconds of importing numpy and scipy again
+TASKS_PER_WORKER = 1
+#: imported once in the fork server, so that every worker starts with them: with a fresh worker per log, a
+#: module a fit imports lazily would otherwise be imported again for every log (1-2 s of a 3 s log)
+PRELOAD = ["magcal_cli.batch.run", "magcal_cli.pipeline", "magcal_cli.writers.fitrun", "magcal_cli.firmware.gates", "pygeomag",
+           "scipy.signal"]
+#: the subpackages whose every module a fit may import (readers, estimators, effects, outputs)
+PRELOAD_PACKAGES = ("readers", "models", "effects", "diagnose", "firmware", "writers")
+WORKER_DIED = ("the worker process fitting this log died (killed, e.g. out of memory, or crashed). Fit it alone "
+               "with magcal fit to see why")
+#: how often a Ctrl-C'd batch interrupts its workers again until they have stopped (s)
+STOP_POLL_S = 0.2
+Done = Callable[[LogReport], None]
+
+
+def _interrupt_once(_: int, __: FrameType | None) -> None:
+    """SIGINT in a worker: one KeyboardInterrupt; a second Ctrl-C must not break the clean-up it started."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _interruptible() -> Iterator[None]:
+    """Ctrl-C interrupts the fit inside the block; an idle worker ignores it (the main process decides)."""
+    main = threading.current_thread() is threading.main_thread()      # Dask runs tasks in threads
+    previous = signal.signal(signal.SIGINT, _interrupt_once) if main else None
+    try:
+        yield
+    finally:
+        if main:
+            signal.signal(signal.SIGINT, previous)    # a pool worker's: ignored; a caller's own: as it was
+
+
+def _worker_init() -> None:
+    """A local worker: Ctrl-C only while fitting (an idle worker would die printing a traceback); numpy's
+    RuntimeWarnings on degenerate data kept off stderr, as `magcal fit` keeps them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):          # should a platform's exec keep the mask _context blocked
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+
+
+def _mag_numbers(result: Any) -> list[dict[str, Any]]:
+    """The key numbers of each magnetometer for the summary."""
+    import numpy as np
+
+    from magcal_cli import so3
+    from magcal_cli.firmware.metrics import heading_std_deg
+
+    out = []
+    for m in result.calibration.magnetometers:
+        q = m.quality
+        out.append({"id": m.id, "dip_deg": float(m.dip_deg),
+                    "field_norm_rms_pct": None if q is None else float(q.field_norm_rms_pct),
+                    "coverage_pct": None if q is None else float(q.coverage_pct),
+                    "misalignment_deg": float(np.rad2deg(so3.angle(m.misalignment))),
+                    "heading_std_deg": heading_std_deg(m)})
+    return out
+
+
+def _fit(job: Job, report: LogReport, start: float) -> None:
+    """Fit the log and write its outputs as `magcal fit` does, filling `report`; errors propagate."""
+    from magcal_cli.config import Config
+    from magcal_cli.pipeline import calibrate
+    from magcal_cli.writers import FIRMWARE_OUTPUTS
+    from magcal_cli.writers.fitrun import gate_failures, write_fit_outputs
+
+    o = job.options
+    auto = o.effects == AUTO_EFFECTS
+    cfg = Config(method=o.method, mag=",".join(o.mags) or "all", allow_truncated=not o.strict,
+                 effects=() if auto else o.effects, diagnose=auto, imu_timing=o.imu_timing,
+                 mag_timing=o.mag_timing)
+    result = calibrate(job.log, cfg)
+    report.format, report.method = result.recording.format, result.calibration.method
+    names = list(job.names)
+    if job.auto and FIRMWARE_OUTPUTS.get(result.recording.format) == job.auto:
+        names.append(job.auto)
+    if result.recording.cut is not None:
+        report.warnings.append(f"warning: {result.recording.cut.message}")
+    report.warnings += [f"warning: {f.message}" for f in result.findings if f.severity.value == "warning"]
+    report.magnetometers = _mag_numbers(result)
+    failed = gate_failures(result, o.fail_on)
+    if failed:
+        report.status, report.exit_code, report.error = "gate_failed", 3, f"fit --fail-on: {'; '.join(failed)}"
+    def complete(final: list[Path]) -> None:
+        # with the renames, Ctrl-C held back: a folder of outputs always has its batch.json (it had not, once)
+        report.outputs, report.seconds = [str(p) for p in final], time.perf_counter() - start
+        try:
+            write_status(job, report)
+        except BaseException:
+            report.outputs = []                    # not marked complete: run_one reports the failure
+            raise
+
+    write_fit_outputs(result, job.outdir, names, job.auto, report.warnings.append, complete)
+
+
+def run_one(job: Job) -> LogReport:
+    """Fit one log; every outcome but Ctrl-C is a report with the exit code `magcal fit` would have given."""
+    report = LogReport(str(job.log), job.name, str(job.outdir), "ok", 0)
+    start = time.perf_counter()
+    try:
+        with _interruptible():
+            _fit(job, report, start)
+    except KeyboardInterrupt:
+        if not report.outputs:
+            report.status, report.exit_code, report.error = "interrupted", 130, "interrupted"
+            return report                           # no batch.json: the log is fitted again on the next run
+    except MagcalError as exc:
+        report.status, report.exit_code, report.error = "failed", 1, str(exc)
+    except OSError as exc:
+        if exc.errno in USER_ERRNOS:
+            report.status, report.exit_code = "failed", 1
+            report.error = f"{exc.filename or job.log}: {exc.strerror or exc}. Check the path, its permissions and free space"
+        else:
+            _internal(report, exc)
+    except Exception as exc:  # noqa: BLE001 - one log's bug must not stop the others
+        _internal(report, exc)
+    if report.outputs:                              # marked complete with the outputs (`_fit`)
+        return report
+    report.seconds = time.perf_counter() - start
+    try:
+        write_status(job, report)
+    except (MagcalError, OSError) as exc:
+        report.status, report.exit_code, report.error = "failed", 1, str(exc)
+    return report
+
+
+def _internal(report: LogReport, exc: BaseException) -> None:
+    """A bug while fitting: exit 123 with fit's message, the traceback kept for -v."""
+    report.status, report.exit_code = "failed", 123
+    report.error = (f"internal error ({type(exc).__name__}: {exc}). This is a bug in magcal; please report it "
+                    "with the command and log")
+    report.traceback = "".join(traceback.format_exception(exc))
+
+
+def died(job: Job, why: str = WORKER_DIED) -> LogReport:
+    """The report of a log whose worker process died under it."""
+    return LogReport(str(job.log), job.name, str(job.outdir), "failed", 123, error=f"{job.log}: {why}")
+
+
+def _context() -> Any:
+    """forkserver with magcal preloaded where available (workers start in milliseconds), else spawn; never
+    fork, which max_tasks_per_child refuses and which would copy the parent's threads."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    from multiprocessing import forkserver
+
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(preload_modules())
+    # the server starts with Ctrl-C ignored (inherited through exec): it preloads for seconds before it
+    # ignores SIGINT itself, and a Ctrl-C then would print its traceback. Blocked meanwhile, a Ctrl-C at
+    # magcal stays pending (Linux keeps a blocked signal though ignored) and arrives at the unblocking; the
+    # workers take Ctrl-C in run_one
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    # wait for the preload with a bare process: a pool worker queued behind it and served after a Ctrl-C'd
+    # magcal has exited would fail on the pool's vanished semaphores and print that traceback
+    ready = ctx.Process(target=_ready, daemon=True)
+    ready.start()
+    ready.join()
+    return ctx
+
+
+def preload_modules() -> list[str]:
+    """PRELOAD and every module of PRELOAD_PACKAGES, found by file name (nothing imported here)."""
+    root = Path(__file__).parent
+    return PRELOAD + [f"magcal_cli.{pkg}" + ("" if f.stem == "__init__" else f".{f.stem}")
+                      for pkg in PRELOAD_PACKAGES for f in sorted((root / pkg).glob("*.py"))]
+
+
+def _ready() -> None:
+    """The forkserver's first child: it returns at once; its start means the preload is done."""
+
+
+def _single_threaded_blas() -> None:
+    """N workers on N cores: BLAS threads in each would only compete (a user's own setting is kept)."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
+def _pool(workers: int) -> ProcessPoolExecutor:
+    """A pool of `workers` processes, each replaced after TASKS_PER_WORKER logs (Python >= 3.11)."""
+    extra: dict[str, Any] = {"max_tasks_per_child": TASKS_PER_WORKER} if sys.version_info >= (3, 11) else {}
+    return ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_worker_init, **extra)
+
+
+def _stop(pool: ProcessPoolExecutor) -> None:
+    """Ctrl-C: interrupt the running fits (they clean up), drop the queued ones and wait for the workers."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not abandon the workers
+    try:
+        closing = threading.Thread(target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True})
+        closing.start()
+        while closing.is_alive():
+            # again and again: a log already queued to a fresh worker starts after the first signal, and
+            # `kill -INT` on magcal alone must reach the workers too (a worker takes only the first)
+            for pid in list(getattr(pool, "_processes", None) or {}):
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGINT)
+            closing.join(STOP_POLL_S)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def run_local(jobs: list[Job], workers: int, done: Done) -> list[LogReport]:
+    """Fit `jobs` in `workers` local processes, calling `done` as each finishes; a log whose worker dies
+    (killed out of memory, a crash) is reported failed and the others go on. KeyboardInterrupt propagates after
+    the workers stopped."""
+    _single_threaded_blas()
+    reports: list[LogReport] = []
+    order = {id(j): i for i, j in enumerate(jobs)}
+    broken = _run_pool(jobs, workers, done, reports)
+    while broken:
+        # a dying worker breaks the whole pool and fails every unfinished log with it, the queued ones too.
+        # The earliest submitted was running, so the likeliest culprit: it is retried alone (and reported
+        # if its worker dies again), the rest go back to a full pool
+        suspect, *rest = sorted(broken, key=lambda j: order[id(j)])
+        if _run_pool([suspect], 1, done, reports):
+            reports.append(died(suspect))
+            done(reports[-1])
+        broken = _run_pool(rest, workers, done, reports)
+    return reports
+
+
+def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport]) -> list[Job]:
+    """One pool over `jobs`; returns the jobs whose futures the pool's breaking took with it."""
+    if not jobs:
+        return []
+    broken: list[Job] = []
+    pool = _pool(max(1, min(workers, len(jobs))))
+    try:
+        futures: dict[Future[LogReport], Job] = {}
+        for i, j in enumerate(jobs):
+            try:
+                futures[pool.submit(run_one, j)] = j
+            except BrokenProcessPool:     # a worker died while the rest were being queued: those go back too
+                broken.extend(jobs[i:])
+                break
+        for fut in as_completed(futures):
+            try:
+                report = fut.result()
+            except BrokenProcessPool:
+                broken.append(futures[fut])
+                continue
+            except Exception as exc:  # noqa: BLE001 - e.g. a job the worker could not unpickle: that log only
+                report = died(futures[fut], f"the worker could not run it ({type(exc).__name__}: {exc})")
+            reports.append(report)
+            done(report)
+    except KeyboardInterrupt:
+        _stop(pool)
+        raise
+    pool.shutdown(wait=True)
+    return broken

@@ -1,0 +1,1 @@
+"""The magcal command line: one module per command and the options they share."""

@@ -1,0 +1,1 @@
+"""DataFlash logs: ArduPilot binary and text logs and legacy PX4 sdlog2, with ArduPilot's compass correction."""

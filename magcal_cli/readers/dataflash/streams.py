@@ -1,0 +1,172 @@
+"""From decoded DataFlash tables to streams: message times, instances, and the Recording in SI units."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from magcal_cli import so3
+from magcal_cli.align import clean_time
+from magcal_cli.progress import current
+from magcal_cli.readers.checks import drop_held, sensor_checks
+from magcal_cli.readers.dataflash.format import FloatArray, IntArray, RawLog, Table
+from magcal_cli.streams import Kind, Recording, Sampling, Stream
+
+
+class Clock:
+    """Time of messages that carry none (old PARM, px4log): that of the latest timed message before them.
+
+    Built from a RawLog, the (position, time) table of every timed message is made only when a message without
+    its own time asks (modern logs never do), which spares memory on gigantic logs.
+    """
+
+    def __init__(self, pos: IntArray, t: FloatArray, raw: RawLog | None = None) -> None:
+        order = np.argsort(pos, kind="stable")
+        self._pos, self._t = pos[order], t[order]
+        self._raw = raw
+
+    def _table(self) -> tuple[IntArray, FloatArray]:
+        """Positions and times of the timed messages, sorted by position."""
+        if self._raw is not None:
+            pos, ts = [], []
+            for table in self._raw.tables.values():
+                t = own_time(table)
+                if t is not None and len(table):
+                    pos.append(table.pos)
+                    ts.append(t)
+            p, t = np.concatenate(pos), np.concatenate(ts)
+            order = np.argsort(p, kind="stable")
+            self._pos, self._t, self._raw = p[order], t[order], None
+        return self._pos, self._t
+
+    def __bool__(self) -> bool:
+        return self._raw is not None or bool(self._pos.size)
+
+    def at(self, pos: IntArray) -> FloatArray:
+        """The time (s) in force at each file position; before the first timed message, the first time."""
+        times_pos, times = self._table()
+        if not times_pos.size:
+            return np.full(pos.shape, np.nan)
+        i = np.searchsorted(times_pos, pos, side="right") - 1
+        return times[np.clip(i, 0, None)]
+
+
+def own_time(table: Table) -> FloatArray | None:
+    """A message's boot time (s) from its own fields: TimeUS, TimeMS, or T of old GPS (TimeMS is GPS time)."""
+    f = table.fmt
+    if f.has("TimeUS"):
+        return table.num("TimeUS") * 1e-6
+    if f.name.startswith("GPS"):
+        return table.num("T") * 1e-3 if f.has("T") else None
+    if f.has("TimeMS"):
+        return table.num("TimeMS") * 1e-3
+    return None
+
+
+def time_of(table: Table, clock: Clock) -> FloatArray:
+    """Seconds on the log's boot clock for every message of `table`."""
+    t = own_time(table)
+    return t if t is not None else clock.at(table.pos)
+
+
+def clock_from(raw: RawLog) -> Clock:
+    """A clock made of every decoded message that carries its own time (empty when none does)."""
+    if not any(own_time_known(t) for t in raw.tables.values()):
+        return Clock(np.zeros(0, dtype=np.int64), np.zeros(0))
+    return Clock(np.zeros(0, dtype=np.int64), np.zeros(0), raw)
+
+
+def own_time_known(table: Table) -> bool:
+    """Whether the messages of `table` carry their own time (and there are any)."""
+    f = table.fmt
+    return bool(len(table)) and (f.has("TimeUS") or f.has("TimeMS") or (f.name.startswith("GPS") and f.has("T")))
+
+
+#: ArduPilot logs at most this many instances of a sensor (COMPASS/INS/GPS_MAX_INSTANCES; BATT up to 16)
+MAX_INSTANCES = 16
+
+
+def instances(raw: RawLog, names: tuple[str, ...], columns: tuple[str, ...] = ("I", "Inst"),
+              notes: list[str] | None = None, limit: int = MAX_INSTANCES) -> list[tuple[int, Table]]:
+    """(instance, messages) of a sensor logged as NAME, NAME2, NAME3 or one NAME with an instance column.
+
+    Records whose instance is outside 0..limit-1 are corrupt: dropped, and counted in `notes`.
+    """
+    out: list[tuple[int, Table]] = []
+    for k, name in enumerate(names):
+        table = raw.table(name)
+        if table is None:
+            continue
+        col = next((c for c in columns if table.fmt.has(c)), None)
+        if col is None:
+            out.append((k, table))
+            continue
+        inst = np.nan_to_num(table.num(col), nan=-1.0).astype(np.int64)
+        bad = (inst < 0) | (k + inst >= limit)
+        if bad.any() and notes is not None:
+            notes.append(f"{name}: dropped {int(bad.sum())} records with instance {col} outside 0..{limit - 1} "
+                         "(corrupt data)")
+        out += [(k + int(i), table.where(inst == i)) for i in np.unique(inst[~bad]).tolist()]
+    return sorted(out, key=lambda x: x[0])
+
+
+def euler_quat(roll_deg: FloatArray, pitch_deg: FloatArray, yaw_deg: FloatArray) -> FloatArray:
+    """(N, 4) quaternions wxyz (body to NED) of ArduPilot/PX4 Euler angles, R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    rpy = np.deg2rad(np.stack([roll_deg, pitch_deg, yaw_deg], axis=1))
+    if not rpy.size:
+        return np.zeros((0, 4))
+    return so3.as_quat(so3.from_rpy(rpy))
+
+
+@dataclass(frozen=True, eq=False)
+class Pending:
+    """Samples of streams that share their times (an IMU's accelerometer and gyro), absolute time (s)."""
+
+    kinds: tuple[Kind, ...]
+    id: str
+    t: FloatArray
+    values: FloatArray
+    source: str
+    units: tuple[str, ...]
+    resolution: FloatArray | None = None      # Stream.resolution, for a single-kind stream
+
+
+def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float],
+           notes: list[str]) -> Recording:
+    """Recording with times relative to the first IMU or magnetometer sample, cleaned and noted.
+
+    `pending` is emptied as its streams are built, so each one's arrays are freed once copied (memory); the
+    samples done are reported per stream as the "reading" fraction of `progress.current()`."""
+    anchor = [p.t for p in pending if Kind.MAGNETOMETER in p.kinds or Kind.ACCELEROMETER in p.kinds]
+    t0 = min((float(np.nanmin(t)) for t in (anchor or [p.t for p in pending]) if np.isfinite(t).any()), default=0.0)
+    del anchor
+    streams: list[Stream] = []
+    hook, done, total = current(), 0, sum(len(p.t) for p in pending)
+    pending.reverse()
+    while pending:
+        hook("reading", done, total)
+        p = pending.pop()
+        done += len(p.t)
+        where = p.id if len(p.kinds) > 1 else f"{p.id} {p.kinds[0].value}"
+        if not len(p.t):                # every record dropped before (unhealthy, no time): nothing to clean
+            notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
+            continue
+        t, values, cleaned = clean_time(p.t - t0, p.values, where)
+        if p.kinds == (Kind.MAGNETOMETER,):
+            t, values, held = drop_held(t, values, p.id)
+            cleaned += held
+        t, values, checked = sensor_checks(p.kinds, t, values, where)
+        cleaned += checked
+        notes.extend(cleaned)
+        if t.size == 0:
+            notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
+            continue
+        col = 0
+        for kind, unit in zip(p.kinds, p.units, strict=False):
+            # IMU/GYR/ACC and MAG hold the (filtered) value at the stamp (docs/timing.md)
+            streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit, p.resolution,
+                                  Sampling.INSTANT))
+            col += kind.width
+    return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes))

@@ -1,0 +1,1 @@
+"""PX4 ULog logs: pyulog behind a guard, and the streams magcal reads from them."""

@@ -1,0 +1,1 @@
+"""The report: report.txt, report.html with its sections and figures, and the numbers they show."""

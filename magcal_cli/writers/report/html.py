@@ -1,0 +1,115 @@
+"""report.html: one self-contained page (no scripts, no external resources) people can share and open offline."""
+
+from __future__ import annotations
+
+from html import escape
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+from magcal_cli.atomic import write_text
+from magcal_cli.writers.report import plots
+from magcal_cli.writers.report import sections as report_sections
+from magcal_cli.writers.report.data import effect_views, heading_view, mag_view
+from magcal_cli.writers.report.imu import imu_effect_views
+from magcal_cli.writers.report.summary import groups, verdicts
+from magcal_cli.writers.report.text import render
+
+if TYPE_CHECKING:
+    from magcal_cli.calibration.types import MagCalibration
+    from magcal_cli.pipeline import RunResult
+
+CSS = """
+:root{--fg:#1d2330;--muted:#6b7280;--line:#e3e6ea;--bg:#f7f8fa;--good:#1e7d32;--check:#a15c00;--poor:#b3261e}
+*{box-sizing:border-box}
+body{font:14px/1.5 system-ui,-apple-system,"Segoe UI",Roboto,Helvetica,Arial,sans-serif;color:var(--fg);
+ margin:0;background:#fff;overflow-wrap:break-word}
+p,li,pre,figcaption,code{overflow-wrap:anywhere}
+main{max-width:1260px;margin:0 auto;padding:24px 28px 60px}
+header h1{font-size:24px;margin:0 0 4px}
+header p{margin:0;color:var(--muted)}
+nav{margin:14px 0 18px;font-size:13px}
+nav a{margin-right:14px;color:#1f5fa8;text-decoration:none}
+h2{font-size:19px;margin:34px 0 10px;padding-bottom:4px;border-bottom:1px solid var(--line)}
+h2 small{font-weight:normal;color:var(--muted);font-size:13px}
+h3{font-size:15px;margin:16px 0 6px}
+h4{font-size:14px;margin:14px 0 4px}
+p,li{max-width:75ch}
+.card{border:1px solid var(--line);border-left:6px solid var(--muted);border-radius:6px;padding:4px 18px 10px;
+ background:var(--bg)}
+.card.good{border-left-color:var(--good)}.card.check{border-left-color:var(--check)}
+.card.poor{border-left-color:var(--poor)}
+.card h2{border:0}
+.lead{font-size:16px}
+.badge{display:inline-block;white-space:nowrap;padding:1px 9px;border-radius:10px;font-size:12px;font-weight:600;color:#fff;
+ background:var(--muted);vertical-align:middle}
+.badge.good{background:var(--good)}.badge.check{background:var(--check)}.badge.poor{background:var(--poor)}
+.badge.muted{background:#9aa1ab}
+.muted{color:var(--muted)}
+table{border-collapse:collapse;font-variant-numeric:tabular-nums}
+table.grid{width:100%;font-size:13px;margin:8px 0}
+table.grid th,table.grid td{border-bottom:1px solid var(--line);padding:5px 8px;text-align:left;vertical-align:top}
+table.grid thead th{background:#eef0f3;font-weight:600;overflow-wrap:normal}
+table.kv th{font-weight:600;text-align:left;padding:4px 12px 4px 0;vertical-align:top;white-space:nowrap;
+ color:#374151}
+table.kv td{padding:4px 0;vertical-align:top}
+table.matrix td{padding:0 10px 0 0;white-space:nowrap;font-family:ui-monospace,Menlo,Consolas,monospace;font-size:12.5px}
+.pair{display:grid;grid-template-columns:minmax(360px,1fr) minmax(0,2fr);gap:24px;align-items:start}
+.plots figure{margin:0 0 18px}
+.plots img{width:100%;height:auto;border:1px solid var(--line);border-radius:4px}
+figcaption{font-size:12.5px;color:#374151;margin-bottom:4px}
+.note{background:#fff7e6;border-left:3px solid var(--check);padding:6px 10px}
+pre{white-space:pre-wrap;overflow-wrap:anywhere;background:var(--bg);border:1px solid var(--line);padding:12px;
+ font-size:12px}
+code{font-family:ui-monospace,Menlo,Consolas,monospace;font-size:12.5px}
+details summary{cursor:pointer;color:#1f5fa8;margin:10px 0}
+@media (max-width:900px){.pair{grid-template-columns:1fr}}
+@media print{nav{display:none}.pair{grid-template-columns:1fr}}
+"""
+
+
+def mag_plots(result: RunResult, mag: MagCalibration) -> list[plots.Plot]:
+    """The figures of one magnetometer: sphere, over time, quality and heading, modelled effects."""
+    view = mag_view(result, mag)
+    if view is None:
+        return []
+    out = [plots.sphere(view), plots.over_time(view), plots.quality(view, heading_view(result, mag))]
+    eff = plots.effects(effect_views(result, mag))
+    return out + ([eff] if eff is not None else [])
+
+
+def render_html(result: RunResult) -> str:
+    """The whole page."""
+    cal = result.calibration
+    mag_ids = [m.id for m in cal.magnetometers]
+    vs = verdicts(result)
+    gs = groups(result.findings, mag_ids)
+    name = Path(cal.source.path).name
+    sections = [report_sections.summary(result, vs), report_sections.method(result)]
+    sections += [report_sections.magnetometer(result, m, v, mag_plots(result, m), gs)
+                 for m, v in zip(cal.magnetometers, vs, strict=True)]
+    imu = plots.imu_effects(imu_effect_views(result))
+    sections += [report_sections.effects(result, [imu] if imu is not None else []),
+                 report_sections.diagnosis(result),
+                 report_sections.warnings(gs), report_sections.provenance(result, render(result))]
+    links = [("summary", "Summary"), ("method", "Method")]
+    links += [(f"mag-{report_sections.anchor(m)}", m) for m in mag_ids]
+    links += [("effects", "Effects"), ("diagnosis", "Diagnosis"), ("warnings", "Warnings"),
+              ("provenance", "Provenance")]
+    nav = "".join(f"<a href='#{escape(a)}'>{escape(t)}</a>" for a, t in links)
+    return ("<!doctype html>\n<html lang='en'><head><meta charset='utf-8'>"
+            "<meta name='viewport' content='width=device-width,initial-scale=1'>"
+            f"<title>magcal report: {escape(name)}</title><style>{CSS}</style></head><body><main>"
+            f"<header><h1>Magnetometer calibration: {escape(name)}</h1><p>magcal {escape(cal.magcal_version)}, "
+            f"{escape(cal.created_utc)}, method {escape(cal.method)}</p></header><nav>{nav}</nav>"
+            + "\n".join(sections) + "</main></body></html>\n")
+
+
+class HtmlReport:
+    """report.html: the report with its plots in one self-contained file."""
+
+    name: ClassVar[str] = "plots"
+    files: ClassVar[tuple[str, ...]] = ("report.html",)
+
+    def write(self, result: RunResult, outdir: Path) -> list[Path]:
+        """Render the plots and write the HTML report."""
+        return [write_text(outdir / self.files[0], render_html(result))]

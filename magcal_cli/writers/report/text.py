@@ -1,0 +1,179 @@
+"""report.txt: what was found, how good it is, what to do next — for people."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from magcal_cli import so3, units
+from magcal_cli.atomic import write_text
+from magcal_cli.calibration.types import MagCalibration
+from magcal_cli.effects.correct import terms
+from magcal_cli.findings import Severity
+from magcal_cli.timing import sentence
+
+if TYPE_CHECKING:
+    from magcal_cli.pipeline import RunResult
+
+METHOD_NAMES = {
+    "kok2012": "Kok et al. 2012 (ellipsoid fit, alignment with the accelerometer's vertical, maximum likelihood)",
+    "map": "Huang et al. 2025 joint MAP (trajectory, accelerometer and gyro biases, D, o, dip; gyro preintegration)",
+    "ekf-ml": "Kok & Schoen 2016 (EKF innovation likelihood maximised over the calibration and noise levels)",
+    "ekf-aug": "Wu et al. 2018 (one pass of an EKF with orientation and calibration in the state)",
+}
+#: the unit a report shows a native unit in (tesla is unreadable at Earth-field scale)
+DISPLAY = {"tesla": ("microtesla", "uT"), "millitesla": ("microtesla", "uT"), "microtesla": ("microtesla", "uT"),
+           "nanotesla": ("microtesla", "uT"), "gauss": ("milligauss", "mG"), "milligauss": ("milligauss", "mG")}
+
+
+def vec(v: npt.ArrayLike, fmt: str = "{:+.3f}") -> str:
+    return "[" + ", ".join(fmt.format(x) for x in np.ravel(v)) + "]"
+
+
+def _mat(m: npt.ArrayLike, indent: int, fmt: str = "{:+.4f}") -> str:
+    rows = [vec(r, fmt) for r in np.asarray(m)]
+    return ("\n" + " " * indent).join(rows)
+
+
+def advice(mag: MagCalibration, misalign_deg: float, norm_before: float,
+           carried: tuple[str, ...] = ()) -> list[str]:
+    """Next steps for one magnetometer, from its quality numbers; `carried`: the ids of the magnetometer effects
+    its calibration carries (they are removed before A is applied)."""
+    q, out = mag.quality, []
+    if q is not None and q.coverage_pct < 30.0:
+        out.append("Coverage is low: record again, rolling and pitching the vehicle through all orientations.")
+    if q is not None and q.field_norm_rms_pct > 1.0:
+        out.append("The calibrated field strength still varies by more than 1 %: something the model leaves out "
+                   "(motor current, a nearby moving magnet, a time offset) disturbs this magnetometer.")
+    if misalign_deg > 10.0:
+        out.append(f"The magnetometer is rotated {misalign_deg:.0f} deg from the IMU: check the mounting and the "
+                   "orientation parameter of an external compass.")
+    if norm_before > 5.0:
+        out.append("The raw readings deviate strongly from a sphere; use this calibration (A, b) rather than "
+                   "offsets only.")
+    then = (f" after correcting the readings for {', '.join(carried)} (calibration.json: effects[] of {mag.id}; "
+            "`magcal apply` does both)" if carried else "")
+    out.append(f"Apply m_b = A (y - b) to raw readings (calibration.json: magnetometers[].A, .b){then}; the result "
+               "is a unit vector in the IMU body frame.")
+    return out
+
+
+def render(result: RunResult) -> str:
+    """The whole text report."""
+    cal = result.calibration
+    src = cal.source
+    lines = [f"magcal {cal.magcal_version} calibration report ({cal.created_utc})", "",
+             f"Log:     {src.path} ({src.format}, {src.end_s - src.start_s:.1f} s used, sha256 {src.sha256[:12]})",
+             f"Method:  {METHOD_NAMES.get(cal.method, cal.method)}"]
+    if src.timing:
+        lines.append(f"Timing:  {sentence(src.timing)}")
+    if cal.diagnosis:
+        lines += ["", "What the recording says"]
+        for block in cal.diagnosis.get("sensors", [cal.diagnosis]):
+            lines += textwrap.wrap(str(block.get("summary", "")), 100, initial_indent="  ", subsequent_indent="  ")
+    still = result.still
+    still_s = sum(s.end - s.start for s in still.segments)
+    imu = cal.imu
+    lines += [f"IMU:     {imu.id}: {len(still.segments)} still segments ({still_s:.1f} s); noise per sample "
+              f"accel {vec(still.acc_noise, '{:.3g}')} m/s^2, gyro {vec(still.gyr_noise, '{:.3g}')} rad/s"]
+    if imu.gyroscope_bias is not None:
+        std = imu.gyroscope_bias_std if imu.gyroscope_bias_std is not None else np.full(3, np.nan)
+        lines.append(f"         gyroscope bias {vec(imu.gyroscope_bias, '{:+.5f}')} +- {vec(std, '{:.5f}')} rad/s")
+    if imu.accelerometer_bias is not None:
+        std = imu.accelerometer_bias_std if imu.accelerometer_bias_std is not None else np.full(3, np.nan)
+        lines.append(f"         accelerometer bias {vec(imu.accelerometer_bias)} +- {vec(std)} m/s^2")
+    else:
+        lines.append(f"         accelerometer bias: not estimated by {cal.method}")
+    for mag in cal.magnetometers:
+        lines += [""] + _render_mag(mag, result)
+    if cal.effects:
+        lines += ["", "Effects beyond the base model"] + [_render_effect(e) for e in cal.effects]
+    notes = [f for f in result.findings if f.severity is Severity.WARNING] + \
+            [f for f in result.findings if f.severity is Severity.INFO]
+    if notes:
+        lines += ["", "Notes"] + [f"  - [{f.severity.value}] {f.message}" for f in notes]
+    return "\n".join(lines) + "\n"
+
+
+def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
+    """The section of one magnetometer."""
+    unit, sym = DISPLAY.get(mag.unit, (mag.unit, mag.unit))
+    f = units.to_si(mag.unit) * units.from_si(unit)
+    u = mag.misalignment
+    misalign = float(np.rad2deg(so3.angle(u)))
+    w_sd = float(np.rad2deg(np.sqrt(max(np.trace(mag.misalignment_cov()), 0.0))))
+    series = result.series.get(mag.id)
+    before = float("nan")
+    if series is not None:
+        r = np.linalg.norm(series.raw, axis=1)
+        before = float(100.0 * np.std(r) / np.mean(r))
+    q = mag.quality
+    lines = [f"Magnetometer {mag.id} (log unit: {mag.unit})", "  What was found",
+             f"    hard iron b        {vec(mag.o * f)} +- {vec(mag.std_of('o') * f, '{:.3f}')} {sym}",
+             f"    field strength     {mag.field_strength * f:.3f} {sym} (source: {mag.field_strength_source})",
+             f"    dip                {mag.dip_deg:.2f} +- {float(mag.std_of('dip')):.2f} deg",
+             f"    misalignment       {misalign:.2f} +- {w_sd:.2f} deg to the IMU axes "
+             f"(roll, pitch, yaw {vec(np.rad2deg(so3.as_rpy(u)), '{:+.2f}')} deg)",
+             f"    soft iron P/|F|    {_mat(mag.soft_iron, 23)}",
+             f"    A = D^-1 [1/{sym}]".ljust(23) + _mat(mag.A / f, 23, "{:+.6f}")]
+    if mag.held:
+        lines += textwrap.wrap(held_sentence(mag), 100, initial_indent="    ", subsequent_indent="    ")
+    if q is not None:
+        lines += ["  How good",
+                  f"    field-norm spread  raw |y| {before:.2f} % RMS -> calibrated "
+                  f"{q.field_norm_rms_pct:.3f} % RMS over {q.samples} readings",
+                  f"    model residual     {q.residual_rms * units.to_si(mag.unit) * units.from_si(unit):.4f} {sym} RMS",
+                  f"    coverage           {q.coverage_pct:.0f} % of the sphere of field directions",
+                  f"    solver             {'converged' if q.converged else 'NOT converged'} "
+                  f"after {q.iterations} iterations"]
+    carried = tuple(eff.id for _, eff in terms(result.calibration.effects, mag.id))
+    lines += ["  What to do next"] + [f"    - {a}" for a in advice(mag, misalign, before, carried)]
+    return lines
+
+
+def held_sentence(mag: MagCalibration) -> str:
+    """One sentence on a partial calibration: what was held, at what, and why."""
+    names = ", ".join(str(h["parameter"]) for h in mag.held)
+    sources = "; ".join(sorted({str(h["source"]) for h in mag.held}))
+    return (f"Partial calibration: this log's motion cannot determine {names}, so they are held at {sources} "
+            "(their std is that prior's doubt) and the rest is estimated from the data; a recording with more "
+            "tilt in every direction would determine them too.")
+
+
+class TextReport:
+    """report.txt."""
+
+    name: ClassVar[str] = "report"
+    files: ClassVar[tuple[str, ...]] = ("report.txt",)
+
+    def write(self, result: RunResult, outdir: Path) -> list[Path]:
+        """Write the text report."""
+        return [write_text(outdir / self.files[0], render(result))]
+
+
+def fmt_param(value: Any, std: Any) -> str:
+    """'v +- s' for a number or a vector (std may be missing)."""
+    if isinstance(value, list) and value and not isinstance(value[0], list):
+        s = std if isinstance(std, list) else [float("nan")] * len(value)
+        return "[" + ", ".join(f"{v:.4g} +- {e:.2g}" for v, e in zip(value, s, strict=False)) + "]"
+    if isinstance(value, (int, float)):
+        return f"{value:.4g}" + (f" +- {std:.2g}" if isinstance(std, (int, float)) else "")
+    return str(value)
+
+
+def _render_effect(e: dict[str, Any]) -> str:
+    """One line per effect: id, sensor, status, parameters with std and units, test, the physics sentence."""
+    params = e.get("params") or {}
+    std = e.get("std") or {}
+    units_of = e.get("units") or {}
+    parts = [f"{k} = {fmt_param(v, std.get(k))} {units_of.get(k, '')}".rstrip() for k, v in params.items()]
+    test = e.get("test") or {}
+    p = test.get("p_value")
+    kind = {"wald": "Wald", "score": "score test"}.get(str(test.get("kind")), str(test.get("kind")))
+    tail = f"; {kind} p = {p:.2g}" if isinstance(p, float) and np.isfinite(p) else ""
+    what = "; ".join(parts) if parts else e.get("reason", "")
+    return f"  - {e.get('id')} ({e.get('sensor')}): {e.get('status')}{tail}. {what}\n    {e.get('physics_left_out')}"
