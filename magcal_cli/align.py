@@ -29,7 +29,13 @@ def interpolate(stream: Stream, t: npt.ArrayLike) -> FloatArray:
         raise StreamError(msg)
     if stream.kind is Kind.ATTITUDE:
         return _slerp(stream, t)
-    return np.stack([np.interp(t, stream.t, stream.values[:, i]) for i in range(stream.values.shape[1])], axis=1)
+    return columns(t, stream.t, stream.values)
+
+
+def columns(t: npt.ArrayLike, ts: npt.ArrayLike, values: FloatArray, left: float | None = None,
+            right: float | None = None) -> FloatArray:
+    """Each column of `values` (sampled at `ts`) linearly interpolated at `t`: the one per-column `np.interp`."""
+    return np.stack([np.interp(t, ts, values[:, i], left=left, right=right) for i in range(values.shape[1])], axis=1)
 
 
 def _slerp(stream: Stream, t: FloatArray) -> FloatArray:
