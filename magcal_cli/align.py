@@ -7,9 +7,8 @@ import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.errors import StreamError
-from magcal_cli.streams import Kind, Stream
+from magcal_cli.streams import FloatArray, Kind, Stream
 
-FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 
@@ -32,7 +31,7 @@ def interpolate(stream: Stream, t: npt.ArrayLike) -> FloatArray:
     return columns(t, stream.t, stream.values)
 
 
-def columns(t: npt.ArrayLike, ts: npt.ArrayLike, values: FloatArray, left: float | None = None,
+def columns(t: FloatArray, ts: FloatArray, values: FloatArray, left: float | None = None,
             right: float | None = None) -> FloatArray:
     """Each column of `values` (sampled at `ts`) linearly interpolated at `t`: the one per-column `np.interp`."""
     return np.stack([np.interp(t, ts, values[:, i], left=left, right=right) for i in range(values.shape[1])], axis=1)

@@ -15,9 +15,7 @@ from scipy import stats
 from magcal_cli.config import StillConfig
 from magcal_cli.errors import InsufficientDataError, StreamError
 from magcal_cli.models.accel import G
-from magcal_cli.streams import Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Stream
 
 
 @dataclass(frozen=True, eq=False)

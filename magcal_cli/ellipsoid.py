@@ -8,8 +8,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli.errors import InsufficientDataError
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 
 class Ellipsoid(NamedTuple):

@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
+
 IntArray = npt.NDArray[np.int64]
 
 SI_SCALES = ("field", "angle", "none")

@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import __version__, timing, units
 from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Quality, Source
@@ -36,10 +35,9 @@ from magcal_cli.progress import Hook, active, current
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.readers.checks import normalised_field
 from magcal_cli.registry import resolve
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import FloatArray, Kind, Recording, Stream
 from magcal_cli.wmm import ReferenceField, reference_for
 
-FloatArray = npt.NDArray[np.float64]
 Progress = Hook
 MethodRun = Callable[[Problem, Config], MethodResult]
 

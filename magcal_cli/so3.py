@@ -11,7 +11,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: below this angle (rad) the closed forms lose precision and the Taylor series (to theta^4) is exact
 #: to double precision: the first neglected term is ~theta^6/5040 < 1e-22.

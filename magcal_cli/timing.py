@@ -16,12 +16,8 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-import numpy.typing as npt
 
-from magcal_cli.streams import Kind, Sampling, Stream
-
-FloatArray = npt.NDArray[np.float64]
-
+from magcal_cli.streams import FloatArray, Kind, Sampling, Stream
 
 #: the names of the choices, for options and messages
 CHOICES = tuple(s.value for s in Sampling)

@@ -14,8 +14,7 @@ import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.params import MAG
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: the layout of `MagCalibration.cov`: vec(D) column-major, o (both in the magnetometer unit), dip in degrees
 MAG_PARAMS = MAG

@@ -26,9 +26,7 @@ from magcal_cli.models.map.fit import FitContext, MapEstimate, point_at
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.solve import Factor, Options, solve
 from magcal_cli.progress import Hook, current
-from magcal_cli.streams import Kind, Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 REPLICATES = 19
 #: windows (s) of the windowed NIS that locates mismatches in time, and the z that flags one

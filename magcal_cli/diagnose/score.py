@@ -36,9 +36,8 @@ from magcal_cli.models.sandwich import (
 )
 from magcal_cli.models.solve import Options, Solution, solve
 from magcal_cli.params import Layout
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: length (s) of the blocks whose summed scores are treated as one observation of the robust variance

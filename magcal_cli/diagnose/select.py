@@ -21,7 +21,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import effects as registry
 from magcal_cli.diagnose.score import Score, Screen, screen
@@ -33,9 +32,7 @@ from magcal_cli.models.map.fit import MapEstimate, fit_map, point_at
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
 from magcal_cli.progress import Hook, current
-from magcal_cli.streams import Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Stream
 
 FAMILY_ALPHA = 0.05
 #: Wald p-value an effect must keep given the others (backward check)

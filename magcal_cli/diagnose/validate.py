@@ -14,7 +14,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli.diagnose.parallel import pmap
 from magcal_cli.errors import InsufficientDataError
@@ -23,9 +22,7 @@ from magcal_cli.models.map.fit import FitContext, MapEstimate, fit_map
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.solve import Factor, Linearize, Options, solve
 from magcal_cli.progress import Hook, current
-from magcal_cli.streams import Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Stream
 
 #: shortest held-out block (s): long against the residuals' memory, short against gyro drift in the block
 BLOCK_S = 10.0

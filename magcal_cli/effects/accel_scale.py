@@ -7,9 +7,9 @@ from typing import ClassVar
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, Point, Target, Term
+from magcal_cli.effects.base import Effect, Inputs, Kinematics, Point, Target, Term
 from magcal_cli.params import XYZ, ParamBlock
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
 
 class AccelScale(Effect):

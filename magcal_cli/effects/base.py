@@ -15,9 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli.params import ParamBlock
-from magcal_cli.streams import Kind, Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 
 class Target(Enum):

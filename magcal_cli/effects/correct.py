@@ -13,13 +13,10 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli.effects import EFFECTS, get
 from magcal_cli.effects.base import Effect, Target
-from magcal_cli.streams import Kind, Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 #: the statuses whose fitted entries are part of the calibration
 MODELLED = ("accepted", "ambiguous")

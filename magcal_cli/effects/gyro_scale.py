@@ -11,9 +11,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
 from magcal_cli.params import XYZ, ParamBlock
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
 #: the rate must vary on every axis by at least this (rad/s, std): at a constant rate a scale is a bias
 MIN_RATE_STD = 0.05

@@ -8,10 +8,10 @@ from typing import ClassVar
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
 from magcal_cli.effects.nongravity import flying
 from magcal_cli.params import XYZ, ParamBlock
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
 #: the kinematic regressors must reach this RMS (1/s^2) for a lever arm of a few cm to show
 MIN_EXCITATION = 0.2

@@ -20,7 +20,6 @@ from scipy.signal import savgol_filter
 from magcal_cli import so3
 from magcal_cli.effects.base import (
     Effect,
-    FloatArray,
     Inputs,
     Kinematics,
     NotTestable,
@@ -30,7 +29,7 @@ from magcal_cli.effects.base import (
     pick,
 )
 from magcal_cli.params import ParamBlock
-from magcal_cli.streams import Kind, Stream
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 #: WGS84 semi-major axis (m) and first eccentricity squared (meridian and prime-vertical radii at the log's latitude)
 WGS84_A, WGS84_E2 = 6378137.0, 6.69437999014e-3

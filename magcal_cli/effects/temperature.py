@@ -8,7 +8,6 @@ import numpy as np
 
 from magcal_cli.effects.base import (
     Effect,
-    FloatArray,
     Inputs,
     Kinematics,
     NotTestable,
@@ -19,7 +18,7 @@ from magcal_cli.effects.base import (
     resample,
 )
 from magcal_cli.params import XYZ, ParamBlock
-from magcal_cli.streams import Kind, Stream
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 #: a span below this (degC) cannot separate a slope from the offset
 MIN_SPAN_C = 2.0

@@ -8,7 +8,6 @@ import numpy as np
 
 from magcal_cli.effects.base import (
     Effect,
-    FloatArray,
     Inputs,
     Kinematics,
     NotTestable,
@@ -19,7 +18,7 @@ from magcal_cli.effects.base import (
     resample,
 )
 from magcal_cli.params import XYZ, ParamBlock
-from magcal_cli.streams import Kind, Stream
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 #: below this spread (std of u) throttle never changes enough to be told from hard iron
 MIN_SPREAD = 0.01

@@ -14,9 +14,9 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3
-from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
 from magcal_cli.params import ParamBlock
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
 #: the rotation rate must change by at least this (rad/s, std of |omega|): a constant rate about a fixed axis
 #: turns a delay into a constant rotation that D absorbs

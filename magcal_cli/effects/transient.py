@@ -15,9 +15,9 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from magcal_cli.detect import padded_runs
-from magcal_cli.effects.base import Effect, FloatArray, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
 from magcal_cli.errors import MagcalError
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
 SMOOTH_S = 0.5
 K_MAD = 6.0

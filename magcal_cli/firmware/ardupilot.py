@@ -13,7 +13,6 @@ import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.calibration.types import Calibration, MagCalibration
@@ -33,8 +32,7 @@ from magcal_cli.firmware.export import (
 )
 from magcal_cli.firmware.split import choose_rotation, split_rotation_first
 from magcal_cli.readers.dataflash.compass import param_suffix
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 UNIT = "milligauss"
 SUFFIXES = ("", "2", "3")

@@ -27,9 +27,8 @@ from magcal_cli.firmware import FirmwareError, gates
 from magcal_cli.firmware.export import Options, export
 from magcal_cli.firmware.flown import Flown, flown_fields, levelling, signal_at, slow
 from magcal_cli.firmware.residual import MIN_SAMPLES, fit_residual
-from magcal_cli.streams import Kind, Recording
+from magcal_cli.streams import FloatArray, Kind, Recording
 
-FloatArray = npt.NDArray[np.float64]
 Progress = Callable[[str], None]
 
 #: metric -> meaning, for --fail-on and the documentation

@@ -12,14 +12,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import units
 from magcal_cli.calibration.types import Calibration, MagCalibration
 from magcal_cli.errors import StreamError
 from magcal_cli.firmware import FirmwareError
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 
 def kind_of(effect_id: str) -> str | None:
     """The signal ("current", "throttle") the firmware's compensation multiplies for this effect, from its

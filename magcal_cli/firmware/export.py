@@ -13,14 +13,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import units
 from magcal_cli.calibration.types import Calibration, MagCalibration
 from magcal_cli.firmware import FirmwareError, FirmwareLimitError, NotExportableError
 from magcal_cli.firmware.split import Split
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 
 @dataclass(frozen=True)

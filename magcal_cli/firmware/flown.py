@@ -21,9 +21,8 @@ from magcal_cli.align import onto
 from magcal_cli.calibration.types import Calibration
 from magcal_cli.firmware import FirmwareError, ardupilot, px4
 from magcal_cli.firmware.effects import carried
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import FloatArray, Kind, Recording, Stream
 
-FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.calibration.types import Calibration, MagCalibration
@@ -13,12 +12,11 @@ from magcal_cli.errors import MagcalError
 from magcal_cli.firmware.effects import carried, tested
 from magcal_cli.firmware.split import HEADINGS_DEG
 from magcal_cli.params import MAG
-from magcal_cli.streams import Kind
+from magcal_cli.streams import FloatArray, Kind
 
 if TYPE_CHECKING:
     from magcal_cli.pipeline import RunResult
 
-FloatArray = npt.NDArray[np.float64]
 
 #: the heading depends on D and o (not the dip): their joint covariance, in this order
 _D_O = MAG.sub(("D", "o"))

@@ -13,7 +13,6 @@ import re
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.calibration.types import Calibration, MagCalibration
@@ -32,8 +31,7 @@ from magcal_cli.firmware.export import (
     soft_range,
 )
 from magcal_cli.firmware.split import choose_rotation, split_symmetric_first
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 UNIT = "gauss"
 SLOTS = range(4)

@@ -26,8 +26,7 @@ from magcal_cli.errors import InsufficientDataError
 from magcal_cli.firmware.split import heading_error_deg
 from magcal_cli.models.sandwich import newey_west, std_factors, time_clusters
 from magcal_cli.params import XYZ, Layout, ParamBlock
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: weak priors (field-strength units, rad) that keep directions the flight leaves unobserved finite
 PRIOR_S, PRIOR_C0, PRIOR_Q = 0.3, 1.0, 0.2

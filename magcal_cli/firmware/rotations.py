@@ -14,8 +14,7 @@ import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.firmware import FirmwareError
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: (roll, pitch, yaw) in degrees of the ids 0..37 and 39..40, identical in ArduPilot rotations.h and PX4
 #: rotation.h (firmware-export.md section 1 table, [S9][S19]); 38 is per firmware below

@@ -18,8 +18,7 @@ import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.firmware import rotations
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: headings (deg) at which the heading error of a level vehicle is evaluated
 HEADINGS_DEG = np.arange(0.0, 360.0, 1.0)

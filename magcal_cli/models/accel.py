@@ -7,8 +7,8 @@ import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.models.solve import Factor
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: standard gravity, m/s^2 (NED: g_n = [0, 0, G]); the specific force at rest is -R^T g_n (points up)

@@ -27,10 +27,8 @@ from magcal_cli.models.partial import MagPrior, sphere_prior
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit, HeldEntry, MagFit, MethodResult
 from magcal_cli.params import MAG, Estimate, Layout
-from magcal_cli.streams import Kind, Stream
+from magcal_cli.streams import FloatArray, Kind, Stream
 from magcal_cli.wmm import ReferenceField, reference_for
-
-FloatArray = npt.NDArray[np.float64]
 
 #: attitude streams whose nav frame is NED with x to true north (ArduPilot, PX4); a mocap or ROS frame is not
 NED_ATTITUDES = ("ATT", "vehicle_attitude", "AHR2")

@@ -16,13 +16,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli.findings import Finding, Severity
 from magcal_cli.models.result import MagFit
-from magcal_cli.streams import Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Stream
 
 #: a magnetometer is the outlier when even its closest partner disagrees by more than this (deg / % RMS) ...
 OUTLIER_MIN_DEG = 2.0

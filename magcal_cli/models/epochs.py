@@ -12,9 +12,7 @@ from magcal_cli.align import interpolate
 from magcal_cli.detect import pooled_std
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models.problem import Problem
-from magcal_cli.streams import Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Stream
 
 #: at most this many epochs per magnetometer, at most this epoch rate (else every k-th reading is used)
 MAX_EPOCHS = 60_000

@@ -22,11 +22,11 @@ from magcal_cli import so3
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models import stacks
 from magcal_cli.models.solve import Factor
+from magcal_cli.streams import FloatArray
 
 if TYPE_CHECKING:
     from magcal_cli.models.problem import Problem
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 

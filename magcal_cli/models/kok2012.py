@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.align import interpolate
@@ -26,9 +25,8 @@ from magcal_cli.models.result import ImuFit, MagFit, MethodResult
 from magcal_cli.models.sandwich import cluster_robust_cov, time_clusters
 from magcal_cli.models.solve import Factor, Linearize, Options, Solution, solve
 from magcal_cli.params import MAG
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
-FloatArray = npt.NDArray[np.float64]
 #: theta = (vec D column-major, o, dip): `params.MAG`, the calibration document's covariance order
 LAYOUT = MagLayout(*(MAG.slice(n).start for n in MAG.names))
 #: verticals all within this angle (deg, 95th percentile) of their mean: level or yaw-only motion, refused

@@ -9,8 +9,8 @@ import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.models.solve import Factor, diagonal_of
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 

@@ -15,8 +15,8 @@ import numpy.typing as npt
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.findings import Finding, Severity
 from magcal_cli.params import BASE
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: names of the entries of theta

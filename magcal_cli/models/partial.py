@@ -24,8 +24,8 @@ from magcal_cli import so3
 from magcal_cli.models.map.init import despike
 from magcal_cli.models.solve import Factor, gaussian_factor
 from magcal_cli.params import BASE, Layout
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: how far a prior may be off, relative to the field: the vehicle's own calibration, or a sphere fit

@@ -5,14 +5,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-import numpy as np
-import numpy.typing as npt
-
 from magcal_cli.detect import StillResult
 from magcal_cli.models.partial import MagPrior
-from magcal_cli.streams import Kind, Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,8 +15,8 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli.models.solve import Factor, Solution, run_start
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 

@@ -22,8 +22,8 @@ from threadpoolctl import ThreadpoolController
 
 from magcal_cli import so3
 from magcal_cli.models import stacks
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 #: the system a Levenberg-Marquardt step solves (`iterate`)
 S = TypeVar("S")

@@ -9,11 +9,9 @@ scalar coefficients).
 from __future__ import annotations
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 
 def cm(x: FloatArray) -> FloatArray:

@@ -12,15 +12,12 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.align import clean_time
 from magcal_cli.errors import LogReadError, UnsupportedFormatError
 from magcal_cli.readers import ReadOptions
 from magcal_cli.streams import Kind, Recording, Sampling, Stream
-
-FloatArray = npt.NDArray[np.float64]
 
 REQUIRED = ("imu_acc", "imu_gyr", "imu_mag")
 #: ENU -> NED: swap x and y, flip z

@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from magcal_cli.streams import Kind
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Kind
 
 #: relative spread of |m| below which the field was normalised upstream; real sensors show >= 0.1 % noise
 NORMALISED_SPREAD = 1e-4

@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import IO, ClassVar
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import units
 from magcal_cli.align import clean_time
@@ -22,9 +21,7 @@ from magcal_cli.progress import active, current, within
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.checks import drop_held, normalised_field, normalised_note, sensor_checks
 from magcal_cli.readers.cut import mark_cut, refuse_if_strict
-from magcal_cli.streams import Cut, Kind, Recording, Sampling, Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import Cut, FloatArray, Kind, Recording, Sampling, Stream
 
 #: family -> name prefixes of its x/y/z columns (compared without case, spaces or punctuation)
 AXIS_PREFIXES: dict[str, tuple[str, ...]] = {

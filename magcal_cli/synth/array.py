@@ -13,12 +13,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-import numpy.typing as npt
 
-from magcal_cli.streams import Kind, Recording, Sampling
+from magcal_cli.streams import FloatArray, Kind, Recording, Sampling
 from magcal_cli.synth.simulate import Truth, at_home, draw_truth, simulate
-
-FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)

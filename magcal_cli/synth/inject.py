@@ -19,12 +19,11 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3, units
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import FloatArray, Kind, Recording, Stream
 from magcal_cli.synth import physics as phys
 from magcal_cli.synth.effects import EFFECTS, EffectSpec, check_unique
 from magcal_cli.synth.motion import Motion, Trajectory
 
-FloatArray = npt.NDArray[np.float64]
 #: an additive magnetometer term (M, 3) tesla as a function of the sensing time (s)
 Term = Callable[[FloatArray], FloatArray]
 

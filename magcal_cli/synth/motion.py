@@ -15,8 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: fine-grid knots per IMU period: the truth is generated at ten times the rate it is sampled at
 OVERSAMPLE = 10

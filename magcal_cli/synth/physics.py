@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: WGS84 semi-major axis (m) and first eccentricity squared
 WGS84_A, WGS84_E2 = 6378137.0, 6.69437999014e-3

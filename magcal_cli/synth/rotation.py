@@ -7,13 +7,11 @@ OVERSAMPLE times the IMU rate; the sensors sample it later (synth_sampling.py).
 from __future__ import annotations
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
+from magcal_cli.streams import FloatArray
 from magcal_cli.synth.motion import OVERSAMPLE, Trajectory, fine_times, smooth
 from magcal_cli.synth.scenarios import Scenario, min_jerk
-
-FloatArray = npt.NDArray[np.float64]
 
 #: a level ROS (FLU) body in NED: x north, y west, z up
 FLU_LEVEL = np.diag([1.0, -1.0, -1.0])

@@ -15,13 +15,10 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli.errors import MagcalError
-from magcal_cli.streams import Sampling
+from magcal_cli.streams import FloatArray, Sampling
 from magcal_cli.synth.motion import OVERSAMPLE
-
-FloatArray = npt.NDArray[np.float64]
 
 #: a real board stamps its magnetometer up to this long (s) after the IMU; the default phase is drawn below it
 MAX_PHASE_S = 0.005

@@ -21,9 +21,9 @@ import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.models.accel import G
+from magcal_cli.streams import FloatArray
 from magcal_cli.synth.motion import OVERSAMPLE, Motion, Trajectory, fine_times, smooth
 
-FloatArray = npt.NDArray[np.float64]
 Intervals = tuple[tuple[float, float], ...]
 
 #: shortest durations (s) the phases fit in: ground, take-off, flight, landing, ground; park, drive, park

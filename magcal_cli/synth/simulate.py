@@ -23,14 +23,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import units
 from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.errors import MagcalError
 from magcal_cli.models.accel import G
 from magcal_cli.params import MAG
-from magcal_cli.streams import Kind, Recording, Sampling, Stream
+from magcal_cli.streams import FloatArray, Kind, Recording, Sampling, Stream
 from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.firmware import PreviousCalibration
 from magcal_cli.synth.inject import Base, InjectedEffect, inject, truth_entry
@@ -61,8 +60,6 @@ from magcal_cli.synth.truth import at_home as at_home
 from magcal_cli.synth.truth import draw_truth as draw_truth
 from magcal_cli.synth.truth import more_mags
 from magcal_cli.synth.vibration import SPIN_S, imu_std, levels, motor_weight, motors_of
-
-FloatArray = npt.NDArray[np.float64]
 
 SCENARIOS = ("paper", "handheld", "multirotor", "rover")
 #: default IMU and magnetometer rates (Hz) per scenario; the vehicles log like handheld so 5 minutes stay small

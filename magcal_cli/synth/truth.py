@@ -10,13 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import so3
 from magcal_cli.params import BASE
-from magcal_cli.streams import Kind, Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Kind, Stream
 
 #: noise densities of methods.md section 5: accelerometer m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), field T/sqrt(Hz)
 NOISE_DENSITY = {"accelerometer": 0.02, "gyroscope": 8.7e-4, "magnetometer": 0.003e-6}

@@ -13,9 +13,9 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli.errors import MagcalError
+from magcal_cli.streams import FloatArray
 from magcal_cli.synth.physics import window
 
-FloatArray = npt.NDArray[np.float64]
 Intervals = tuple[tuple[float, float], ...]
 
 #: per-sample noise std at noise_scale 1, motors off and running: gyro rad/s, accelerometer m/s^2

@@ -28,8 +28,7 @@ from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import MethodResult
 from magcal_cli.params import BASE, Layout, ParamBlock
 from magcal_cli.progress import Hook, current, noop
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: the filter's error state: the orientation error phi (R = R_hat Exp(phi)), then theta in BASE order
 STATE = Layout((ParamBlock("orientation_error", 3, labels=("x", "y", "z")), *BASE.blocks))

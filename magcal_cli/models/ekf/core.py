@@ -33,9 +33,8 @@ from magcal_cli.models.observability import check_observability
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit, ImuFit, MagFit, MethodResult
 from magcal_cli.params import BASE, MAG
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
-FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 #: calibration parameters theta = (b_a, b_g, vec D column-major, o, dip) in `params.BASE` order, total gyro bias

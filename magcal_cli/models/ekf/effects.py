@@ -23,11 +23,11 @@ from magcal_cli.models.map.effects import Bound, bind, results
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
 from magcal_cli.params import BASE, Layout
+from magcal_cli.streams import FloatArray
 
 if TYPE_CHECKING:
     from magcal_cli.models.ekf.core import Prepared
 
-FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
 

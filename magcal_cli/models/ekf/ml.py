@@ -34,8 +34,7 @@ from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import MethodResult
 from magcal_cli.params import BASE, ParamBlock
 from magcal_cli.progress import Hook, current, noop
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: log variance factors of the accelerometer, gyro and magnetometer noise follow theta; effect parameters follow
 #: them (from column P on)

@@ -23,9 +23,8 @@ from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
 from magcal_cli.models.solve import Factor, gaussian_factor, run_start, whiten
 from magcal_cli.params import ACCEL_BIAS, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Estimate, Layout, ParamBlock
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: an effect whose Wald test of "zero" has a p-value below this is `accepted` (significant), else `rejected`

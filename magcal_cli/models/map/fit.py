@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import numpy.typing as npt
 from scipy import stats
 
 from magcal_cli import so3
@@ -57,9 +56,7 @@ from magcal_cli.models.solve import (
 )
 from magcal_cli.params import BASE, Layout
 from magcal_cli.progress import current
-from magcal_cli.streams import Stream
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray, Stream
 
 #: theta layout: accelerometer bias, gyro bias correction, then D (column-major), o, dip
 #: rounds of (solve, re-estimate the noise levels); stop when no level changes by more than NOISE_TOL

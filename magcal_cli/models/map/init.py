@@ -19,8 +19,7 @@ from magcal_cli.ellipsoid import fit_ellipsoid
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models.accel import UP_N
 from magcal_cli.models.mag import field_nav
-
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: Wu & Luo integrate the kinematics over short windows (the authors' `alignment_interval`, s)
 ALIGNMENT_WINDOW_S = 0.5

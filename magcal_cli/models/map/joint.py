@@ -56,9 +56,8 @@ from magcal_cli.models.result import MagFit
 from magcal_cli.models.solve import Factor, Options, one_blas_thread
 from magcal_cli.params import ACCEL_BIAS, BASE, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Layout
 from magcal_cli.progress import current
-from magcal_cli.streams import Stream
+from magcal_cli.streams import FloatArray, Stream
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: readings of different magnetometers closer than this share a state (fraction of the IMU period): an autopilot

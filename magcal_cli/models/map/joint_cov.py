@@ -17,8 +17,8 @@ from magcal_cli.models.map.fit import group_ratio
 from magcal_cli.models.map.joint_solve import JointData, JointSolution, _scale_rows, imu_factors
 from magcal_cli.models.sandwich import bartlett_dof, newey_west, time_clusters
 from magcal_cli.models.solve import Factor, _scatter
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 

@@ -32,8 +32,8 @@ from magcal_cli.models.gyro import Preintegrated, gyro_factor
 from magcal_cli.models.mag import MagLayout
 from magcal_cli.models.solve import Factor, Options, _band, iterate, selected_inverse
 from magcal_cli.params import MAG, Layout
+from magcal_cli.streams import FloatArray
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: where D, o and dip sit in a magnetometer's 13 columns (params.MAG: vec D column-major, o, dip)

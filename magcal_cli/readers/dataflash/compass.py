@@ -15,9 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
 
 #: COMPASS_MIN_SCALE_FACTOR / COMPASS_MAX_SCALE_FACTOR (CompassCalibrator.h); outside, SCALE is ignored
 SCALE_RANGE = (0.85, 1.4)

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-FloatArray = npt.NDArray[np.float64]
+from magcal_cli.streams import FloatArray
+
 IntArray = npt.NDArray[np.int64]
 
 HEAD1, HEAD2 = 0xA3, 0x95

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from magcal_cli.errors import LogReadError, StreamError
-from magcal_cli.readers.dataflash.format import FloatArray, RawLog, Table
+from magcal_cli.readers.dataflash.format import RawLog, Table
 from magcal_cli.readers.dataflash.streams import Clock, Pending, euler_quat, finish
-from magcal_cli.streams import Kind, Recording
+from magcal_cli.streams import FloatArray, Kind, Recording
 
 GAUSS_TO_T = 1e-4
 

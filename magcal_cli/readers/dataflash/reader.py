@@ -32,7 +32,7 @@ from magcal_cli.readers.dataflash.compass import (
     truncation_evidence,
     undo_correction,
 )
-from magcal_cli.readers.dataflash.format import FloatArray, MessageFormat, RawLog, Table
+from magcal_cli.readers.dataflash.format import MessageFormat, RawLog, Table
 from magcal_cli.readers.dataflash.streams import (
     Clock,
     Pending,
@@ -43,7 +43,7 @@ from magcal_cli.readers.dataflash.streams import (
     time_of,
 )
 from magcal_cli.readers.dataflash.text import looks_like_text, parse_text
-from magcal_cli.streams import Cut, Kind, Recording
+from magcal_cli.streams import Cut, FloatArray, Kind, Recording
 from magcal_cli.units import GPS_EPOCH_UNIX, GPS_LEAP_S, GPS_WEEK_S
 
 MAG_NAMES = ("MAG", "MAG2", "MAG3")

@@ -11,8 +11,8 @@ from magcal_cli import so3
 from magcal_cli.align import clean_time
 from magcal_cli.progress import current
 from magcal_cli.readers.checks import drop_held, sensor_checks
-from magcal_cli.readers.dataflash.format import FloatArray, IntArray, RawLog, Table
-from magcal_cli.streams import Kind, Recording, Sampling, Stream
+from magcal_cli.readers.dataflash.format import IntArray, RawLog, Table
+from magcal_cli.streams import FloatArray, Kind, Recording, Sampling, Stream
 
 
 class Clock:

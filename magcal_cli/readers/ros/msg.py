@@ -24,9 +24,8 @@ from magcal_cli.readers.checks import (
     normalised_note,
     sensor_checks,
 )
-from magcal_cli.streams import Kind, Recording, Sampling, Stream
+from magcal_cli.streams import FloatArray, Kind, Recording, Sampling, Stream
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 

@@ -21,9 +21,8 @@ from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.checks import normalised_field, normalised_note, sensor_checks
 from magcal_cli.readers.cut import mark_cut, refuse_if_strict
 from magcal_cli.readers.ulog.load import Loaded, load_ulog
-from magcal_cli.streams import Cut, Kind, Recording, Sampling, Stream
+from magcal_cli.streams import Cut, FloatArray, Kind, Recording, Sampling, Stream
 
-FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 #: the topics magcal reads; pyulog skips the others while parsing

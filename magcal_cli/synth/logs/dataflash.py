@@ -23,7 +23,7 @@ from magcal_cli.atomic import atomic_path
 from magcal_cli.errors import MagcalError
 from magcal_cli.readers.dataflash.compass import Correction, apply_correction, effective_scale, iron_matrix
 from magcal_cli.readers.dataflash.format import FMT_ID, FMT_LENGTH, FORMAT_CHARS, HEAD1, HEAD2, MessageFormat
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import FloatArray, Kind, Recording, Stream
 from magcal_cli.synth.firmware import MAX_COMPASSES, CompassParams
 from magcal_cli.synth.firmware import (
     PreviousCalibration as PreviousCalibration,  # re-exported: its home before the move
@@ -31,8 +31,6 @@ from magcal_cli.synth.firmware import (
 from magcal_cli.synth.physics import local
 from magcal_cli.synth.simulate import Simulation
 from magcal_cli.units import GPS_EPOCH_UNIX, GPS_LEAP_S, GPS_WEEK_S
-
-FloatArray = npt.NDArray[np.float64]
 
 BOOT_S = 30.0                    # the simulated log starts 30 s after boot, as real logs do
 UNITS = {"s": "s", "#": "instance", "G": "Gauss", "E": "rad/s", "o": "m/s/s", "O": "degC", "z": "Hz",

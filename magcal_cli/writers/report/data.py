@@ -6,7 +6,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import numpy.typing as npt
 
 from magcal_cli import units
 from magcal_cli.calibration.types import Calibration, MagCalibration
@@ -16,12 +15,11 @@ from magcal_cli.effects.correct import MODELLED, remove
 from magcal_cli.errors import MagcalError
 from magcal_cli.firmware.metrics import FIRMWARE_OF_FORMAT, heading_std_curve_deg
 from magcal_cli.firmware.split import HEADINGS_DEG, heading_errors_deg
-from magcal_cli.streams import Kind, Recording
+from magcal_cli.streams import FloatArray, Kind, Recording
 
 if TYPE_CHECKING:
     from magcal_cli.pipeline import RunResult
 
-FloatArray = npt.NDArray[np.float64]
 Window = tuple[float, float]
 
 #: readings whose specific force is further than this from g do not show the vertical (the vehicle accelerates)

@@ -23,8 +23,8 @@ from magcal_cli.effects.base import NotTestable, Target
 from magcal_cli.effects.correct import MODELLED
 from magcal_cli.errors import MagcalError
 from magcal_cli.registry import resolve
-from magcal_cli.streams import Kind, Stream
-from magcal_cli.writers.report.data import EffectView, FloatArray
+from magcal_cli.streams import FloatArray, Kind, Stream
+from magcal_cli.writers.report.data import EffectView
 
 if TYPE_CHECKING:
     from magcal_cli.pipeline import RunResult

@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from magcal_cli.writers.report.data import EffectView, FloatArray, HeadingView, MagView, thin
+from magcal_cli.streams import FloatArray
+from magcal_cli.writers.report.data import EffectView, HeadingView, MagView, thin
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
