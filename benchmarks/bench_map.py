@@ -28,9 +28,13 @@ sys.path.insert(0, str(ROOT))
 from magcal_cli import so3  # noqa: E402
 from magcal_cli.config import Config  # noqa: E402
 from magcal_cli.methods import map_run  # noqa: E402
+from magcal_cli.models.epochs import epochs_for, initial_noise  # noqa: E402
+from magcal_cli.models.factor import Factor  # noqa: E402
 from magcal_cli.models.map import fit as mapm  # noqa: E402
 from magcal_cli.models.map import init as map_init  # noqa: E402
-from magcal_cli.models.solve import Factor, Options, solve  # noqa: E402
+from magcal_cli.models.map.cost import make_linearize  # noqa: E402
+from magcal_cli.models.map.start import FitSettings, initial_state  # noqa: E402
+from magcal_cli.models.solve import Options, solve  # noqa: E402
 from magcal_cli.pipeline import select_problem  # noqa: E402
 from magcal_cli.synth.simulate import paper_trajectory, simulate  # noqa: E402
 from tests.models.mapsim import record  # noqa: E402
@@ -85,10 +89,10 @@ def scipy_comparison(problem) -> dict[str, float]:  # noqa: ANN001
     """magcal's solver and scipy's trf on the same fixed-noise problem from the same start."""
     mag = problem.mags[0]
     intr = map_init.intrinsic_fit(mag.xyz, "bench")
-    ep = mapm.epochs_for(problem, mag, intr.scale)
-    noise = mapm.initial_noise(problem, mag, intr.scale, intr.residual_rms)
-    states0, theta0, pre, _ = mapm._initial_state(problem, ep, intr, noise, None, {})
-    lin = mapm.make_linearize(ep, pre, noise)
+    ep = epochs_for(problem, mag, intr.scale)
+    noise = initial_noise(problem, mag, intr.scale, intr.residual_rms)
+    states0, theta0, pre, _ = initial_state(problem, ep, intr, noise, FitSettings(), {})
+    lin = make_linearize(ep, pre, noise)
     n, p = states0.shape[0], theta0.size
     t0 = time.perf_counter()
     sol = solve(lin, states0, theta0, Options(max_iterations=100))

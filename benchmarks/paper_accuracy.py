@@ -20,6 +20,7 @@ from scipy import stats
 
 from magcal_cli.config import Config
 from magcal_cli.models import kok2012
+from magcal_cli.models.epochs import Noise
 from magcal_cli.models.map import fit as mapm
 from magcal_cli.pipeline import select_problem
 from magcal_cli.synth.simulate import Simulation, simulate
@@ -64,7 +65,7 @@ def run_seed(seed: int, duration: float | None = None, rate: float | None = None
                                 np.zeros(3) if kok.imu.gyro_bias is None else kok.imu.gyro_bias,
                                 fit.D.ravel(order="F"), fit.o, [fit.dip]])
     sd = sim.truth.noise_std
-    noise = mapm.Noise(np.full(3, sd["accelerometer"]), np.full(3, sd["gyroscope"]),
+    noise = Noise(np.full(3, sd["accelerometer"]), np.full(3, sd["gyroscope"]),
                        np.full(3, sd["magnetometer"]))
     step = int(round(sim.recording.streams[0].rate_hz / mag.rate_hz))
     states = sim.rotations[::step][: est.epochs.size]

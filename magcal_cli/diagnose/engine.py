@@ -17,7 +17,8 @@ from magcal_cli import effects as registry
 from magcal_cli.diagnose import ppc
 from magcal_cli.diagnose.select import Selection, select
 from magcal_cli.diagnose.summary import paragraph
-from magcal_cli.models.map.fit import MapEstimate, fit_map
+from magcal_cli.models.map.estimate import MapEstimate
+from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.problem import Problem
 from magcal_cli.progress import Hook, current
 from magcal_cli.streams import Stream

@@ -22,9 +22,11 @@ from scipy import stats
 from magcal_cli import so3
 from magcal_cli.diagnose.parallel import pmap
 from magcal_cli.models.epochs import Epochs
-from magcal_cli.models.map.fit import FitContext, MapEstimate, point_at
+from magcal_cli.models.factor import Factor
+from magcal_cli.models.map.cost import point_at
+from magcal_cli.models.map.estimate import FitContext, MapEstimate
 from magcal_cli.models.problem import Problem
-from magcal_cli.models.solve import Factor, Options, solve
+from magcal_cli.models.solve import Options, solve
 from magcal_cli.progress import Hook, current
 from magcal_cli.streams import FloatArray, Kind, Stream
 

@@ -24,7 +24,7 @@ from scipy import stats
 from magcal_cli import effects as registry
 from magcal_cli.models.gyro import Preintegrated, preintegrate_log
 from magcal_cli.models.map.effects import Bound, bind, layout_for
-from magcal_cli.models.map.fit import MapEstimate
+from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
 from magcal_cli.models.sandwich import (

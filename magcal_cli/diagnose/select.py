@@ -27,8 +27,10 @@ from magcal_cli.diagnose.score import Score, Screen, screen
 from magcal_cli.diagnose.validate import FOLD_NOISE_ROUNDS, REFIT_ERRORS, Heldout, crossvalidate
 from magcal_cli.effects.base import Target
 from magcal_cli.errors import reason
+from magcal_cli.models.map.cost import point_at
 from magcal_cli.models.map.effects import Bound
-from magcal_cli.models.map.fit import MapEstimate, fit_map, point_at
+from magcal_cli.models.map.estimate import MapEstimate
+from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
 from magcal_cli.progress import Hook, current

@@ -17,10 +17,12 @@ import numpy as np
 
 from magcal_cli.diagnose.parallel import pmap
 from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models.factor import Factor, Linearize
 from magcal_cli.models.map.effects import row_weights
-from magcal_cli.models.map.fit import FitContext, MapEstimate, fit_map
+from magcal_cli.models.map.estimate import FitContext, MapEstimate
+from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.problem import Problem
-from magcal_cli.models.solve import Factor, Linearize, Options, solve
+from magcal_cli.models.solve import Options, solve
 from magcal_cli.progress import Hook, current
 from magcal_cli.streams import FloatArray, Stream
 

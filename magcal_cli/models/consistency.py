@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from magcal_cli.align import columns
 from magcal_cli.findings import Finding, Severity
 from magcal_cli.models.result import MagFit
 from magcal_cli.streams import FloatArray, Stream
@@ -60,7 +61,7 @@ class Consistency:
 
 def calibrated(fit: MagFit, stream: Stream, t: FloatArray) -> FloatArray:
     """m_b = D^-1 (y - o) of a stream at times t (linear interpolation of the readings), (K, 3), unit nominal."""
-    y = np.column_stack([np.interp(t, stream.t, stream.xyz[:, a]) for a in range(3)])
+    y = columns(t, stream.t, stream.xyz)
     return np.asarray((y - fit.o) @ np.linalg.inv(fit.D).T, dtype=np.float64)
 
 

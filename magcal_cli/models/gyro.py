@@ -21,7 +21,7 @@ import numpy.typing as npt
 from magcal_cli import so3
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models import stacks
-from magcal_cli.models.solve import Factor
+from magcal_cli.models.factor import Factor
 from magcal_cli.streams import FloatArray
 
 if TYPE_CHECKING:

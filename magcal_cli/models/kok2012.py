@@ -19,11 +19,12 @@ from magcal_cli.detect import window_means
 from magcal_cli.ellipsoid import Ellipsoid, fit_ellipsoid
 from magcal_cli.errors import ConvergenceError, InsufficientDataError
 from magcal_cli.models.accel import UP_N, G, vertical_factor
+from magcal_cli.models.factor import Factor, Linearize
 from magcal_cli.models.mag import MagLayout, field_nav, mag_factor
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import ImuFit, MagFit, MethodResult
 from magcal_cli.models.sandwich import cluster_robust_cov, time_clusters
-from magcal_cli.models.solve import Factor, Linearize, Options, Solution, solve
+from magcal_cli.models.solve import Options, Solution, solve
 from magcal_cli.params import MAG
 from magcal_cli.streams import FloatArray, Stream
 

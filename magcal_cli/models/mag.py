@@ -8,7 +8,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3
-from magcal_cli.models.solve import Factor, diagonal_of
+from magcal_cli.models.factor import Factor, diagonal_of
 from magcal_cli.streams import FloatArray
 
 IntArray = npt.NDArray[np.int64]

@@ -21,8 +21,8 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3
-from magcal_cli.models.map.init import despike
-from magcal_cli.models.solve import Factor, gaussian_factor
+from magcal_cli.models.factor import Factor, gaussian_factor
+from magcal_cli.models.spikes import despike
 from magcal_cli.params import BASE, Layout
 from magcal_cli.streams import FloatArray
 

@@ -14,7 +14,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from magcal_cli.models.solve import Factor, Solution, run_start
+from magcal_cli.models.factor import Factor, run_start
+from magcal_cli.models.solve import Solution
 from magcal_cli.streams import FloatArray
 
 IntArray = npt.NDArray[np.int64]
@@ -38,7 +39,8 @@ def _eliminated(sol: Solution, f: Factor, p: int) -> FloatArray:
     for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
         if jx is not None and idx is not None:
             start = run_start(idx)                      # a run of states: W's rows as a view, not a copy
-            out -= jx @ (sol._w[idx] if start is None else sol._w[start:start + idx.shape[0]])
+            w = sol.hxx_inv_hxt
+            out -= jx @ (w[idx] if start is None else w[start:start + idx.shape[0]])
     if f.J_theta is not None:
         out[:, :, f.theta_slice(p)] += f.J_theta
     return out

@@ -17,9 +17,10 @@ from magcal_cli.diagnose import ppc
 from magcal_cli.diagnose.score import Score, Screen, screen
 from magcal_cli.diagnose.select import Selection, _modelled, _relevant, holm, select
 from magcal_cli.diagnose.validate import blocks, folds
-from magcal_cli.models.map.fit import MapEstimate, fit_map
+from magcal_cli.models.map.estimate import MapEstimate
+from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.problem import Problem
-from magcal_cli.pipeline import _select
+from magcal_cli.pipeline import select_streams
 from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.simulate import Simulation, simulate
 
@@ -45,7 +46,7 @@ def _fit(case: str, seed: int) -> tuple[Simulation, Problem, MapEstimate]:
     """A 90-s paper-protocol log, its problem and the base fit."""
     effects, power = CASES[case]
     sim = simulate("paper", seed, duration=90.0, effects=effects, power_profile=power)
-    problem, _ = _select(sim.recording, Config(method="map"))
+    problem, _ = select_streams(sim.recording, Config(method="map"))
     return sim, problem, fit_map(problem, problem.mags[0])
 
 

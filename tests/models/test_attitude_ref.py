@@ -12,6 +12,7 @@ import pytest
 from magcal_cli import pipeline
 from magcal_cli.config import Config
 from magcal_cli.errors import InsufficientDataError
+from magcal_cli.methods.table import METHODS
 from magcal_cli.readers import open_recording
 from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.logs import write_log
@@ -60,7 +61,7 @@ def test_auto_uses_the_attitude_where_the_motion_cannot_decide(flight: tuple[Pat
         msg = "flight.bin: MAG[0]: too little tilt"
         raise InsufficientDataError(msg)
 
-    monkeypatch.setitem(pipeline.METHODS, "map", refuse)
+    monkeypatch.setitem(METHODS, "map", METHODS["map"]._replace(run=refuse))
     res = pipeline.calibrate(path, Config(effects=()))
     assert res.calibration.method == "attitude"
     assert any(f.code == "attitude_reference" and "too little tilt" in f.message for f in res.findings)

@@ -12,7 +12,6 @@ from magcal_cli.errors import MagcalError
 from magcal_cli.models.ekf import aug as ekf_aug
 from magcal_cli.models.ekf import core as ekf
 from magcal_cli.models.ekf import ml as ekf_ml
-from magcal_cli.models.ekf.effects import bind_prepared
 from magcal_cli.pipeline import calibrate_recording, select_problem
 from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.simulate import simulate
@@ -29,7 +28,7 @@ def _prepared(ids: tuple[str, ...], method: str, k: int = 400) -> ekf.Prepared:
     sim = simulate("handheld", 5, rate=50.0, mag_rate=25.0, duration=60.0,
                    truth=simulate("paper", 5, duration=60.0).truth, effects=tuple(EffectSpec(e) for e in ADDITIVE))
     problem = select_problem(sim.recording, Config())
-    prep = bind_prepared(problem, ekf.prepare(problem, problem.mags[0]), ids, method)
+    prep = ekf.bind_prepared(problem, ekf.prepare(problem, problem.mags[0]), ids, method)
     return truncated(prep, k)
 
 

@@ -7,8 +7,8 @@ import pytest
 
 from magcal_cli import so3
 from magcal_cli.models.accel import accel_factor, vertical_factor
+from magcal_cli.models.factor import Factor
 from magcal_cli.models.mag import MagLayout, mag_factor
-from magcal_cli.models.solve import Factor
 
 EPS = 1e-6
 

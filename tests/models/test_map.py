@@ -10,8 +10,12 @@ from scipy import stats
 from magcal_cli import so3
 from magcal_cli.config import Config
 from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models.epochs import Noise, epochs_for
 from magcal_cli.models.gyro import preintegrate
 from magcal_cli.models.map import fit as mapm
+from magcal_cli.models.map import noise as map_noise
+from magcal_cli.models.map.cost import make_linearize
+from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.pipeline import select_problem
 from magcal_cli.synth.simulate import paper_trajectory, simulate
 
@@ -21,7 +25,7 @@ from .mapsim import noise_of, record, theta_of
 NEES_BOUND = float(stats.chi2.ppf(0.999, 19))
 
 
-def _nees(est: mapm.MapEstimate, truth: np.ndarray) -> float:
+def _nees(est: MapEstimate, truth: np.ndarray) -> float:
     e = est.theta - truth
     return float(e @ np.linalg.solve(est.cov, e))
 
@@ -32,15 +36,15 @@ def test_factor_jacobians_against_finite_differences() -> None:
     rot = paper_trajectory(rng, 50.0, 12.0)
     problem, truths, r_m = record(rot, 50.0, 0, mag_step=2, mag_offset=0.3)
     scale = truths[0].field_strength
-    ep = mapm.epochs_for(problem, problem.mags[0], scale)
+    ep = epochs_for(problem, problem.mags[0], scale)
     assert np.any(ep.acc_factor < 0.99)                         # interpolated: rows are re-weighted
     acc, gyr, mag = noise_of(truths[0])
-    noise = mapm.Noise(acc, gyr, mag / scale)
+    noise = Noise(acc, gyr, mag / scale)
     pre = preintegrate(problem.gyr.t, problem.gyr.xyz, ep.t, truths[0].gyro_bias + 0.01, gyr)
     theta = theta_of(truths[0]) / np.concatenate([np.ones(6), np.full(12, scale), [1.0]])
     theta[3:6] = rng.normal(size=3) * 0.01
     states = r_m @ so3.exp(0.02 * rng.normal(size=r_m.shape[:1] + (3,)))
-    lin = mapm.make_linearize(ep, pre, noise)
+    lin = make_linearize(ep, pre, noise)
     factors = lin(states, theta, True)
     eps = 1e-6
     for k, f in enumerate(factors):
@@ -168,12 +172,12 @@ def test_start_noise_is_the_residuals_white_part_not_a_slow_disturbance() -> Non
 
 
 @pytest.mark.parametrize(("history", "expected"), [
-    ([], -0.5 / mapm.FIRST_GYRO_SLOPE),            # first step: the paper protocol's slope
+    ([], -0.5 / map_noise.FIRST_GYRO_SLOPE),            # first step: the paper protocol's slope
     ([(0.0, 1.0)], 1.0),                           # measured slope (0.5 - 1) / (1 - 0) = -0.5: step 0.5 / 0.5
-    ([(0.0, 0.2)], -0.5 / mapm.FIRST_GYRO_SLOPE),  # the factor grew (+0.3): coupling, not a fixed-point slope
+    ([(0.0, 0.2)], -0.5 / map_noise.FIRST_GYRO_SLOPE),  # the factor grew (+0.3): coupling, not a fixed-point slope
 ])
 def test_gyro_noise_secant_falls_back_when_the_slope_is_not_a_fixed_points(
         history: list[tuple[float, float]], expected: float) -> None:
     """The secant's slope comes from the last two rounds; a positive one (the magnetometer level moved the gyro's
     factor) would have sent the level 10x too far, as it did on an effects fit with a low magnetometer start."""
-    assert mapm._secant(history, 1.0, 0.5) == pytest.approx(expected)
+    assert map_noise.secant(history, 1.0, 0.5) == pytest.approx(expected)

@@ -10,7 +10,7 @@ import pytest
 from magcal_cli import so3
 from magcal_cli.config import Config
 from magcal_cli.methods import map_run
-from magcal_cli.models import consistency, solve
+from magcal_cli.models import consistency, normal
 from magcal_cli.models.map import init as map_init
 from magcal_cli.models.map import joint as map_joint
 from magcal_cli.models.map import joint_solve as mjs
@@ -38,10 +38,10 @@ def small() -> tuple:
 
 def test_structured_normal_equations_match_the_reference_factors(small: tuple) -> None:
     """Every block of the structured normal equations (H_xtheta through the 42-vector basis) equals the generic
-    assembly of accel_factor, gyro_factor and mag_factor (solve._assemble), row weights included."""
+    assembly of accel_factor, gyro_factor and mag_factor (normal.assemble), row weights included."""
     data, states, theta = small
     fs = factors(data, states, theta)
-    ref = solve._assemble(fs, [np.ones(f.r.shape[0]) for f in fs], states.shape[0], theta.size)
+    ref = normal.assemble(fs, [np.ones(f.r.shape[0]) for f in fs], states.shape[0], theta.size)
     cost, ne = mjs.normal(data, states, theta)
     assert cost == pytest.approx(0.5 * sum(float(np.sum(f.r**2)) for f in fs), rel=1e-12)
     for mine, theirs in ((ne.diag, ref.diag), (ne.off, ref.off), (ne.basis @ ne.coef, ref.hxt), (ne.htt, ref.htt),

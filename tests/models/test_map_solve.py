@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.models.solve import Factor, marginal_covariance, selected_inverse, solve
+from magcal_cli.models.factor import Factor
+from magcal_cli.models.normal import marginal_covariance, selected_inverse
+from magcal_cli.models.solve import solve
 
 
 def _chain(rng: np.random.Generator, n: int, compact: bool):  # noqa: ANN202

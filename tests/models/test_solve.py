@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.models.solve import Factor, solve
+from magcal_cli.models.factor import Factor
+from magcal_cli.models.solve import solve
 
 
 def _chain_problem(rng: np.random.Generator, n: int):  # noqa: ANN202
@@ -116,7 +117,7 @@ def test_one_blas_thread_limits_blas_inside_the_block_only() -> None:
     """The cached controller limits every loaded BLAS to one thread in the block and restores it after."""
     from threadpoolctl import threadpool_info
 
-    from magcal_cli.models.solve import one_blas_thread
+    from magcal_cli.models.normal import one_blas_thread
 
     before = {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
     assert before, "numpy should have loaded a BLAS"

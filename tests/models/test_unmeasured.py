@@ -16,6 +16,7 @@ from magcal_cli.errors import InsufficientDataError
 from magcal_cli.methods import map_run
 from magcal_cli.models.gyro import preintegrate
 from magcal_cli.models.map import fit as map_model
+from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.pipeline import select_problem
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.synth.simulate import Truth, simulate
@@ -51,7 +52,7 @@ def test_a_crash_is_found_and_the_fit_does_not_carry_the_trajectory_through_it(m
     est = map_model.fit_map(problem, problem.mags[0])
     d_err = (est.value("D") - truth.D.ravel(order="F")) / est.std_of("D")
     assert np.abs(d_err).max() < 4.0, d_err
-    def err(e: map_model.MapEstimate) -> float:
+    def err(e: MapEstimate) -> float:
         return float(np.linalg.norm(e.value("D") - truth.D.ravel(order="F")) / np.linalg.norm(truth.D))
 
     carried = map_model.fit_map(replace(problem, unmeasured=()), problem.mags[0])
@@ -139,7 +140,7 @@ def test_known_physics_is_dropped_when_the_log_then_determines_less(monkeypatch:
     problem = select_problem(flight, Config(diagnose=True))
     real = map_model.fit_map
 
-    def refusing(p: object, *args: object, **kwargs: object) -> map_model.MapEstimate:
+    def refusing(p: object, *args: object, **kwargs: object) -> MapEstimate:
         if getattr(p, "base_effects", ()):
             msg = "GPS disagrees"
             raise InsufficientDataError(msg)

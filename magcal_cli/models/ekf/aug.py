@@ -1,12 +1,12 @@
 """Wu et al. 2018: one pass of an EKF whose state is the orientation and the calibration (`--method ekf-aug`).
 
-The error state is (phi, d theta) with R = R_hat Exp(phi) and theta = (b_a, b_g, vec D, o, dip) (`ekf.py`);
+The error state is (phi, d theta) with R = R_hat Exp(phi) and theta = (b_a, b_g, vec D, o, dip) (`core.py`);
 theta follows a random walk with tiny process noise. The gyro drives the orientation between magnetometer epochs
 (preintegrated: Gamma_k = dR_k Exp(d_bias (b_g - b_bar)), whose bias Jacobian couples phi to b_g); the
 accelerometer and magnetometer update both. theta and its covariance are the final mean and covariance block
 (methods.md section 4; the authors' EKF/jointCalibration_wu.m). Initial standard deviations are the authors'
 (config.json, EKF section), expressed in magcal's parametrisation; see docs/method-ekf.md. Additive magnetometer
-effects (current, throttle, temperature; `ekf_effects.py`) append their parameters to the state, starting at the
+effects (current, throttle, temperature; `ekf/effects.py`) append their parameters to the state, starting at the
 base model with the plug-in's prior (else its plausibility limit) as the std.
 """
 

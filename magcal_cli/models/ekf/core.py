@@ -22,13 +22,14 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3, units
+from magcal_cli.errors import MagcalError
 from magcal_cli.findings import Finding
 from magcal_cli.models.accel import G
-from magcal_cli.models.ekf.effects import Terms, fitted, layout_of
+from magcal_cli.models.ekf.effects import Terms, fitted, layout_of, not_carried
 from magcal_cli.models.epochs import BIAS_SCALE, GYRO_START_DIVISOR, Noise, epochs_for, initial_noise
 from magcal_cli.models.gyro import Preintegrated, preintegrate, preintegrate_log
 from magcal_cli.models.map import init as map_init
-from magcal_cli.models.map.effects import Bound
+from magcal_cli.models.map.effects import Bound, bind
 from magcal_cli.models.observability import check_observability
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit, ImuFit, MagFit, MethodResult
@@ -57,7 +58,7 @@ class Prepared:
     """One magnetometer's filter inputs: epochs t (K,) s, measurements y (K, 6) = [acc m/s^2, mag / scale],
     the accelerometer's interpolation std factor (K,), gyro preintegration between epochs, the gyro samples (for
     re-preintegration), start noise levels, start theta (BASE) and orientation (3, 3); the additive effects bound to
-    its epochs and those the log cannot test (`ekf_effects.bind_prepared`)."""
+    its epochs and those the log cannot test (`bind_prepared`)."""
 
     where: str
     mag_id: str
@@ -164,13 +165,27 @@ def prepare_all(problem: Problem, cfg: object, method: str) -> list[Prepared]:
     """Every magnetometer prepared for `method`, with the effects of cfg.effects bound to its epochs. The dip starts
     from the data (docs/method-ekf.md); the WMM declination (where the log's position is known) turns true-north
     effect inputs into the model's frame."""
-    from magcal_cli.models.ekf.effects import bind_prepared
     from magcal_cli.wmm import reference_for
 
     ids = tuple(getattr(cfg, "effects", ()))
     ref = reference_for(cfg) if ids else None
     declination = 0.0 if ref is None else ref.declination
     return [bind_prepared(problem, prepare(problem, m), ids, method, declination) for m in problem.mags]
+
+
+def bind_prepared(problem: Problem, prep: Prepared, ids: Sequence[str], method: str, declination: float = 0.0
+                  ) -> Prepared:
+    """One prepared filter of `method` with the requested effects bound to its epochs (the plug-ins' `inputs`);
+    effects this log cannot test are kept as `not_testable` results."""
+    if not ids:
+        return prep
+    refused = not_carried(ids, method)
+    if refused:
+        msg = f"{prep.where}: the {method} method cannot carry {', '.join(refused)}; use --method map"
+        raise MagcalError(msg)
+    mag = next(m for m in problem.mags if m.id == prep.mag_id)
+    bound, untestable = bind(problem, mag, prep.t, BASE.get(prep.theta0, "gyroscope_bias"), ids, declination)
+    return replace(prep, effects=tuple(bound), untestable=tuple(untestable))
 
 
 #: share of the smallest squared residuals kept by `kinematic_noise`, and E[z^2 | |z| < q] for the Gaussian
@@ -241,15 +256,6 @@ def groups(preps: Sequence[Prepared]) -> list[list[int]]:
     return list(out.values())
 
 
-#: hat(v) = v @ HAT_BASIS reshaped to (..., 3, 3): one matmul instead of six assignments per call in filter loops
-HAT_BASIS = so3.hat(np.eye(3)).reshape(3, 9)
-
-
-def hat(v: FloatArray) -> FloatArray:
-    """so3.hat of (..., 3) vectors through its basis (cheaper on the small arrays of a filter step)."""
-    return (v @ HAT_BASIS).reshape(v.shape[:-1] + (3, 3))
-
-
 @dataclass(frozen=True, eq=False)
 class Calib:
     """theta's measurement-model pieces for B filters: D (B, 3, 3), the NED field m_n and dm_n/ddip stacked as
@@ -302,8 +308,8 @@ def measure(rot: FloatArray, cal: Calib) -> Measured:
     h[:, :3] = cal.b_a - u
     h[:, 3:] = dvd[:, 0] + cal.o
     big_h = np.empty((b, 6, 3))
-    big_h[:, :3] = -hat(u)
-    big_h[:, 3:] = cal.D @ hat(vd[:, 0])
+    big_h[:, :3] = -so3.hat(u)
+    big_h[:, 3:] = cal.D @ so3.hat(vd[:, 0])
     jac = np.repeat(_J_CONST[None], b, axis=0)
     jac[:, 3:, D_COLS] = (vd[:, 0, None, :, None] * np.eye(3)[None, :, None, :]).reshape(b, 3, 9)  # v^T kron I
     jac[:, 3:, DIP] = dvd[:, 1]

@@ -10,23 +10,17 @@ transient windows) are for the joint MAP only (docs/effects.md "Methods").
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import effects as registry
 from magcal_cli.effects.base import Point
-from magcal_cli.errors import MagcalError
-from magcal_cli.models.map.effects import Bound, bind, results
-from magcal_cli.models.problem import Problem
+from magcal_cli.models.map.effects import Bound, results
 from magcal_cli.models.result import EffectFit
 from magcal_cli.params import BASE, Layout
 from magcal_cli.streams import FloatArray
-
-if TYPE_CHECKING:
-    from magcal_cli.models.ekf.core import Prepared
 
 BoolArray = npt.NDArray[np.bool_]
 IntArray = npt.NDArray[np.int64]
@@ -154,21 +148,6 @@ class Terms:
                 value[i, :n] += term.value
                 jac[i, :n][:, :, cols] = term.d_beta
         return value, jac
-
-
-def bind_prepared(problem: Problem, prep: Prepared, ids: Sequence[str], method: str, declination: float = 0.0
-                  ) -> Prepared:
-    """One prepared filter of `method` with the requested effects bound to its epochs (the plug-ins' `inputs`);
-    effects this log cannot test are kept as `not_testable` results."""
-    if not ids:
-        return prep
-    refused = not_carried(ids, method)
-    if refused:
-        msg = f"{prep.where}: the {method} method cannot carry {', '.join(refused)}; use --method map"
-        raise MagcalError(msg)
-    mag = next(m for m in problem.mags if m.id == prep.mag_id)
-    bound, untestable = bind(problem, mag, prep.t, BASE.get(prep.theta0, "gyroscope_bias"), ids, declination)
-    return replace(prep, effects=tuple(bound), untestable=tuple(untestable))
 
 
 def fitted(bound: Sequence[Bound], theta_si: FloatArray, cov_si: FloatArray, mag_id: str, imu_id: str

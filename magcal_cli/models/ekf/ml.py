@@ -1,6 +1,6 @@
 """Kok & Schoen 2016: calibration by maximising the EKF's innovation likelihood (`--method ekf-ml`).
 
-An orientation-only EKF (gyro input, accelerometer and magnetometer updates; `ekf.py`) gives the innovations e_k
+An orientation-only EKF (gyro input, accelerometer and magnetometer updates; `core.py`) gives the innovations e_k
 and their covariances S_k; the negative log-likelihood sum_k 1/2 (log det S_k + e_k^T S_k^-1 e_k) is minimised
 over theta = (b_a, b_g, vec D, o, dip) and three log variance factors (accelerometer, gyro, magnetometer) that
 scale the start noise levels (methods.md section 4; the authors' ML/calneglkh.m).
@@ -10,7 +10,7 @@ carries the forward-mode sensitivities of the filter recursion -- d R_hat (as a 
 R_hat Exp(Psi d)), d P, d e_k, d S_k -- and accumulates the exact gradient and the Fisher information
 sum_k de^T S^-1 de + 1/2 tr(S^-1 dS_i S^-1 dS_j) (Gupta & Mehra 1974). Fisher scoring then converges in a few
 passes (from one augmented-EKF pass as the start), and the inverse Fisher information at the optimum is the
-reported covariance. Additive magnetometer effects (current, throttle, temperature; `ekf_effects.py`) append
+reported covariance. Additive magnetometer effects (current, throttle, temperature; `ekf/effects.py`) append
 their parameters beta after the noise factors: the innovation loses the plug-in's term, e_k = y_k - h_k - t_k(beta),
 and its sensitivity gains d e_k / d beta = -d t_k / d beta; a plug-in's prior (the throttle exponent's) adds its
 Gaussian term to the likelihood. See docs/method-ekf.md.
@@ -93,12 +93,12 @@ def _d_measurement_jacobian(m: ekf.Measured, d_basis: FloatArray, psi: FloatArra
     with each parameter, directly (D, dip) and through R_hat's sensitivity psi (B, 3, n): du = [u]x psi,
     dv = [v]x psi + R^T dm_n. d_basis (B, 3, 9) holds vec(D [e_k]x), so that D [dv]x = dv^T d_basis."""
     b, n = psi.shape[0], psi.shape[2]
-    hv = ekf.hat(m.v)
-    du = ekf.hat(m.u) @ psi
+    hv = so3.hat(m.v)
+    du = so3.hat(m.u) @ psi
     dv = hv @ psi
     dv[:, :, DIP] += m.dv
     out = np.empty((b, n, 6, 3))
-    out[:, :, :3] = -ekf.hat(du.transpose(0, 2, 1))
+    out[:, :, :3] = -so3.hat(du.transpose(0, 2, 1))
     out[:, :, 3:] = (dv.transpose(0, 2, 1) @ d_basis).reshape(b, n, 3, 3)
     out[:, _D_COLS, _D_ROWS] += hv[:, _D_SRC]
     return out
@@ -120,10 +120,10 @@ def filter_pass(batch: Batch, theta: FloatArray, derivatives: bool = True, progr
     n = theta.shape[1]                                              # P and the effect parameters
     terms = batch.terms
     cal = ekf.Calib.of(theta)
-    d_basis = (cal.D[:, None] @ ekf.HAT_BASIS.reshape(3, 3, 3)[None]).reshape(b, 3, 9)
+    d_basis = (cal.D[:, None] @ so3.hat(np.eye(3))[None]).reshape(b, 3, 9)     # [e_k]x stacked over k
     gamma, psi_b = ekf.bias_steps(batch, theta[:, GYRO_BIAS])
     gamma_t = gamma.transpose(0, 1, 3, 2)
-    hat_psi_b = ekf.hat(psi_b.transpose(0, 1, 3, 2))                  # (B, K-1, 3, 3, 3): [a_c]x per bias column
+    hat_psi_b = so3.hat(psi_b.transpose(0, 1, 3, 2))                  # (B, K-1, 3, 3, 3): [a_c]x per bias column
     s_a, s_g, s_m = (np.exp(theta[:, c]) for c in (NA, NG, NM))
     var = batch.var * np.repeat(np.stack([s_a, s_m], axis=1), 3, axis=1)[:, None]
     q = batch.cov * s_g[:, None, None, None]

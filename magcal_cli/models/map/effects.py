@@ -18,10 +18,11 @@ import numpy.typing as npt
 from scipy import stats
 
 from magcal_cli import effects as registry
+from magcal_cli.align import columns
 from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.models.factor import Factor, gaussian_factor, run_start, whiten
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
-from magcal_cli.models.solve import Factor, gaussian_factor, run_start, whiten
 from magcal_cli.params import ACCEL_BIAS, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Estimate, Layout, ParamBlock
 from magcal_cli.streams import FloatArray, Stream
 
@@ -62,8 +63,8 @@ def kinematics(problem: Problem, t: FloatArray, bias: FloatArray) -> Kinematics:
     # a gyro sample holds over [t_k, t_k+1) (zero-order hold, as the preintegration takes it): its rate is
     # the one at the middle of that interval
     mid = g.t + 0.5 * dt
-    omega = np.stack([np.interp(t, mid, w[:, i]) for i in range(3)], axis=1)
-    omega_dot = np.stack([np.interp(t, mid, wdot[:, i]) for i in range(3)], axis=1)
+    omega = columns(t, mid, w)
+    omega_dot = columns(t, mid, wdot)
     still = np.zeros(t.size, dtype=bool)
     for seg in () if problem.still is None else problem.still.segments:     # tests build problems without one
         still |= (t >= seg.start) & (t <= seg.end)

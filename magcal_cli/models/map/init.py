@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import ndimage
 
 from magcal_cli import so3
 from magcal_cli.ellipsoid import fit_ellipsoid
@@ -56,21 +55,6 @@ def white_rms(m_b: FloatArray) -> float:
     if d.size < 2:
         return float("nan")
     return 1.4826 * float(np.median(np.abs(d - np.median(d)))) / float(np.sqrt(2.0))
-
-
-def despike(y: FloatArray, width: int = 5, k: float = 6.0, share: float = 0.05) -> tuple[FloatArray, int]:
-    """Readings with isolated spikes replaced by a running median (for the initialisation only).
-
-    A reading is a spike when it deviates from the median of its `width` neighbours by more than k robust
-    standard deviations (1.4826 MAD) of those deviations and by more than `share` of the typical field
-    magnitude: only spikes large enough to distort the algebraic ellipsoid fit. Returns readings and count.
-    """
-    med = ndimage.median_filter(y, size=(width, 1), mode="nearest")
-    dev = np.linalg.norm(y - med, axis=1)
-    mad = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))
-    big = share * float(np.median(np.linalg.norm(y - np.median(y, axis=0), axis=1)))
-    spike = dev > max(k * mad, big)
-    return np.where(spike[:, None], med, y), int(spike.sum())
 
 
 def intrinsic_fit(y: FloatArray, where: str) -> Intrinsic:

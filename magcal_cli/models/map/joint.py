@@ -1,7 +1,7 @@
 """One joint MAP fit for every magnetometer on one IMU (issue 14 item 3; Huang et al. 2025's board of 30).
 
 The magnetometers of a log all see the body turn through one orientation trajectory. The separate fits
-(`map.fit_map`, one per magnetometer) each estimate that trajectory again from one magnetometer; here it is
+(`fit.fit_map`, one per magnetometer) each estimate that trajectory again from one magnetometer; here it is
 estimated once, from the accelerometer, the gyro and every magnetometer's factors (methods.md section 3 with M
 magnetometer factors per epoch). theta = (b_a, db_g, then D, o, dip of each magnetometer): each magnetometer keeps
 the separate fit's model, its own dip included, so a disturbed compass cannot pull the others' dip (how far the
@@ -10,8 +10,8 @@ which down-weights a noisy one in the shared trajectory.
 
 The magnetometers must read at common epochs (one board, one clock: Huang et al.'s array, the simulator's); then
 the coupling of the trajectory with the 6 + 13 M parameters has rank 48 whatever M is, and
-`map_joint_solve.py` eliminates the block-tridiagonal trajectory with 48 right-hand sides instead of 6 + 13 M
-(5 minutes of 30 magnetometers: 22 s through `solve.py`'s generic assembly, see docs/results/joint_mags.md).
+`joint_solve.py` eliminates the block-tridiagonal trajectory with 48 right-hand sides instead of 6 + 13 M
+(5 minutes of 30 magnetometers: 22 s through `normal.py`'s generic assembly, see docs/results/joint_mags.md).
 """
 
 from __future__ import annotations
@@ -30,16 +30,12 @@ from magcal_cli.findings import Finding, Severity
 from magcal_cli.models import consistency
 from magcal_cli.models.accel import G
 from magcal_cli.models.epochs import MAX_EPOCHS, Epochs, Noise, epochs_for, initial_noise
+from magcal_cli.models.factor import Factor
 from magcal_cli.models.gyro import Preintegrated, preintegrate_log
 from magcal_cli.models.map import init as map_init
-from magcal_cli.models.map.fit import (
-    DIP_BASIN_DEG,
-    NOISE_ROUNDS,
-    REPREINTEGRATE_RAD,
-    MapEstimate,
-    held_out,
-    noise_step,
-)
+from magcal_cli.models.map.cost import held_out
+from magcal_cli.models.map.estimate import MapEstimate
+from magcal_cli.models.map.fit import DIP_BASIN_DEG, REPREINTEGRATE_RAD
 from magcal_cli.models.map.joint_cov import factors, joint_variance_ratios, joint_widening
 from magcal_cli.models.map.joint_solve import (
     JointData,
@@ -50,10 +46,13 @@ from magcal_cli.models.map.joint_solve import (
     normal,
     solve_joint,
 )
+from magcal_cli.models.map.noise import NOISE_ROUNDS, noise_step
+from magcal_cli.models.normal import one_blas_thread
 from magcal_cli.models.observability import check_observability
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import MagFit
-from magcal_cli.models.solve import Factor, Options, one_blas_thread
+from magcal_cli.models.solve import Options
+from magcal_cli.models.spikes import despike
 from magcal_cli.params import ACCEL_BIAS, BASE, D_BLOCK, DIP, GYRO_BIAS, O_BLOCK, Layout
 from magcal_cli.progress import current
 from magcal_cli.streams import FloatArray, Stream
@@ -133,7 +132,7 @@ class JointNoise:
 
 def joint_data(je: JointEpochs, pre: Preintegrated, noise: JointNoise, layout: Layout,
                weights: FloatArray | None) -> JointData:
-    """The structured cost's inputs (map_joint_solve.py); `weights` (K,) zero readings in unmeasured windows."""
+    """The structured cost's inputs (joint_solve.py); `weights` (K,) zero readings in unmeasured windows."""
     rows = 1.0 / je.acc_factor if weights is None else weights / je.acc_factor
     cols = tuple(layout.cols(f"D#{i}", f"o#{i}", f"dip#{i}") for i in range(len(je.mags)))
     return JointData(je.acc, rows, pre, np.array([e.mag for e in je.mags]), noise.mag, weights, noise.acc, layout,
@@ -159,7 +158,7 @@ class JointFit:
 
 def _start(problem: Problem, je: JointEpochs, intr: list[map_init.Intrinsic], noise: JointNoise,
            dip_prior: float | None, layout: Layout) -> tuple[FloatArray, FloatArray, Preintegrated, list[str]]:
-    """Start values as `map._initial_state` makes them for one magnetometer (Wu & Luo misalignment per
+    """Start values as `start.initial_state` makes them for one magnetometer (Wu & Luo misalignment per
     magnetometer, the dip, the gyro-integrated or TRIAD trajectory, whichever fits better), for all at once."""
     where = problem.where
     bias = problem.still.gyr_bias if problem.still.segments else np.zeros(3)
@@ -209,7 +208,7 @@ def fit_joint(problem: Problem, loss: str = "l2", dip_prior: float | None = None
 def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_rounds: int) -> JointFit:
     """`fit_joint` without the BLAS thread limit."""
     mags = problem.mags
-    intr = [map_init.intrinsic_fit(map_init.despike(m.xyz)[0], f"{problem.where}: {m.id}") for m in mags]
+    intr = [map_init.intrinsic_fit(despike(m.xyz)[0], f"{problem.where}: {m.id}") for m in mags]
     je = joint_epochs(problem, mags, [s.scale for s in intr])
     start = [initial_noise(problem, m, s.scale, s.noise_rms) for m, s in zip(mags, intr, strict=True)]
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
@@ -292,7 +291,7 @@ def _results(problem: Problem, je: JointEpochs, data: JointData, pre: Preintegra
     states = sol.states
     dips = layout.cols(*(f"dip#{i}" for i in range(len(je.mags))))
     if float(np.median(np.abs(theta[dips]))) > np.pi / 2:
-        # map._estimate's dip gauge, for all magnetometers at once: they share the trajectory it turns
+        # `estimate.estimate`'s dip gauge, for all magnetometers at once: they share the trajectory it turns
         theta[dips] = np.angle(np.exp(1j * (np.pi - theta[dips])))
         states = so3.exp([0.0, 0.0, np.pi]) @ states
         cov[dips, :] *= -1.0

@@ -1,9 +1,9 @@
-"""Noise levels and covariance honesty of the joint fit of many magnetometers (map_joint.py), at its size.
+"""Noise levels and covariance honesty of the joint fit of many magnetometers (joint.py), at its size.
 
-`map.variance_ratios` and `sandwich.widening` do the same for one magnetometer through `Solution.leverage` and
+`noise.variance_ratios` and `sandwich.widening` do the same for one magnetometer through `Solution.leverage` and
 `sandwich.cluster_scores`, which expand every factor's Jacobian to all p columns of theta and need
 H_xx^-1 H_xtheta (3K x p): with p = 6 + 13 M (396 for 30 magnetometers) that is M times the work. Here every
-factor keeps its own columns and H_xx^-1 H_xtheta stays factored as V C (map_joint_solve.py), V (3K x 48).
+factor keeps its own columns and H_xx^-1 H_xtheta stays factored as V C (joint_solve.py), V (3K x 48).
 """
 
 from __future__ import annotations
@@ -12,11 +12,12 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
+from magcal_cli.models.factor import Factor, scale_rows
 from magcal_cli.models.mag import mag_factor
-from magcal_cli.models.map.fit import group_ratio
-from magcal_cli.models.map.joint_solve import JointData, JointSolution, _scale_rows, imu_factors
+from magcal_cli.models.map.joint_solve import JointData, JointSolution, imu_factors
+from magcal_cli.models.map.noise import group_ratio
+from magcal_cli.models.normal import scatter
 from magcal_cli.models.sandwich import bartlett_dof, newey_west, time_clusters
-from magcal_cli.models.solve import Factor, _scatter
 from magcal_cli.streams import FloatArray
 
 IntArray = npt.NDArray[np.int64]
@@ -30,7 +31,7 @@ def factors(data: JointData, states: FloatArray, theta: FloatArray) -> list[Fact
     for i in range(data.mags):
         f = mag_factor(states, data.mag[i], np.diag(1.0 / data.mag_std[i]), theta, data.mag_at(i), np.arange(k),
                        True, name=f"mag#{i}", compact=True)
-        out.append(f if data.mag_rows is None else _scale_rows(f, data.mag_rows))
+        out.append(f if data.mag_rows is None else scale_rows(f, data.mag_rows))
     return out
 
 
@@ -85,7 +86,7 @@ def leverages(sol: JointSolution, fs: list[Factor]) -> list[FloatArray]:
 
 
 def joint_variance_ratios(sol: JointSolution, fs: list[Factor], loss: str = "l2", c: float = 3.0) -> FloatArray:
-    """Variance factors sum(r^2) / (rows - leverage) as `map.variance_ratios` computes them: accelerometer (3
+    """Variance factors sum(r^2) / (rows - leverage) as `noise.variance_ratios` computes them: accelerometer (3
     axes), gyro (1), then each magnetometer (3 axes), from `factors`."""
     out = {f.name: group_ratio(f, h, loss, c) for f, h in zip(fs, leverages(sol, fs), strict=True)}
     return np.concatenate([out["accel"], out["gyro"], *(out[f"mag#{i}"] for i in range(len(fs) - 2))])
@@ -106,7 +107,7 @@ def joint_widening(sol: JointSolution, fs: list[Factor], t: FloatArray, lags: in
         part = np.zeros((count, f.J_theta.shape[2]))
         np.add.at(part, ids[f.idx], np.einsum("mkq,mk->mq", f.J_theta, f.r))
         scores[:, _cols(f, p)] += part
-        _scatter(g, f.idx, np.einsum("mki,mk->mi", f.J_x, f.r))
+        scatter(g, f.idx, np.einsum("mki,mk->mi", f.J_x, f.r))
         if f.J_next is not None:
             # a binary row's score stays in its first state's cluster, as sandwich.factor_clusters puts it
             np.add.at(back, ids[f.idx], np.einsum("mir,mi->mr", sol.v[f.idx + 1],

@@ -1,6 +1,6 @@
-"""Normal equations and Levenberg-Marquardt steps of the joint fit of many magnetometers (map_joint.py), structured.
+"""Normal equations and Levenberg-Marquardt steps of the joint fit of many magnetometers (joint.py), structured.
 
-`solve.py` assembles H_xtheta (3K x p) and eliminates the trajectory with p right-hand sides; for M magnetometers
+`normal.py` assembles H_xtheta (3K x p) and eliminates the trajectory with p right-hand sides; for M magnetometers
 p = 6 + 13 M (396 for Huang et al.'s 30) and that banded solve dominates (22 s for 30 magnetometers, 5 minutes).
 When every magnetometer reads at the same epochs the coupling has low rank whatever M is: with the north and down
 directions in the body, n_k = R_k^T e_N and d_k = R_k^T e_D, magnetometer i sees m = c_i n_k + s_i d_k (c, s: cos,
@@ -28,9 +28,11 @@ from scipy.linalg import lapack
 
 from magcal_cli import so3
 from magcal_cli.models.accel import accel_factor
+from magcal_cli.models.factor import Factor, scale_rows
 from magcal_cli.models.gyro import Preintegrated, gyro_factor
 from magcal_cli.models.mag import MagLayout
-from magcal_cli.models.solve import Factor, Options, _band, iterate, selected_inverse
+from magcal_cli.models.normal import band, selected_inverse
+from magcal_cli.models.solve import Options, iterate
 from magcal_cli.params import MAG, Layout
 from magcal_cli.streams import FloatArray
 
@@ -84,20 +86,13 @@ class JointData:
         return self.cols[i]
 
 
-def _scale_rows(f: Factor, s: FloatArray) -> Factor:
-    """A factor's rows multiplied by s (M,)."""
-    def mul(a: FloatArray | None) -> FloatArray | None:
-        return None if a is None else a * s.reshape((-1,) + (1,) * (a.ndim - 1))
-    return Factor(f.name, f.r * s[:, None], f.idx, mul(f.J_x), mul(f.J_next), mul(f.J_theta), f.theta_cols)
-
-
 def imu_factors(data: JointData, states: FloatArray, theta: FloatArray, jac: bool) -> tuple[Factor, Factor]:
     """The accelerometer and gyro factors (`accel.accel_factor`, `gyro.gyro_factor`) on the states."""
     lay = data.layout
     k = states.shape[0]
     fa = accel_factor(states, data.acc, np.diag(1.0 / data.acc_std), theta, lay.slice("accelerometer_bias").start,
                       np.arange(k), jacobians=jac, compact=True)
-    return _scale_rows(fa, data.acc_rows), gyro_factor(states, theta, data.pre, lay.slice("gyroscope_bias").start, jac)
+    return scale_rows(fa, data.acc_rows), gyro_factor(states, theta, data.pre, lay.slice("gyroscope_bias").start, jac)
 
 
 def _mags(data: JointData, states: FloatArray, theta: FloatArray
@@ -278,7 +273,7 @@ def step(ne: Normal, lam: float, lam_theta: float | None = None
     scale = float(np.mean(np.diag(ne.htt)))
     lt = lam if lam_theta is None else lam_theta
     htt = ne.htt + lt * np.diag(np.diag(ne.htt) + 1e-9 * max(scale, 1e-300))
-    cb = linalg.cholesky_banded(_band(diag, ne.off, 5), lower=False, check_finite=False)
+    cb = linalg.cholesky_banded(band(diag, ne.off, 5), lower=False, check_finite=False)
     r = ne.basis.shape[2]
     sol = _tb(cb, np.concatenate([ne.basis.reshape(3 * k, r), ne.gx.reshape(3 * k, 1)], axis=1), "T")
     y_b, y = sol[:, :r], sol[:, r]
@@ -309,7 +304,7 @@ def solve_joint(data: JointData, states0: FloatArray, theta0: FloatArray, opts: 
 def at_optimum(ne: Normal, states: FloatArray, theta: FloatArray, cur: float, iterations: int, converged: bool,
                log: Sequence[str]) -> JointSolution:
     """S^-1, V and H_xx's selected inverse of the undamped information (a trace of damping on the trajectory
-    when it is numerically singular, as `solve._undamped`)."""
+    when it is numerically singular, as `normal.undamped`)."""
     for lam_theta in (None, 0.0):
         try:
             _, _, s_inv, diag, cb, y_b = step(ne, 0.0 if lam_theta is None else 1e-9, lam_theta)

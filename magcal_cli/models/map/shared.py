@@ -17,7 +17,8 @@ import numpy as np
 
 from magcal_cli.effects.correct import MODELLED
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.models.map.fit import MapEstimate, fit_map
+from magcal_cli.models.map.estimate import MapEstimate
+from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.partial import Held
 from magcal_cli.models.problem import Problem
 from magcal_cli.params import BASE

@@ -1,0 +1,63 @@
+"""A partial MAP calibration: which base entries the motion cannot determine and are held at a prior."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models import partial
+from magcal_cli.models.epochs import Epochs
+from magcal_cli.models.factor import Linearize
+from magcal_cli.models.map.cost import mag_layout
+from magcal_cli.models.normal import information
+from magcal_cli.models.observability import ROTATE_ADVICE
+from magcal_cli.models.partial import Held
+from magcal_cli.params import BASE, Layout
+from magcal_cli.streams import FloatArray
+
+#: a partial calibration that leaves the field strength varying more than this (RMS, relative) explains nothing
+PARTIAL_MAX_NORM_RMS = 0.15
+
+
+def norm_spread(ep: Epochs, theta: FloatArray, layout: Layout) -> float:
+    """RMS of the calibrated field strength about 1 (relative): how far the calibration leaves the readings from a
+    sphere."""
+    d, o, _ = mag_layout(layout).unpack(theta)
+    return float(np.sqrt(np.mean((np.linalg.norm((ep.mag - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
+
+
+def explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str) -> None:
+    """Refuse a partial calibration that does not explain the readings: the calibrated field strength must stay
+    within PARTIAL_MAX_NORM_RMS of constant (a full fit is judged by its quality numbers instead)."""
+    spread = norm_spread(ep, theta, layout)
+    if spread > PARTIAL_MAX_NORM_RMS:
+        msg = (f"{where}: even a partial calibration does not explain the readings (the calibrated field strength "
+               f"still varies {100 * spread:.0f} % RMS): the log's motion determines too little, or a disturbance "
+               f"dominates. To fix: {ROTATE_ADVICE}")
+        raise InsufficientDataError(msg)
+
+
+def rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray, where: str,
+             widen: FloatArray | None = None, keep: bool = False) -> Held:
+    """The base entries the data's information at this point cannot determine better than their priors (the
+    information narrowed by the sandwich's widening factors, when given: residuals correlated in time know less
+    than the white-noise model says), plus the pinned implausible ones; refuses when D and o would be held
+    entirely. With `keep`, what is held stays held."""
+    pinned = np.union1d(held.pinned, partial.implausible(theta, held)).astype(np.int64)
+    try:
+        info = information(data, states, theta)
+        if widen is not None:
+            info = info / np.outer(widen, widen)
+        # `choose` wants the base entries first: accelerometer effect blocks come before them in the layout
+        order = np.concatenate([held.at, np.setdiff1d(np.arange(theta.size), held.at)])
+        info = info[np.ix_(order, order)]
+        more = held.holding(partial.choose(info, held.prior_std, np.union1d(pinned, held.cols) if keep else pinned),
+                            pinned)
+    except np.linalg.LinAlgError:
+        more = held.holding(BASE.cols(*BASE.names), pinned)
+    if more.undetermined():
+        msg = (f"{where}: the motion in this log determines no part of the magnetometer calibration, not even the "
+               f"offsets with D held at {held.prior_sources[BASE.slice('D').start]} (the field turned through "
+               f"too few directions). To fix: {ROTATE_ADVICE}")
+        raise InsufficientDataError(msg)
+    return more

@@ -1,0 +1,245 @@
+"""The factors' block-banded normal equations: assembly, banded elimination of the trajectory, Schur complement."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import linalg
+from scipy.linalg import lapack
+from threadpoolctl import ThreadpoolController
+
+from magcal_cli.models import stacks
+from magcal_cli.models.factor import Factor, IntArray, Linearize, run_start
+from magcal_cli.streams import FloatArray
+
+_BLAS: list[ThreadpoolController] = []
+
+
+def one_blas_thread() -> AbstractContextManager[Any]:
+    """BLAS limited to one thread inside the block. The library scan is done once (threadpoolctl's
+    `threadpool_limits` repeats it on every call, 3 ms: 6 % of a diagnosis that solves a few hundred times)."""
+    if not _BLAS:
+        _BLAS.append(ThreadpoolController())
+    limiter: AbstractContextManager[Any] = _BLAS[0].limit(limits=1, user_api="blas")
+    return limiter
+
+
+@dataclass
+class NormalEquations:
+    """Assembled normal equations H = [[Hxx, Hxt], [Htx, Htt]], gradient g = J^T r."""
+
+    diag: FloatArray       # (N, 3, 3)
+    off: FloatArray        # (N-1, 3, 3), block (k, k+1)
+    hxt: FloatArray        # (N, 3, p)
+    htt: FloatArray        # (p, p)
+    gx: FloatArray         # (N, 3)
+    gt: FloatArray         # (p,)
+
+
+def scatter(target: FloatArray, idx: IntArray, values: FloatArray, start: int | None = -1) -> None:
+    """target[idx] += values; a slice add when idx is a run of consecutive states from `start` (`run_start`'s answer,
+    -1: find out here)."""
+    if start == -1:
+        start = run_start(idx)
+    if start is None:
+        np.add.at(target, idx, values)
+    else:
+        target[start:start + idx.shape[0]] += values
+
+
+def _gram(a: FloatArray, b: FloatArray) -> FloatArray:
+    """a^T b per row group of (M, k, 3) stacks, on component-major stacks (models/stacks.py): np.matmul loops over
+    M tiny products, ~2.5x slower (the block-diagonal and off-diagonal trajectory blocks)."""
+    sa = stacks.cm(a)
+    out: FloatArray = stacks.tmul(sa, sa if b is a else stacks.cm(b)).transpose(2, 0, 1)
+    return out
+
+
+def assemble(factors: Sequence[Factor], weights: Sequence[FloatArray], n: int, p: int) -> NormalEquations:
+    """Accumulate J^T W J and J^T W r factor by factor (vectorised over rows; theta blocks through BLAS)."""
+    ne = NormalEquations(np.zeros((n, 3, 3)), np.zeros((max(n - 1, 0), 3, 3)), np.zeros((n, 3, p)),
+                         np.zeros((p, p)), np.zeros((n, 3)), np.zeros(p))
+    for f, w in zip(factors, weights, strict=True):
+        unit = bool(np.all(w == 1.0))
+        r = f.r if unit else f.r * w[:, None]
+        jt_w = None
+        cols = f.theta_slice(p)
+        if not isinstance(cols, slice):                       # scattered columns: expand (rare)
+            f = Factor(f.name, f.r, f.idx, f.J_x, f.J_next, f.full_theta(p))
+            cols = slice(0, p)
+        if f.J_theta is not None:
+            jt = f.J_theta
+            q = jt.shape[2]
+            jt_w = jt if unit else jt * w[:, None, None]
+            jt2 = jt.reshape(-1, q)
+            ne.htt[cols, cols] += jt_w.reshape(-1, q).T @ jt2
+            ne.gt[cols] += jt2.T @ r.reshape(-1)
+        if f.idx is None:
+            continue
+        start = run_start(f.idx)
+        hxt = ne.hxt[:, :, cols]                              # a view: scatters below write into ne.hxt
+        for jx, shift in ((f.J_x, 0), (f.J_next, 1)):
+            if jx is None:
+                continue
+            at = None if start is None else start + shift
+            idx = f.idx + shift
+            scatter(ne.diag, idx, _gram(jx, jx if unit else jx * w[:, None, None]), at)
+            scatter(ne.gx, idx, np.einsum("mki,mk->mi", jx, r), at)
+            if jt_w is not None:
+                scatter(hxt, idx, jx.transpose(0, 2, 1) @ jt_w, at)
+        if f.J_x is not None and f.J_next is not None:
+            scatter(ne.off, f.idx, _gram(f.J_x, f.J_next if unit else f.J_next * w[:, None, None]), start)
+    return ne
+
+
+def band(diag: FloatArray, off: FloatArray, u: int) -> FloatArray:
+    """Upper banded storage ab[u + i - j, j] = H[i, j] of the block-tridiagonal trajectory matrix (Fortran order,
+    as LAPACK takes it: no copy on the way in)."""
+    n = diag.shape[0]
+    ab = np.zeros((u + 1, 3 * n), order="F")
+    for a in range(3):
+        for b in range(a, 3):
+            ab[u - (b - a), b::3] = diag[:, a, b]
+    if u == 5:
+        for a in range(3):
+            for b in range(3):
+                ab[u - (3 + b - a), 3 + b::3] = off[:, a, b]
+    return ab
+
+
+def selected_inverse(diag: FloatArray, off: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Diagonal (N, 3, 3) and super-diagonal (N-1, 3, 3) blocks of A^-1 for SPD block-tridiagonal A, in O(N).
+
+    The forward pivots F_k (A_kk minus what states < k contribute) are the Gram matrices of the diagonal
+    blocks of A's banded Cholesky factor; the backward pivots G_k come from factoring A with its block order
+    reversed. The marginal of states (k, k+1) is then [[F_k, A_k,k+1], [A_k+1,k, G_k+1]]^-1 (a 6x6 inverse per
+    pair): two LAPACK factorisations, no sequential Python loop.
+    """
+    n = diag.shape[0]
+    if n == 1:
+        return np.asarray(np.linalg.inv(diag), dtype=np.float64), np.zeros((0, 3, 3))
+    fwd = _pivots(diag, off)
+    bwd = _pivots(diag[::-1], off[::-1].transpose(0, 2, 1))[::-1]
+    pair = np.empty((n - 1, 6, 6))
+    pair[:, :3, :3], pair[:, :3, 3:] = fwd[:-1], off
+    pair[:, 3:, :3], pair[:, 3:, 3:] = off.transpose(0, 2, 1), bwd[1:]
+    pinv = np.linalg.inv(pair)
+    xx = np.concatenate([pinv[:, :3, :3], pinv[-1:, 3:, 3:]])
+    return 0.5 * (xx + xx.transpose(0, 2, 1)), pinv[:, :3, 3:]
+
+
+def _pivots(diag: FloatArray, off: FloatArray) -> FloatArray:
+    """Block pivots F_k = U_kk^T U_kk of the upper banded Cholesky factor U of a block-tridiagonal matrix."""
+    n, u = diag.shape[0], 5
+    cb = linalg.cholesky_banded(band(diag, off, u), lower=False, check_finite=False)
+    ukk = np.zeros((n, 3, 3))
+    cols = 3 * np.arange(n)
+    for a in range(3):
+        for b in range(a, 3):
+            ukk[:, a, b] = cb[u - (b - a), cols + b]
+    return ukk.transpose(0, 2, 1) @ ukk
+
+
+def _schur(ne: NormalEquations, lam: float, u: int, lam_theta: float | None = None
+           ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The damped Schur complement S = Htt - X^T X with X = U^-T Hxt, y = U^-T gx (Hxx = U^T U, banded
+    Cholesky): returns S, X, y, the banded factor and the damped Hxx blocks. `lam_theta` damps Htt (default
+    `lam`)."""
+    n, p = ne.gx.shape[0], ne.gt.size
+    diag = ne.diag.copy()
+    d = np.einsum("nii->ni", diag)
+    floor = 1e-9 * (float(np.mean(d)) if d.size else 1.0)
+    d += lam * (d + floor)                                   # Marquardt scaling with a floor
+    scale = float(np.mean(np.diag(ne.htt))) if ne.htt.size else 1.0     # no theta: a trajectory-only problem
+    lam_t = lam if lam_theta is None else lam_theta
+    htt = ne.htt + lam_t * np.diag(np.diag(ne.htt) + 1e-9 * max(scale, 1e-300))
+    cb = linalg.cholesky_banded(band(diag, ne.off, u), lower=False, check_finite=False)
+    rhs = np.empty((3 * n, p + 1), order="F")          # LAPACK's layout: solved in place, no copies
+    rhs[:, :p], rhs[:, p] = ne.hxt.reshape(3 * n, p), ne.gx.reshape(3 * n)
+    sol, info = lapack.dtbtrs(cb, rhs, uplo="U", trans="T", overwrite_b=1)
+    if info != 0:
+        msg = "banded triangular solve failed"
+        raise np.linalg.LinAlgError(msg)
+    x, y = sol[:, :p], sol[:, p]
+    s = htt - x.T @ x
+    return 0.5 * (s + s.T), x, y, cb, diag
+
+
+def step(ne: NormalEquations, lam: float, u: int, need_w: bool = False, lam_theta: float | None = None
+         ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    """Solve the damped normal equations; returns dx (N,3), dtheta, S^-1, damped Hxx blocks and, if asked,
+    Hxx^-1 Hxt (N,3,p): dtheta = S^-1 (X^T y - gt), dx = -U^-1 (y + X dtheta) (see `_schur`).
+    """
+    n, p = ne.gx.shape[0], ne.gt.size
+    s, x, y, cb, diag = _schur(ne, lam, u, lam_theta)
+    # Jacobi scaling before the inverse: theta mixes units (tesla, rad, m/s^2) with very different scales
+    sd = np.diag(s)
+    if np.any(~np.isfinite(sd)) or np.any(sd <= 0.0):
+        msg = "Schur complement not positive definite"
+        raise np.linalg.LinAlgError(msg)
+    js = 1.0 / np.sqrt(sd)
+    s_inv = js[:, None] * np.linalg.inv(js[:, None] * s * js[None, :]) * js[None, :]
+    dt = s_inv @ (x.T @ y - ne.gt)
+    back = np.empty((3 * n, 1 + p if need_w else 1), order="F")
+    back[:, 0] = y + x @ dt
+    if need_w:
+        back[:, 1:] = x
+    back, info = lapack.dtbtrs(cb, back, uplo="U", trans="N", overwrite_b=1)
+    if info != 0:
+        msg = "banded triangular solve failed"
+        raise np.linalg.LinAlgError(msg)
+    dx = -back[:, 0]
+    w = back[:, 1:].reshape(n, 3, p) if need_w else None
+    return dx.reshape(n, 3), dt, s_inv, diag, w
+
+
+def undamped(ne: NormalEquations, u: int, log: list[str] | None = None, need_w: bool = True
+             ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    """`step` on the undamped information; when that is numerically singular (a rigid gyro, a flat log), with a
+    trace (1e-9) of damping on the trajectory blocks only, and failing that on theta too, which leaves
+    undetermined directions huge rather than NaN (the observability check then names them)."""
+    for lam_theta in (None, 0.0, 1e-9):
+        try:
+            out = step(ne, 0.0 if lam_theta is None else 1e-9, u, need_w=need_w, lam_theta=lam_theta)
+        except (np.linalg.LinAlgError, linalg.LinAlgError):
+            if lam_theta == 1e-9:
+                raise
+            continue
+        if lam_theta is not None and log is not None:
+            log.append(f"the information is nearly singular at the optimum (covariance with 1e-9 damping of the "
+                       f"{'trajectory' if lam_theta == 0.0 else 'trajectory and theta'})")
+        return out
+    raise AssertionError  # pragma: no cover - the loop returns or raises
+
+
+def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatArray,
+                        trajectory_damping: float = 0.0) -> FloatArray:
+    """Inverse Schur complement of the Gauss-Newton information at a given point (no iterations), e.g. the
+    Cramer-Rao bound of theta when evaluated at the truth with the true noise levels. `trajectory_damping` (a
+    trace, e.g. 1e-9) keeps a nearly rigid trajectory from cancelling theta's information in the Schur
+    complement (flat logs); theta stays undamped."""
+    factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
+    n, p = states.shape[0], theta.size
+    u = 5 if any(f.J_next is not None for f in factors) else 2
+    with one_blas_thread():
+        ne = assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        if trajectory_damping > 0.0:
+            return step(ne, trajectory_damping, u, lam_theta=0.0)[2]
+        return undamped(ne, u, need_w=False)[2]          # the covariance only: no Hxx^-1 Hxt
+
+
+def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> FloatArray:
+    """The Schur complement S of the Gauss-Newton information at a given point: what the data know about theta
+    with the trajectory eliminated (singular where the motion determines nothing; models/partial.py)."""
+    factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
+    n, p = states.shape[0], theta.size
+    u = 5 if any(f.J_next is not None for f in factors) else 2
+    with one_blas_thread():
+        ne = assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
+        # its null directions (what the motion cannot determine)
+        return _schur(ne, 1e-9, u, 0.0)[0]
