@@ -114,7 +114,7 @@ def run(kind: str, path: Path) -> dict[str, Any]:
     """One measurement (in its own process): wall time, peak RSS above the post-import baseline, stream bytes."""
     from magcal_cli.readers import ReadOptions, open_recording
     from magcal_cli.readers.dataflash.binary import parse_binary, parse_buffer
-    from magcal_cli.readers.dataflash.reader import WANTED
+    from magcal_cli.readers.dataflash.load import WANTED
 
     base = current_rss_mb()
     t = time.perf_counter()

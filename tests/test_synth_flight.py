@@ -15,8 +15,9 @@ from magcal_cli import so3
 from magcal_cli.errors import MagcalError
 from magcal_cli.models.accel import G
 from magcal_cli.readers import open_recording
+from magcal_cli.readers.dataflash.ardupilot import reconstruct_mags
 from magcal_cli.readers.dataflash.compass import Correction
-from magcal_cli.readers.dataflash.reader import load, reconstruct_mags
+from magcal_cli.readers.dataflash.load import load
 from magcal_cli.streams import Kind, Sampling
 from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.firmware import STALE_CURRENT_COMPENSATION, PreviousCalibration

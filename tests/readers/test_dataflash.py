@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from magcal_cli.cli.main import cli
 from magcal_cli.errors import LogReadError, StreamError, UnsupportedFormatError
 from magcal_cli.readers import ReadOptions, open_recording
+from magcal_cli.readers.dataflash.ardupilot import reconstruct_mags
 from magcal_cli.readers.dataflash.binary import follow_chain, parse_buffer
 from magcal_cli.readers.dataflash.compass import (
     Correction,
@@ -22,7 +23,7 @@ from magcal_cli.readers.dataflash.compass import (
     param_suffix,
     undo_correction,
 )
-from magcal_cli.readers.dataflash.reader import _sample_time, reconstruct_mags
+from magcal_cli.readers.dataflash.rawfield import sample_time
 from magcal_cli.streams import Kind
 from magcal_cli.synth.logs import write_log
 from magcal_cli.synth.logs.dataflash import PreviousCalibration, build
@@ -109,7 +110,7 @@ def test_sample_time_unwraps_the_uint32_stamp() -> None:
     """MAG.S is uint32 microseconds: after 71.6 min it wraps, TimeUS does not."""
     time_us = np.array([5_000_000_150.0, 1_000_000.0])
     s = np.array([5_000_000_000.0 % 2**32, 0.0])
-    np.testing.assert_allclose(_sample_time(time_us, s), [5000.0, 1.0])
+    np.testing.assert_allclose(sample_time(time_us, s), [5000.0, 1.0])
 
 
 # --- the vectorised binary parser -------------------------------------------------------------------------

@@ -14,8 +14,8 @@ from magcal_cli.config import Config
 from magcal_cli.errors import LogReadError, MagcalError, StreamError
 from magcal_cli.pipeline import calibrate
 from magcal_cli.readers import ReadOptions, open_recording, sniff
-from magcal_cli.readers.ulog.load import STUCK_READS, GuardFile, _StuckError
-from magcal_cli.readers.ulog.reader import device_text
+from magcal_cli.readers.ulog.load import STUCK_READS, GuardFile, StuckError
+from magcal_cli.readers.ulog.sensors import device_text
 from magcal_cli.streams import Kind, Recording, Sampling
 from magcal_cli.synth.logs import write_log
 from magcal_cli.synth.logs.ulog import START_US, Topic, UlogContent, sim_content, ulog_bytes, write_content
@@ -374,7 +374,7 @@ def test_a_parser_that_keeps_rereading_is_stopped(tmp_path: Path, monkeypatch: p
         guard.seek(0)
         assert guard.read(3) == bytes(3)
     guard.seek(0)
-    with pytest.raises(_StuckError):
+    with pytest.raises(StuckError):
         guard.read(3)
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from magcal_cli.config import Config
-from magcal_cli.pipeline import _with_position
+from magcal_cli.pipeline import with_position
 from magcal_cli.readers import open_recording
 from magcal_cli.synth.logs.ulog import START_US, Topic, UlogContent, write_content
 
@@ -42,7 +42,7 @@ def test_round_trip_utc_of_the_clock_zero(tmp_path: Path, topic: str) -> None:
     rec = open_recording(_gps_log(tmp_path / "gps.ulg", utc, topic))
     assert rec.utc0 == pytest.approx(NOON_US * 1e-6 + 0.005 - START_US * 1e-6 + rec.t0, abs=1e-6)
     assert _day(rec.utc0) == "2019-06-01"
-    assert _with_position(rec, Config()).date == "2019-06-01"
+    assert with_position(rec, Config()).date == "2019-06-01"
 
 
 def test_no_receiver_time_leaves_the_date_unknown(tmp_path: Path) -> None:
@@ -61,7 +61,7 @@ def test_real_ulogs_are_dated_by_their_gps(realdata: Path, name: str, day: str |
     rec = open_recording(realdata / "px4" / name)
     assert _day(rec.utc0) == day
     if day is not None:
-        assert _with_position(rec, Config()).date == day
+        assert with_position(rec, Config()).date == day
 
 
 def test_simulated_flight_ulog_is_dated_by_its_gps(tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ from magcal_cli import so3
 from magcal_cli.align import clean_time
 from magcal_cli.progress import current
 from magcal_cli.readers.checks import drop_held, sensor_checks
-from magcal_cli.readers.dataflash.format import IntArray, RawLog, Table
+from magcal_cli.readers.dataflash.format import IntArray, MessageFormat, RawLog, Table
 from magcal_cli.streams import FloatArray, Kind, Recording, Sampling, Stream
 
 
@@ -118,6 +118,24 @@ def euler_quat(roll_deg: FloatArray, pitch_deg: FloatArray, yaw_deg: FloatArray)
     if not rpy.size:
         return np.zeros((0, 4))
     return so3.as_quat(so3.from_rpy(rpy))
+
+
+def instance_tag(fmt: MessageFormat, inst: int) -> str:
+    """`[I=n]` for instanced record types (4.x), else nothing."""
+    return f"[I={inst}]" if fmt.has("I") else ""
+
+
+def stack_columns(table: Table, names: tuple[str, ...], factor: float = 1.0) -> FloatArray:
+    """(N, len(names)) float columns times a factor."""
+    return np.stack([table.num(c) * factor for c in names], axis=1)
+
+
+def int_factor(table: Table, column: str, integer_default: float) -> float:
+    """Factor to the base unit: an FMTU multiplier for integer fields, else the firmware convention."""
+    char = table.fmt.char(column)
+    if char in "bBhHiIqQ":
+        return table.fmt.mults.get(column, integer_default)
+    return 1.0
 
 
 @dataclass(frozen=True, eq=False)

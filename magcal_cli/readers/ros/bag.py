@@ -1,7 +1,7 @@
 """ROS 1 `.bag` files and ROS 2 bag directories (sqlite3 or MCAP storage), opened with rosbags' AnyReader.
 
-The messages are then read by the fast paths of rosbag1_fast / rosbag_batch (chunks or storage rows decoded
-together by rosvec); rosbags' own per-message iteration remains for damaged or rosbag2-compressed bags."""
+The messages are then read by the fast paths of bag1_fast / bag_batch (chunks or storage rows decoded
+together by vec); rosbags' own per-message iteration remains for damaged or rosbag2-compressed bags."""
 
 from __future__ import annotations
 
@@ -16,11 +16,9 @@ from magcal_cli.readers.cut import mark_cut, refuse_if_strict
 from magcal_cli.readers.ros.bag1_fast import read_indexed_bag1
 from magcal_cli.readers.ros.bag2_direct import read_direct
 from magcal_cli.readers.ros.bag_batch import Batcher, read_ros2_storage
-from magcal_cli.readers.ros.msg import Collector, wanted
+from magcal_cli.readers.ros.msg import Collector, ignored_note, wanted
 from magcal_cli.streams import Cut, Recording
 
-#: how many ignored topics a note names before it says "and N more"
-IGNORED_LISTED = 5
 #: first step (ns) past a corrupt chunk when resuming; it doubles until a message reads (1 ms .. ~18 min)
 RESUME_STEP_NS = 1_000_000
 RESUME_PROBES = 40
@@ -40,13 +38,6 @@ def bag_path(path: Path) -> Path:
     msg = (f"{path}: a ROS bag storage file without its metadata.yaml. Pass the ROS 2 bag directory, or rename a "
            "ROS 1 bag to end in .bag")
     raise LogReadError(msg)
-
-
-def ignored_note(topics: list[str]) -> str:
-    """One note naming the topics of types magcal does not read."""
-    shown = ", ".join(topics[:IGNORED_LISTED])
-    more = f" and {len(topics) - IGNORED_LISTED} more" if len(topics) > IGNORED_LISTED else ""
-    return f"ignored {len(topics)} topics of types magcal does not read: {shown}{more}"
 
 
 class RosbagReader:
@@ -166,7 +157,7 @@ def _read_messages(reader: Any, conns: list[Any], collector: Collector, notes: l
     """
     expected = sum(int(c.msgcount) for c in conns)
     last, start, regions, why = int(reader.start_time) - 1, None, 0, ""
-    batcher = Batcher(reader, collector)             # decodes with rosvec; corrupt messages are counted
+    batcher = Batcher(reader, collector)             # decodes with vec; corrupt messages are counted
     while True:
         try:
             for conn, recv_ns, raw in reader.messages(connections=conns, start=start):

@@ -2,7 +2,7 @@
 
 rosbags' `messages()` seeks, parses a record header and copies the data of every message in Python; here
 each chunk is decompressed once and the message records of each connection in it are located from the index
-offsets, checked (op, connection and time in the record header agree with the index) and decoded by rosvec.
+offsets, checked (op, connection and time in the record header agree with the index) and decoded by vec.
 Anything unexpected (a corrupt chunk, an index that points elsewhere) returns False and the caller reads
 the bag the slow way, which resumes after damaged chunks.
 """
@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli.progress import current
-from magcal_cli.readers.ros.bag1_scan import _fields
+from magcal_cli.readers.ros.bag1_scan import header_fields
 from magcal_cli.readers.ros.bag_batch import batch_decoder
 from magcal_cli.readers.ros.msg import Collector
 from magcal_cli.readers.ros.vec import BatchDecoder
@@ -108,7 +108,7 @@ def _headers_agree(data: U8, at: I64, hl: int, w: _Conn, rows: I64) -> bool:
 
     The first header is parsed to find where op, conn and time lie; all are then compared at those places."""
     first = bytes(data[at[0] + 4:at[0] + 4 + hl])
-    fields = _fields(first)
+    fields = header_fields(first)
     if fields.get("op") != bytes([OP_MSGDATA]) or "conn" not in fields or len(fields.get("time", b"")) != 8:
         return False
     where = {name: first.index(name.encode() + b"=") + len(name) + 1 for name in ("op", "conn", "time")}

@@ -52,7 +52,7 @@ class _Scan:
         from rosbags.typesys.msg import normalize_msgtype
 
         conn = struct.unpack("<I", rec.fields["conn"])[0]
-        inner = _fields(rec.data)
+        inner = header_fields(rec.data)
         topic = rec.fields.get("topic", inner.get("topic", b"")).decode()
         msgtype = normalize_msgtype(inner["type"].decode())
         if not wanted(topic, msgtype):
@@ -97,7 +97,7 @@ class _Scan:
                     return
 
 
-def _fields(binary: bytes) -> dict[str, bytes]:
+def header_fields(binary: bytes) -> dict[str, bytes]:
     """The `name=value` fields of a record header (each prefixed by its uint32 length)."""
     out: dict[str, bytes] = {}
     pos = 0
@@ -126,13 +126,13 @@ def read_record(src: IO[bytes]) -> Record | None:
     if len(binary) < n or len(size) < 4:
         return None if not binary else Record(_fields_or_empty(binary), b"", whole=False)
     data = src.read(struct.unpack("<I", size)[0])
-    return Record(_fields(binary), data, whole=len(data) == struct.unpack("<I", size)[0])
+    return Record(header_fields(binary), data, whole=len(data) == struct.unpack("<I", size)[0])
 
 
 def _fields_or_empty(binary: bytes) -> dict[str, bytes]:
     """The fields of a header that may itself be cut."""
     try:
-        return _fields(binary)
+        return header_fields(binary)
     except ValueError:
         return {}
 

@@ -1,4 +1,4 @@
-"""Batched decoding for the bag reader: rosbags' message iteration with rosvec decoding, and ROS 2 storage read
+"""Batched decoding for the bag reader: rosbags' message iteration with vec decoding, and ROS 2 storage read
 directly (sqlite3 rows from the file's B-tree pages or else in blocks through sqlite3, MCAP chunks through the
 MCAP reader), bypassing the per-message iteration.
 
@@ -31,7 +31,7 @@ Decoded = dict[tuple[str, str], list[tuple[npt.NDArray[np.int64], npt.NDArray[np
 
 
 def batch_decoder(reader: Any, msgtype: str) -> BatchDecoder:
-    """A rosvec decoder of `msgtype` from an open AnyReader's typestore (ROS 1 or CDR as the bag is)."""
+    """A vec decoder of `msgtype` from an open AnyReader's typestore (ROS 1 or CDR as the bag is)."""
     return BatchDecoder(reader.typestore.fielddefs, msgtype, not reader.is2,
                         lambda data: reader.deserialize(data, msgtype))
 

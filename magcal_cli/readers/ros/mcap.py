@@ -1,8 +1,8 @@
 """MCAP reader: ROS 2 (CDR), ROS 1 and JSON channels of the ROS sensor types; zstd or lz4 chunks.
 
 Decoding uses rosbags' typestore built from each channel's own schema, so ROS 1 and ROS 2 messages share
-one code path with the bag reader (rosmsg.py); a chunk's messages of one channel are decoded together by
-rosvec.BatchDecoder (numpy), rosbags only checking one message per layout or decoding the odd ones. JSON channels follow docs/readers-ros-csv.md: the schema
+one code path with the bag reader (msg.py); a chunk's messages of one channel are decoded together by
+vec.BatchDecoder (numpy), rosbags only checking one message per layout or decoding the odd ones. JSON channels follow docs/readers-ros-csv.md: the schema
 name is the ROS type, the message object has the ROS field names.
 """
 
@@ -19,10 +19,9 @@ import numpy as np
 from magcal_cli.errors import LogReadError
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.cut import mark_cut, refuse_if_strict
-from magcal_cli.readers.ros.bag import ignored_note
 from magcal_cli.readers.ros.mcap_chunk import Batch
 from magcal_cli.readers.ros.mcap_stream import Damage, iter_batches
-from magcal_cli.readers.ros.msg import Collector, normalise_type, wanted
+from magcal_cli.readers.ros.msg import Collector, ignored_note, normalise_type, wanted
 from magcal_cli.readers.ros.vec import BatchDecoder
 from magcal_cli.streams import Cut, Recording
 

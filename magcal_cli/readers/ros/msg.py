@@ -52,6 +52,8 @@ VEC3_TOPIC_HINT = "mag"
 VEC3_TESLA_BELOW = 1e-2
 #: header-stamp clocks that differ from the reference topic's by more than this (s) are another clock
 CLOCK_MISMATCH_S = 1.0
+#: how many ignored topics a note names before it says "and N more"
+IGNORED_LISTED = 5
 
 
 def normalise_type(name: str) -> str:
@@ -66,6 +68,13 @@ def wanted(topic: str, msgtype: str) -> bool:
     return entry is not None and (entry[0] != "vec3" or VEC3_TOPIC_HINT in topic.lower())
 
 
+def ignored_note(topics: list[str]) -> str:
+    """One note naming the topics of types magcal does not read."""
+    shown = ", ".join(topics[:IGNORED_LISTED])
+    more = f" and {len(topics) - IGNORED_LISTED} more" if len(topics) > IGNORED_LISTED else ""
+    return f"ignored {len(topics)} topics of types magcal does not read: {shown}{more}"
+
+
 def stamp_ns(msg: Any) -> int:
     """Header stamp in integer ns (exact; a float of 1.7e9 s only resolves 0.24 us); JSON spellings too."""
     st = msg.header.stamp
@@ -77,7 +86,7 @@ def stamp_ns(msg: Any) -> int:
 class Collector:
     """Per (topic, type) header stamps, receive times and values of the messages magcal reads.
 
-    Batches (rosvec) are kept as arrays; single messages are buffered in lists and become a block before the
+    Batches (vec) are kept as arrays; single messages are buffered in lists and become a block before the
     next batch of their topic, so each topic keeps its arrival order."""
 
     def __init__(self) -> None:

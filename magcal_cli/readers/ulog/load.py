@@ -32,7 +32,7 @@ MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")
 REPORT_BYTES = 1 << 20
 
 
-class _StuckError(Exception):
+class StuckError(Exception):
     """pyulog kept reading the same bytes: the file is corrupt in a way it cannot get past."""
 
 
@@ -63,7 +63,7 @@ class GuardFile:
             else:
                 self._idle += 1
                 if self._idle > STUCK_READS:
-                    raise _StuckError(pos)
+                    raise StuckError(pos)
         data = self._fh.read(n)
         if n == HEADER_SIZE and len(data) == n and self._corrupt_header(pos, data):
             # show pyulog a header of type 0, which it treats as corruption and passes byte by byte until
@@ -156,7 +156,7 @@ def load_ulog(path: Path, wanted: list[str]) -> Loaded:
         msg = (f"{path}: the ULog is corrupt near byte {guard.tell_safe()} (a message size points outside "
                "the file). Re-copy the log from the vehicle")
         raise LogReadError(msg) from None
-    except _StuckError as exc:
+    except StuckError as exc:
         msg = (f"{path}: the ULog is corrupt near byte {exc.args[0]} (the parser cannot find the next "
                "message). Re-copy the log from the vehicle")
         raise LogReadError(msg) from None
