@@ -15,7 +15,8 @@ from magcal_cli import so3
 from magcal_cli.cli.main import cli
 from magcal_cli.firmware import FirmwareError, gates
 from magcal_cli.firmware.check import CheckOptions, check_recording, heading_gap_deg
-from magcal_cli.firmware.export import Options, export
+from magcal_cli.firmware.common import Options
+from magcal_cli.firmware.export import export
 from magcal_cli.firmware.paramfile import render
 from magcal_cli.streams import Kind, Recording
 

@@ -17,8 +17,7 @@ import numpy as np
 from magcal_cli import so3
 from magcal_cli.calibration.types import Calibration, MagCalibration
 from magcal_cli.firmware import FirmwareError, NotExportableError, rotations
-from magcal_cli.firmware.effects import carried
-from magcal_cli.firmware.export import (
+from magcal_cli.firmware.common import (
     Collected,
     Export,
     MagExport,
@@ -30,8 +29,9 @@ from magcal_cli.firmware.export import (
     shared_signal,
     soft_range,
 )
+from magcal_cli.firmware.effects import carried
 from magcal_cli.firmware.split import choose_rotation, split_rotation_first
-from magcal_cli.readers.dataflash.compass import param_suffix
+from magcal_cli.readers.dataflash.compass import correct_field, effective_scale, iron_matrix, param_suffix
 from magcal_cli.streams import FloatArray
 
 UNIT = "milligauss"
@@ -274,15 +274,11 @@ def correct(raw: FloatArray, params: Mapping[str, float], suffix: str, signal: F
 
     `signal` is throttle (0..1) or current (A) at the samples, as COMPASS_MOTCT selects; MOT is added after M.
     """
-    from magcal_cli.readers.dataflash.compass import effective_scale, iron_matrix
-
     def vec(stem: str) -> FloatArray:
         return np.array([[params.get(f"COMPASS_{stem}{suffix}_{a}", 0.0) for a in AXES]])
 
     m = iron_matrix(vec("DIA"), vec("ODI"))[0]
     scale = float(effective_scale(np.array([params.get(f"COMPASS_SCALE{suffix}", 0.0)]))[0])
-    out: FloatArray = ((raw + vec("OFS")) * scale) @ m.T
     motct = int(params.get("COMPASS_MOTCT", 0))
-    if motct in (1, 2) and signal is not None:
-        out = out + signal[:, None] * vec("MOT")
-    return out
+    motor = signal[:, None] * vec("MOT") if motct in (1, 2) and signal is not None else None
+    return correct_field(raw, vec("OFS"), scale, m, motor)

@@ -12,9 +12,7 @@ failure only with `require_measured` (--require-measured).
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -24,12 +22,11 @@ from magcal_cli import units
 from magcal_cli.calibration.types import Calibration
 from magcal_cli.errors import MagcalError
 from magcal_cli.firmware import FirmwareError, gates
-from magcal_cli.firmware.export import Options, export
+from magcal_cli.firmware.common import Options
+from magcal_cli.firmware.export import export
 from magcal_cli.firmware.flown import Flown, flown_fields, levelling, signal_at, slow
 from magcal_cli.firmware.residual import MIN_SAMPLES, fit_residual
 from magcal_cli.streams import FloatArray, Kind, Recording
-
-Progress = Callable[[str], None]
 
 #: metric -> meaning, for --fail-on and the documentation
 METRICS = {
@@ -308,28 +305,3 @@ def check_recording(rec: Recording, conditions: tuple[gates.Condition, ...], *,
             c.failed, c.unmeasured = gates.failures(conditions, c.metrics, c.missing), []
         report.compasses.append(c)
     return report
-
-
-def run_check(log: Path, conditions: tuple[gates.Condition, ...], *, params: dict[str, float] | None = None,
-              calibration: Calibration | None = None, mags: list[str] | None = None, refit: bool = True,
-              fmt: str | None = None, progress: Progress = lambda _: None,
-              options: CheckOptions | None = None) -> CheckReport:
-    """Read `log`, refuse it when no flown calibration is known, optionally calibrate it anew, and check it."""
-    from magcal_cli.readers import open_recording
-
-    progress(f"reading {log.name}")
-    rec = open_recording(log, fmt)
-    flown = flown_or_refuse(rec, mags, params, calibration)         # before the refit, which takes long
-    new, why = None, "skipped (--no-refit)"
-    if refit:
-        progress("fitting a new calibration for comparison")
-        try:
-            from magcal_cli.config import Config
-            from magcal_cli.pipeline import calibrate
-
-            ids = mags or [s.id for s in rec.of_kind(Kind.MAGNETOMETER)]
-            new = calibrate(log, Config(mag=",".join(ids)), fmt).calibration
-        except MagcalError as exc:
-            why = f"the new calibration failed: {str(exc).split(': ', 1)[-1]}"
-    return check_recording(rec, conditions, params=params, calibration=calibration, mags=mags, new=new,
-                           why_no_new=why, options=options, flown=flown)

@@ -17,10 +17,11 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3, units
-from magcal_cli.align import onto
+from magcal_cli.align import columns, onto
 from magcal_cli.calibration.types import Calibration
 from magcal_cli.firmware import FirmwareError, ardupilot, px4
 from magcal_cli.firmware.effects import carried
+from magcal_cli.readers.dataflash.compass import param_suffix
 from magcal_cli.streams import FloatArray, Kind, Recording, Stream
 
 BoolArray = npt.NDArray[np.bool_]
@@ -60,8 +61,6 @@ def signal_at(rec: Recording, kind: Kind, t: FloatArray) -> FloatArray | None:
 
 def _ardupilot(rec: Recording, mag: Stream, index: int, params: Mapping[str, float]) -> Flown:
     """A MAG[i] stream corrected with the COMPASS_* parameters of its slot (log instance -> priority)."""
-    from magcal_cli.readers.dataflash.compass import param_suffix
-
     m = re.fullmatch(r"MAG\[(\d)\]", mag.id)
     suffix, _ = param_suffix(int(m.group(1)) if m else index, dict(params))
     raw = mag.xyz * units.from_si(ardupilot.UNIT)
@@ -147,7 +146,7 @@ def levelling(rec: Recording, t: FloatArray) -> tuple[BoolArray, FloatArray, str
     kernel = np.ones(win) / win
     smooth = np.stack([np.convolve(a.values[:, i], kernel, mode="same") for i in range(3)], axis=1)
     mask = (t >= a.t[0]) & (t <= a.t[-1])
-    f = np.stack([np.interp(t[mask], a.t, smooth[:, i]) for i in range(3)], axis=1)
+    f = columns(t[mask], a.t, smooth)
     roll = np.arctan2(-f[:, 1], -f[:, 2])
     pitch = np.arctan2(f[:, 0], np.hypot(f[:, 1], f[:, 2]))
     rpy = np.stack([roll, pitch, np.zeros_like(roll)], axis=1)
@@ -163,7 +162,7 @@ def slow(rec: Recording, t: FloatArray, max_rate_dps: float) -> BoolArray:
     if not gyr:
         return np.ones(t.size, dtype=bool)
     g = gyr[0]
-    rate = np.linalg.norm(np.stack([np.interp(t, g.t, g.values[:, i]) for i in range(3)], axis=1), axis=1)
+    rate = np.linalg.norm(columns(t, g.t, g.values), axis=1)
     out: BoolArray = np.rad2deg(rate) <= max_rate_dps
     return out
 

@@ -15,7 +15,7 @@ from magcal_cli.params import MAG
 from magcal_cli.streams import FloatArray, Kind
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 
 #: the heading depends on D and o (not the dip): their joint covariance, in this order
@@ -84,7 +84,8 @@ def _interference(cal: Calibration, mag: MagCalibration, peak_current: float | N
 
 def fit_metrics(result: RunResult) -> dict[str, tuple[dict[str, float | None], dict[str, str]]]:
     """mag id -> (metrics, reasons for the ones that are None)."""
-    from magcal_cli.firmware.export import Options, export
+    from magcal_cli.firmware.common import Options
+    from magcal_cli.firmware.export import export
 
     cal = result.calibration
     rec = result.recording

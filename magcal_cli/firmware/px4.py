@@ -17,8 +17,7 @@ import numpy as np
 from magcal_cli import so3
 from magcal_cli.calibration.types import Calibration, MagCalibration
 from magcal_cli.firmware import FirmwareError, NotExportableError, rotations
-from magcal_cli.firmware.effects import carried
-from magcal_cli.firmware.export import (
+from magcal_cli.firmware.common import (
     Collected,
     Export,
     MagExport,
@@ -30,6 +29,7 @@ from magcal_cli.firmware.export import (
     shared_signal,
     soft_range,
 )
+from magcal_cli.firmware.effects import carried
 from magcal_cli.firmware.split import choose_rotation, split_symmetric_first
 from magcal_cli.streams import FloatArray
 

@@ -9,7 +9,8 @@ import pytest
 
 from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.firmware import FirmwareError, FirmwareLimitError, NotExportableError
-from magcal_cli.firmware.export import Options, export
+from magcal_cli.firmware.common import Options
+from magcal_cli.firmware.export import export
 
 F = 500.0
 

@@ -14,7 +14,8 @@ import pytest
 
 from magcal_cli import so3
 from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
-from magcal_cli.firmware.export import Export, Options, export
+from magcal_cli.firmware.common import Export, Options
+from magcal_cli.firmware.export import export
 from magcal_cli.firmware.paramfile import render
 
 from . import fwsim

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magcal_cli.align import columns
 from magcal_cli.streams import FloatArray
 
 #: COMPASS_MIN_SCALE_FACTOR / COMPASS_MAX_SCALE_FACTOR (CompassCalibrator.h); outside, SCALE is ignored
@@ -87,14 +88,26 @@ def effective_scale(scale: FloatArray) -> FloatArray:
     return np.where((scale >= SCALE_RANGE[0]) & (scale <= SCALE_RANGE[1]), scale, 1.0)
 
 
+def correct_field(raw: FloatArray, ofs: FloatArray, scale: FloatArray | float, matrix: FloatArray,
+                  motor: FloatArray | None = None, motor_after_matrix: bool = True) -> FloatArray:
+    """correct_field of body-frame raw readings (N, 3) mG: the one copy of the formula in the module docstring.
+
+    `ofs`, `scale`, `matrix` and `motor` hold one value for all samples ((1, 3), float, (3, 3), (N, 3)) or one per
+    sample ((N, 3), (N, 1), (N, 3, 3), (N, 3)); `motor` None adds nothing.
+    """
+    x = (raw + ofs) * scale
+    if motor is not None and not motor_after_matrix:
+        x = x + motor
+    # one matrix: a BLAS product (as `check` has always computed it); one per sample: einsum. The two round the
+    # last bit differently, and both callers' outputs are pinned
+    x = x @ matrix.T if matrix.ndim == 2 else np.einsum("nij,nj->ni", matrix, x)
+    out: FloatArray = x + motor if motor is not None and motor_after_matrix else x
+    return out
+
+
 def apply_correction(raw: FloatArray, c: Correction) -> FloatArray:
     """The field the firmware logs for body-frame raw readings (N, 3) mG (before int16 truncation)."""
-    x = (raw + c.ofs) * c.scale[:, None]
-    if not c.motor_after_matrix:
-        x = x + c.motor
-    x = np.einsum("nij,nj->ni", c.matrix, x)
-    out: FloatArray = x + c.motor if c.motor_after_matrix else x
-    return out
+    return correct_field(raw, c.ofs, c.scale[:, None], c.matrix, c.motor, c.motor_after_matrix)
 
 
 def undo_correction(logged: FloatArray, c: Correction) -> FloatArray:
@@ -124,8 +137,8 @@ def _in_motion(counts: FloatArray, t: FloatArray) -> FloatArray:
     x = np.asarray(counts, dtype=np.float64).reshape(len(counts), -1)
     if len(x) < 3:
         return np.zeros(0)
-    later = np.stack([np.interp(t + MOVING_S / 2, t, x[:, i]) for i in range(x.shape[1])], axis=1)
-    earlier = np.stack([np.interp(t - MOVING_S / 2, t, x[:, i]) for i in range(x.shape[1])], axis=1)
+    later = columns(t + MOVING_S / 2, t, x)
+    earlier = columns(t - MOVING_S / 2, t, x)
     out: FloatArray = x[np.abs(later - earlier) > MOVING_COUNTS]
     return out
 
