@@ -9,16 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from magcal_cli.calibration.run import RunResult
 from magcal_cli.config import Config
 from magcal_cli.findings import Finding, Severity
 from magcal_cli.firmware.metrics import heading_std_curve_deg, heading_std_deg
-from magcal_cli.pipeline import RunResult, calibrate_recording
+from magcal_cli.pipeline import calibrate_recording
 from magcal_cli.synth.simulate import Simulation
 from magcal_cli.writers import get_writer
-from magcal_cli.writers.report import summary as rs
+from magcal_cli.writers.report import verdict as rs
 from magcal_cli.writers.report.data import heading_view, mag_view
-from magcal_cli.writers.report.html import render_html
-from magcal_cli.writers.report.summary import groups, verdicts
+from magcal_cli.writers.report.html import SECTIONS, render_html
+from magcal_cli.writers.report.sections.base import Context, Section
+from magcal_cli.writers.report.verdict import groups, verdicts
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +42,30 @@ def test_sections_come_summary_first(page: str) -> None:
     assert ids[-4:] == ["effects", "diagnosis", "warnings", "provenance"]
     summary = page[page.index("id='summary'"):page.index("id='method'")]
     assert "What to do next" in summary and "field strength error" in summary
+
+
+def test_navigation_and_body_follow_sections(page: str, result: RunResult) -> None:
+    """The links and the sections both come from SECTIONS, in its order, and every in-page link has its target
+    (issue 26: a section is its module and one SECTIONS line)."""
+    cal = result.calibration
+    ctx = Context(result, verdicts(result), groups(result.findings, [m.id for m in cal.magnetometers]))
+    expected = [c.anchor for s in SECTIONS for c in s.contexts(ctx)]
+    ids = re.findall(r"<section id='([^']+)'", page)
+    nav = re.findall(r"<a href='#([^']+)'>", page[page.index("<nav>"):page.index("</nav>")])
+    assert nav == ids == expected
+    assert set(re.findall(r"href='#([^']+)'", page)) <= set(ids)
+
+
+def test_a_section_is_one_line(result: RunResult, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A new SECTIONS line adds its link and its body; a section with nothing to show (None) adds neither."""
+    from magcal_cli.writers.report import html
+
+    extra = (Section("extra", "Extra", lambda c: f"<section id='{c.anchor}'><h2>Extra</h2></section>"),
+             Section("empty", "Empty", lambda c: None))
+    monkeypatch.setattr(html, "SECTIONS", (*html.SECTIONS, *extra))
+    page = html.render_html(result)
+    assert re.findall(r"<section id='([^']+)'", page)[-2:] == ["provenance", "extra"]
+    assert "<a href='#extra'>Extra</a></nav>" in page and "'#empty'" not in page and "id='empty'" not in page
 
 
 def test_page_is_self_contained_and_wraps(page: str) -> None:

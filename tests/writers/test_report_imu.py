@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from magcal_cli.calibration.run import RunResult
 from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
 from magcal_cli.effects import EFFECTS, get
 from magcal_cli.effects.base import Target
 from magcal_cli.models.accel import G
-from magcal_cli.pipeline import RunResult, calibrate_recording
+from magcal_cli.pipeline import calibrate_recording
 from magcal_cli.registry import resolve
 from magcal_cli.synth.effects import parse_effect
 from magcal_cli.synth.simulate import simulate

@@ -1,1 +1,1 @@
-"""The report: report.txt, report.html with its sections and figures, and the numbers they show."""
+"""The report: report.txt, and report.html built from its SECTIONS (one module each under sections/)."""

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from magcal_cli import units
+from magcal_cli.align import columns
 from magcal_cli.calibration.types import Calibration, MagCalibration
 from magcal_cli.effects import EFFECTS, get
 from magcal_cli.effects.base import Target
@@ -18,7 +19,7 @@ from magcal_cli.firmware.split import HEADINGS_DEG, heading_errors_deg
 from magcal_cli.streams import FloatArray, Kind, Recording
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 Window = tuple[float, float]
 
@@ -75,12 +76,6 @@ def thin(n: int, max_points: int = 4000) -> slice:
     return slice(None, None, max(1, -(-n // max_points)))
 
 
-def _interp(t: FloatArray, ts: FloatArray, values: FloatArray) -> FloatArray:
-    """Columns of `values` (K, w) at times t; NaN outside [ts[0], ts[-1]]."""
-    return np.column_stack([np.interp(t, ts, values[:, k], left=np.nan, right=np.nan)
-                            for k in range(values.shape[1])])
-
-
 def down_at(rec: Recording, cal: Calibration, t: FloatArray) -> FloatArray | None:
     """Unit vector of gravity (down) in the IMU body frame at times t from the accelerometer, NaN while accelerating."""
     try:
@@ -88,7 +83,7 @@ def down_at(rec: Recording, cal: Calibration, t: FloatArray) -> FloatArray | Non
     except MagcalError:
         return None
     f = acc.xyz - (cal.imu.accelerometer_bias if cal.imu.accelerometer_bias is not None else 0.0)
-    fi = _interp(t, acc.t, f)
+    fi = columns(t, acc.t, f, left=np.nan, right=np.nan)   # NaN, not the end value, outside the stream's span
     n = np.linalg.norm(fi, axis=1)
     g = units.to_si("g")
     with np.errstate(invalid="ignore"):
@@ -137,7 +132,8 @@ def mag_view(result: RunResult, mag: MagCalibration) -> MagView | None:
 
 def heading_view(result: RunResult, mag: MagCalibration) -> HeadingView:
     """Heading error of a level vehicle at every heading: raw readings, the calibration's 1-sigma, the firmware."""
-    from magcal_cli.firmware.export import Options, export
+    from magcal_cli.firmware.common import Options
+    from magcal_cli.firmware.export import export
 
     fs = mag.field_strength
     raw = heading_errors_deg(mag.D / fs, mag.o / fs, mag.dip_deg)    # the compass reads D m_b + o
@@ -173,7 +169,7 @@ def _rotation_rate(result: RunResult, m_b: FloatArray, t: FloatArray, down: Floa
     except MagcalError:
         return None
     w = gyr.xyz - (cal.imu.gyroscope_bias if cal.imu.gyroscope_bias is not None else 0.0)
-    rate = np.sum(np.cross(_interp(t, gyr.t, w), m_b) * down, axis=1)
+    rate = np.sum(np.cross(columns(t, gyr.t, w, left=np.nan, right=np.nan), m_b) * down, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         horizontal = np.sqrt(np.clip(1.0 - np.sum(m_b * down, axis=1) ** 2, 0.0, None))
         out: FloatArray = np.rad2deg(rate / horizontal)

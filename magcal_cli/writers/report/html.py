@@ -7,16 +7,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from magcal_cli.atomic import write_text
-from magcal_cli.writers.report import plots
-from magcal_cli.writers.report import sections as report_sections
-from magcal_cli.writers.report.data import effect_views, heading_view, mag_view
-from magcal_cli.writers.report.imu import imu_effect_views
-from magcal_cli.writers.report.summary import groups, verdicts
-from magcal_cli.writers.report.text import render
+from magcal_cli.writers.report.sections import (
+    diagnosis,
+    effects,
+    magnetometer,
+    method,
+    notes,
+    provenance,
+    summary,
+)
+from magcal_cli.writers.report.sections.base import Context, Section
+from magcal_cli.writers.report.verdict import groups, verdicts
 
 if TYPE_CHECKING:
-    from magcal_cli.calibration.types import MagCalibration
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 CSS = """
 :root{--fg:#1d2330;--muted:#6b7280;--line:#e3e6ea;--bg:#f7f8fa;--good:#1e7d32;--check:#a15c00;--poor:#b3261e}
@@ -67,41 +71,32 @@ details summary{cursor:pointer;color:#1f5fa8;margin:10px 0}
 """
 
 
-def mag_plots(result: RunResult, mag: MagCalibration) -> list[plots.Plot]:
-    """The figures of one magnetometer: sphere, over time, quality and heading, modelled effects."""
-    view = mag_view(result, mag)
-    if view is None:
-        return []
-    out = [plots.sphere(view), plots.over_time(view), plots.quality(view, heading_view(result, mag))]
-    eff = plots.effects(effect_views(result, mag))
-    return out + ([eff] if eff is not None else [])
+#: the page's sections in order: its navigation links and its body both come from here, so a new section is its
+#: module under sections/ and one line
+SECTIONS: tuple[Section, ...] = (
+    Section("summary", "Summary", summary.render),
+    Section("method", "Method", method.render),
+    Section("mag", "Magnetometer", magnetometer.render, per_magnetometer=True),
+    Section("effects", "Effects", effects.render),
+    Section("diagnosis", "Diagnosis", diagnosis.render),
+    Section("warnings", "Warnings", notes.render),
+    Section("provenance", "Provenance", provenance.render),
+)
 
 
 def render_html(result: RunResult) -> str:
-    """The whole page."""
+    """The whole page: a link per section, then the sections, in the order of SECTIONS."""
     cal = result.calibration
-    mag_ids = [m.id for m in cal.magnetometers]
-    vs = verdicts(result)
-    gs = groups(result.findings, mag_ids)
+    page = Context(result, verdicts(result), groups(result.findings, [m.id for m in cal.magnetometers]))
+    shown = [(c, body) for s in SECTIONS for c in s.contexts(page) if (body := s.render(c)) is not None]
+    nav = "".join(f"<a href='#{escape(c.anchor)}'>{escape(c.title)}</a>" for c, _ in shown)
     name = Path(cal.source.path).name
-    sections = [report_sections.summary(result, vs), report_sections.method(result)]
-    sections += [report_sections.magnetometer(result, m, v, mag_plots(result, m), gs)
-                 for m, v in zip(cal.magnetometers, vs, strict=True)]
-    imu = plots.imu_effects(imu_effect_views(result))
-    sections += [report_sections.effects(result, [imu] if imu is not None else []),
-                 report_sections.diagnosis(result),
-                 report_sections.warnings(gs), report_sections.provenance(result, render(result))]
-    links = [("summary", "Summary"), ("method", "Method")]
-    links += [(f"mag-{report_sections.anchor(m)}", m) for m in mag_ids]
-    links += [("effects", "Effects"), ("diagnosis", "Diagnosis"), ("warnings", "Warnings"),
-              ("provenance", "Provenance")]
-    nav = "".join(f"<a href='#{escape(a)}'>{escape(t)}</a>" for a, t in links)
     return ("<!doctype html>\n<html lang='en'><head><meta charset='utf-8'>"
             "<meta name='viewport' content='width=device-width,initial-scale=1'>"
             f"<title>magcal report: {escape(name)}</title><style>{CSS}</style></head><body><main>"
             f"<header><h1>Magnetometer calibration: {escape(name)}</h1><p>magcal {escape(cal.magcal_version)}, "
             f"{escape(cal.created_utc)}, method {escape(cal.method)}</p></header><nav>{nav}</nav>"
-            + "\n".join(sections) + "</main></body></html>\n")
+            + "\n".join(body for _, body in shown) + "</main></body></html>\n")
 
 
 class HtmlReport:

@@ -1,6 +1,6 @@
 """The numbers the HTML report plots for the IMU's modelled effects: per axis, a residual against its channel.
 
-Magnetometer effects are plotted by `report_data.effect_views`; an IMU effect changes the accelerometer or the
+Magnetometer effects are plotted by `data.effect_views`; an IMU effect changes the accelerometer or the
 gyro instead, so its residual is the one that sensor leaves. Each view needs no orientation trajectory (the
 report does not keep one): the specific force's magnitude against g (accelerometer effects), and the rotation
 between still poses seen by the gyro against the one the accelerometer and the calibrated magnetometer see
@@ -27,7 +27,7 @@ from magcal_cli.streams import FloatArray, Kind, Stream
 from magcal_cli.writers.report.data import EffectView
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 #: effect id -> "module:function(ImuData, entry) -> list[EffectView]" (one view per axis): plotting another IMU
 #: effect is its function and one line here

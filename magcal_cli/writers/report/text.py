@@ -14,27 +14,24 @@ from magcal_cli.atomic import write_text
 from magcal_cli.calibration.types import MagCalibration
 from magcal_cli.effects.correct import terms
 from magcal_cli.findings import Severity
+from magcal_cli.methods.table import title
 from magcal_cli.timing import sentence
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
-METHOD_NAMES = {
-    "kok2012": "Kok et al. 2012 (ellipsoid fit, alignment with the accelerometer's vertical, maximum likelihood)",
-    "map": "Huang et al. 2025 joint MAP (trajectory, accelerometer and gyro biases, D, o, dip; gyro preintegration)",
-    "ekf-ml": "Kok & Schoen 2016 (EKF innovation likelihood maximised over the calibration and noise levels)",
-    "ekf-aug": "Wu et al. 2018 (one pass of an EKF with orientation and calibration in the state)",
-}
 #: the unit a report shows a native unit in (tesla is unreadable at Earth-field scale)
 DISPLAY = {"tesla": ("microtesla", "uT"), "millitesla": ("microtesla", "uT"), "microtesla": ("microtesla", "uT"),
            "nanotesla": ("microtesla", "uT"), "gauss": ("milligauss", "mG"), "milligauss": ("milligauss", "mG")}
 
 
 def vec(v: npt.ArrayLike, fmt: str = "{:+.3f}") -> str:
+    """A vector as '[a, b, c]' with each component formatted by `fmt`."""
     return "[" + ", ".join(fmt.format(x) for x in np.ravel(v)) + "]"
 
 
 def _mat(m: npt.ArrayLike, indent: int, fmt: str = "{:+.4f}") -> str:
+    """A matrix as one `vec` per row, the rows after the first indented by `indent` spaces."""
     rows = [vec(r, fmt) for r in np.asarray(m)]
     return ("\n" + " " * indent).join(rows)
 
@@ -68,7 +65,7 @@ def render(result: RunResult) -> str:
     src = cal.source
     lines = [f"magcal {cal.magcal_version} calibration report ({cal.created_utc})", "",
              f"Log:     {src.path} ({src.format}, {src.end_s - src.start_s:.1f} s used, sha256 {src.sha256[:12]})",
-             f"Method:  {METHOD_NAMES.get(cal.method, cal.method)}"]
+             f"Method:  {title(cal.method)}"]
     if src.timing:
         lines.append(f"Timing:  {sentence(src.timing)}")
     if cal.diagnosis:

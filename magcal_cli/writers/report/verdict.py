@@ -14,7 +14,7 @@ from magcal_cli.firmware.metrics import fit_metrics
 from magcal_cli.writers.report.text import advice
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 #: verdict level -> the words a reader sees (ordered best first)
 LEVELS = {"good": "Good", "check": "Usable, with caveats", "poor": "Not usable"}
