@@ -98,7 +98,7 @@ def text_log(raw_bin: Path, out: Path) -> None:
 
 def seed_simulation(path: Path) -> Simulation:
     """The simulation a seed at `path` is written from (handheld, 10 Hz IMU, 5 Hz field: about 80 s, fits in
-    ~0.3 s): its IMU sampled as the format holds it (logwriters.IMU_SAMPLING), its field read on IMU stamps (phase
+    ~0.3 s): its IMU sampled as the format holds it (synth.logs.IMU_SAMPLING), its field read on IMU stamps (phase
     0: a CSV log has one row per IMU sample)."""
     from magcal_cli.synth.logs import imu_sampling
     from magcal_cli.synth.simulate import simulate

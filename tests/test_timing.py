@@ -50,7 +50,7 @@ def test_each_convention_becomes_the_estimators_interval_form() -> None:
 
 @pytest.mark.parametrize("ext", sorted(e for e in LOG_WRITERS if e != ".csv") + [".csv"])
 def test_every_reader_states_the_convention_its_writer_samples(ext: str, tmp_path: Path) -> None:
-    """magcal simulate samples each format as its definition says (logwriters.IMU_SAMPLING); the reader of that
+    """magcal simulate samples each format as its definition says (synth.logs.IMU_SAMPLING); the reader of that
     format must state the same, or the estimator would shift the trajectory by half a sample or more."""
     path = tmp_path / f"log{ext}"
     sim = simulate("handheld", 2, rate=50.0, mag_rate=25.0, duration=30.0, imu_sampling=imu_sampling(path),

@@ -3,7 +3,8 @@
 Ids and parameters are those of spec/calibration-file.md ("Effects"); every term is zero at parameter zero.
 In Python (`EffectSpec`) parameters are SI: tesla, seconds, metres, m/s^2, fractions. On the command line the
 magnetic ones carry their unit in the key (`c_uT_per_A`), vectors are written x/y/z and time windows
-t0-t1/t0-t1 (docs/simulate-effects.md). The physics is in synth_inject.py and synth_physics.py.
+t0-t1/t0-t1 (docs/simulate-effects.md). The physics is in synth/inject.py (one injection per id, INJECTIONS)
+and synth/physics.py.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ def _vec(param: str, cli: str, factor: float, default: tuple[float, float, float
     return Key(param, cli, "vector", factor, default, help_)
 
 
-#: every effect magcal simulate can inject, in the order they are applied
+#: every effect magcal simulate can inject, in the order the truth lists them (inject.INJECTIONS applies them)
 EFFECTS: dict[str, EffectDef] = {
     "current_interference": EffectDef(
         "magnetometer", (_vec("c", "c_uT_per_A", 1e-6, (2e-8, -1e-8, 3e-8), "uT per ampere"),),
@@ -85,6 +86,10 @@ EFFECTS: dict[str, EffectDef] = {
                          _vec("b_rel", "b_rel", 1.0, (0.12, -0.14, 0.06), "NED, fraction of the Earth field")),
         (), {"windows_s": "s", "b_n": "{mag}"}, "m_n += b_n / |field| inside the windows"),
 }
+#: the channels the simulated power system logs (inject.Draft.power)
+POWER_CHANNELS = ("battery_current", "battery_voltage", "throttle")
+#: the effects the power system drives: those that need one of its channels
+POWER_EFFECTS = tuple(eid for eid, d in EFFECTS.items() if set(d.channels) & set(POWER_CHANNELS))
 #: |tau_s| above this is not a time offset but a broken clock
 MAX_TAU_S = 1.0
 #: |s| above this is not a scale-factor error

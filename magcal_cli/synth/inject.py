@@ -2,17 +2,20 @@
 
 `inject` returns what ideal sensors measure with the effects in, as functions of time (`Injected`): the gyro's
 and accelerometer's instantaneous inputs (translation, lever arm and scale factors act on the instantaneous
-quantity, before any averaging a sensor does; synth_sampling.py samples them) and, for a magnetometer reading
+quantity, before any averaging a sensor does; synth/sampling.py samples them) and, for a magnetometer reading
 stamped t, the body-frame unit field and the additive terms it senses at t - tau_s (time_offset): attitude,
 current, throttle, temperature and external field alike. It also returns the streams to log (battery current
 and voltage, throttle and temperature at the magnetometer stamps, position at 10 Hz; noisy like real sensors
 unless the noise is scaled to zero) and the injected effects in SI, with their signals at the stamps.
+
+Each effect is one injection function and its line in INJECTIONS (effect id -> function); its ids, keys and
+defaults are in synth/effects.py, and tests/test_synth_effects.py ties both to the estimator's effects.EFFECTS.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -80,7 +83,7 @@ class Base:
 
 @dataclass(frozen=True, eq=False)
 class Injected:
-    """The sensors' true inputs with the effects in, as functions of time (s) (`ImuTruth` for synth_sampling),
+    """The sensors' true inputs with the effects in, as functions of time (s) (`ImuTruth` for synth/sampling.py),
     plus the logged channels and the injected effects.
 
     `moves` sum to the NED acceleration; gains are 1 + s of the scale factors; `disturbance` is (b_rel (3,),
@@ -112,8 +115,7 @@ class Injected:
         if self.lever_arm is None:
             return np.zeros((len(t), 3))
         w, w_dot = self.trajectory.rate_and_acceleration(t)
-        out: FloatArray = np.cross(w_dot, self.lever_arm) + np.cross(w, np.cross(w, self.lever_arm))
-        return out
+        return lever_force(w, w_dot, self.lever_arm)
 
     def rate(self, t: FloatArray) -> FloatArray:
         """(I + diag(s)) w(t): an ideal gyro's instantaneous reading (M, 3) rad/s."""
@@ -161,103 +163,191 @@ def _body(rot: FloatArray, v_n: npt.ArrayLike) -> FloatArray:
     return out
 
 
-def _translation(q: dict[str, Any] | None, base: Base, streams: list[Stream],
-                 effects: list[InjectedEffect]) -> tuple[Motion | phys.Path, ...]:
-    """The scenario's translation plus the effect's sway; the summed path is logged as GNSS positions unless the
-    effect says source "none". Either alone is one nongravity_acceleration effect."""
-    t = base.t_imu
-    moves: list[Motion | phys.Path] = [] if base.motion is None else [base.motion]
-    if q is not None:
-        moves.append(phys.path(_rng(base.seed, 2), t, q["sigma_a"]))
-    if not moves:
-        return ()
-    source = "gps" if q is None else str(q["source"])
-    delay = 0.0 if q is None else float(q.get("delay_s", 0.0))      # the fix stamped t was taken at t - delay
-    t_pos = np.arange(0.0, t[-1] + 1e-9, 1.0 / POSITION_RATE_HZ)
-    a_n, p_n, p_pos = np.zeros((len(t), 3)), np.zeros((len(t), 3)), np.zeros((len(t_pos), 3))
-    for move in moves:
-        a_n += move.acceleration(t)
-        p_n += move.position(t)
-        p_pos += move.position(t_pos - delay)
-    channels: tuple[Kind, ...] = ()
-    if source == "gps":
-        lla = phys.geodetic(p_pos)
-        streams.append(Stream(Kind.POSITION, POSITION_ID, t_pos, lla, f"{base.source}#{POSITION_ID}", "deg"))
-        channels = (Kind.POSITION,)
-    effects.append(InjectedEffect("nongravity_acceleration",
-                                  {"sigma_a": float(np.sqrt(np.mean(a_n**2))), "source": source,
-                                   "delay_s": delay},
-                                  channels, {"a_n": a_n, "p_n": p_n}))
-    return tuple(moves)
+def lever_force(w: FloatArray, w_dot: FloatArray, r: FloatArray) -> FloatArray:
+    """w' x r + w x (w x r) (M, 3) m/s^2: the specific force of a lever arm r (3,) m at rates w, w' (M, 3)."""
+    out: FloatArray = np.cross(w_dot, r) + np.cross(w, np.cross(w, r))
+    return out
 
 
 def _aux(kind: Kind, sid: str, t: FloatArray, v: FloatArray, unit: str, base: Base) -> Stream:
+    """A logged auxiliary channel of the simulation."""
     return Stream(kind, sid, t, v, f"{base.source}#{sid}", unit)
 
 
-def _power_terms(p: dict[str, dict[str, Any]], base: Base, sensed: FloatArray, duration: float,
-                 streams: list[Stream], effects: list[InjectedEffect]) -> list[Term]:
-    """current_interference c I(t) and throttle_interference c u(t)^p, and the three power channels they log (also
-    logged without either effect when `base.log_power`)."""
-    if "current_interference" not in p and "throttle_interference" not in p and not base.log_power:
-        return []
-    pw = phys.power(_rng(base.seed, 1), duration, base.power_profile)
-    t_mag, noise, ns = base.t_mag, _rng(base.seed, 4), base.noise_scale
-    n = len(t_mag)
-    current = pw.current(t_mag) + ns * AUX_NOISE["current"] * noise.standard_normal(n)
-    voltage = pw.voltage(t_mag) + ns * AUX_NOISE["voltage"] * noise.standard_normal(n)
-    streams += [_aux(Kind.BATTERY_CURRENT, CURRENT_ID, t_mag, current, "A", base),
-                _aux(Kind.BATTERY_VOLTAGE, CURRENT_ID, t_mag, voltage, "V", base),
-                _aux(Kind.THROTTLE, THROTTLE_ID, t_mag, pw.throttle(t_mag), "1", base)]
-    terms: list[Term] = []
-    if "current_interference" in p:
-        c = np.array(p["current_interference"]["c"])
-        terms.append(lambda s: pw.current(s)[:, None] * c)
-        effects.append(InjectedEffect("current_interference", {"c": c}, (Kind.BATTERY_CURRENT,),
-                                      {"term": terms[-1](sensed)}))
-    if "throttle_interference" in p:
-        ct, expo = np.array(p["throttle_interference"]["c"]), float(p["throttle_interference"]["p"])
-        terms.append(lambda s: pw.throttle(s)[:, None] ** expo * ct)
-        effects.append(InjectedEffect("throttle_interference", {"c": ct, "p": expo}, (Kind.THROTTLE,),
-                                      {"term": terms[-1](sensed)}))
-    return terms
+@dataclass(eq=False)
+class Draft:
+    """An injection in progress: the base, the log's duration (s) and what the injections have set so far.
+
+    Each field starts as "no effect" (no sway, gains of one, tau 0, no disturbance, no terms); `streams` are the
+    auxiliary channels in the order they are logged, `effects` the truth entries in any order.
+    """
+
+    base: Base
+    duration: float
+    moves: list[Motion | phys.Path] = field(default_factory=list)
+    gnss: tuple[str, float] = ("gps", 0.0)          # the position's source and its delay (s) behind the motion
+    lever_arm: FloatArray | None = None
+    gyro_gain: FloatArray = field(default_factory=lambda: np.ones(3))
+    accel_gain: FloatArray = field(default_factory=lambda: np.ones(3))
+    tau: float = 0.0
+    disturbance: tuple[FloatArray, FloatArray] | None = None
+    terms: list[Term] = field(default_factory=list)
+    streams: list[Stream] = field(default_factory=list)
+    effects: list[InjectedEffect] = field(default_factory=list)
+    power_model: phys.Power | None = None
+
+    @property
+    def sensed(self) -> FloatArray:
+        """When the magnetometer readings were sensed (s): their stamps minus tau_s."""
+        out: FloatArray = self.base.t_mag - self.tau
+        return out
+
+    def power(self) -> phys.Power:
+        """The vehicle's power system, drawn and logged (POWER_CHANNELS at the magnetometer stamps, noisy) on first
+        use and shared by every effect that needs it."""
+        if self.power_model is not None:
+            return self.power_model
+        base = self.base
+        pw = phys.power(_rng(base.seed, 1), self.duration, base.power_profile)
+        t_mag, noise, ns = base.t_mag, _rng(base.seed, 4), base.noise_scale
+        n = len(t_mag)
+        current = pw.current(t_mag) + ns * AUX_NOISE["current"] * noise.standard_normal(n)
+        voltage = pw.voltage(t_mag) + ns * AUX_NOISE["voltage"] * noise.standard_normal(n)
+        self.streams += [_aux(Kind.BATTERY_CURRENT, CURRENT_ID, t_mag, current, "A", base),
+                         _aux(Kind.BATTERY_VOLTAGE, CURRENT_ID, t_mag, voltage, "V", base),
+                         _aux(Kind.THROTTLE, THROTTLE_ID, t_mag, pw.throttle(t_mag), "1", base)]
+        self.power_model = pw
+        return pw
+
+    def add_term(self, eid: str, term: Term, params: Mapping[str, Any], channels: tuple[Kind, ...]) -> None:
+        """An additive magnetometer term and its truth entry (its signal: the term at the sensing times)."""
+        self.terms.append(term)
+        self.effects.append(InjectedEffect(eid, params, channels, {"term": term(self.sensed)}))
+
+    def translation(self) -> tuple[list[Stream], tuple[Motion | phys.Path, ...]]:
+        """The position streams and the moves: the scenario's translation plus any sway, their summed path logged
+        as GNSS positions unless the source is "none". Either alone is one nongravity_acceleration entry (added)."""
+        base, t = self.base, self.base.t_imu
+        if not self.moves:
+            return [], ()
+        source, delay = self.gnss                   # the fix stamped t was taken at t - delay
+        t_pos = np.arange(0.0, t[-1] + 1e-9, 1.0 / POSITION_RATE_HZ)
+        a_n, p_n, p_pos = np.zeros((len(t), 3)), np.zeros((len(t), 3)), np.zeros((len(t_pos), 3))
+        for move in self.moves:
+            a_n += move.acceleration(t)
+            p_n += move.position(t)
+            p_pos += move.position(t_pos - delay)
+        streams: list[Stream] = []
+        channels: tuple[Kind, ...] = ()
+        if source == "gps":
+            lla = phys.geodetic(p_pos)
+            streams.append(Stream(Kind.POSITION, POSITION_ID, t_pos, lla, f"{base.source}#{POSITION_ID}", "deg"))
+            channels = (Kind.POSITION,)
+        self.effects.append(InjectedEffect("nongravity_acceleration",
+                                           {"sigma_a": float(np.sqrt(np.mean(a_n**2))), "source": source,
+                                            "delay_s": delay},
+                                           channels, {"a_n": a_n, "p_n": p_n}))
+        return streams, tuple(self.moves)
+
+    def done(self) -> Injected:
+        """The finished injection: the position first among the logged channels, entries in EFFECTS order."""
+        position, moves = self.translation()
+        order = list(EFFECTS)
+        self.effects.sort(key=lambda e: order.index(e.id))
+        base = self.base
+        return Injected(base.trajectory, base.g_n, base.m_n, moves, self.lever_arm, self.gyro_gain, self.accel_gain,
+                        self.tau, self.disturbance, tuple(self.terms), (*position, *self.streams), tuple(self.effects))
 
 
-def _mag(p: dict[str, dict[str, Any]], base: Base, duration: float, streams: list[Stream],
-         effects: list[InjectedEffect]) -> tuple[float, tuple[FloatArray, FloatArray] | None, tuple[Term, ...]]:
-    """time_offset's tau_s, transient_disturbance's (b_rel, windows) and the additive terms, with their entries."""
-    tau = float(p.get("time_offset", {}).get("tau_s", 0.0))
-    sensed = base.t_mag - tau
-    rot = base.trajectory.at(sensed) if "time_offset" in p or "transient_disturbance" in p else None
-    if "time_offset" in p and rot is not None:
-        effects.append(InjectedEffect("time_offset", {"tau_s": tau}, (), {"rotations": rot}))
-    disturbance = None
-    if "transient_disturbance" in p and rot is not None:
-        q = p["transient_disturbance"]
-        b_rel, wins = np.array(q["b_rel"]), np.array(q["windows_s"], dtype=np.float64)
-        disturbance = (b_rel, wins)
-        d = phys.window(sensed, wins)[:, None] * b_rel
-        effects.append(InjectedEffect("transient_disturbance", {"windows_s": wins, "b_n": b_rel * base.field_strength},
-                                      (), {"d_n": d, "term_body": _body(rot, d)}))
-    terms = _power_terms(p, base, sensed, duration, streams, effects)
-    if "temperature_drift" in p:
-        k, t_ref = np.array(p["temperature_drift"]["k"]), float(p["temperature_drift"]["T0"])
-        temp = phys.temperature(duration)
-        noise = base.noise_scale * AUX_NOISE["temperature"] * _rng(base.seed, 5).standard_normal(len(base.t_mag))
-        streams.append(_aux(Kind.TEMPERATURE, TEMPERATURE_ID, base.t_mag, temp(base.t_mag) + noise, "degC", base))
-        terms.append(lambda s: (temp(s) - t_ref)[:, None] * k)
-        effects.append(InjectedEffect("temperature_drift", {"k": k, "T0": t_ref}, (Kind.TEMPERATURE,),
-                                      {"term": terms[-1](sensed)}))
-    return tau, disturbance, tuple(terms)
+#: an effect's injection: its resolved SI parameters (EffectSpec.resolved) act on the draft
+Injection = Callable[[Mapping[str, Any], Draft], None]
 
 
-def _gain(p: dict[str, dict[str, Any]], eid: str, effects: list[InjectedEffect]) -> FloatArray:
-    """1 + s of a scale-factor effect (ones when it is not injected)."""
-    if eid not in p:
-        return np.ones(3)
-    s = np.array(p[eid]["s"])
-    effects.append(InjectedEffect(eid, {"s": s}, (), {}))
+def _nongravity(q: Mapping[str, Any], d: Draft) -> None:
+    """nongravity_acceleration: a sway path of RMS sigma_a on top of the scenario's translation."""
+    d.moves.append(phys.path(_rng(d.base.seed, 2), d.base.t_imu, q["sigma_a"]))
+    d.gnss = (str(q["source"]), float(q.get("delay_s", 0.0)))
+
+
+def _time_offset(q: Mapping[str, Any], d: Draft) -> None:
+    """time_offset: the reading stamped t measured the field at t - tau_s."""
+    d.tau = float(q["tau_s"])
+    d.effects.append(InjectedEffect("time_offset", {"tau_s": d.tau}, (), {"rotations": d.base.trajectory.at(d.sensed)}))
+
+
+def _transient(q: Mapping[str, Any], d: Draft) -> None:
+    """transient_disturbance: an external field b_rel (NED, in Earth fields) inside the windows."""
+    b_rel, wins = np.array(q["b_rel"]), np.array(q["windows_s"], dtype=np.float64)
+    d.disturbance = (b_rel, wins)
+    sensed = d.sensed
+    n_d = phys.window(sensed, wins)[:, None] * b_rel
+    d.effects.append(InjectedEffect("transient_disturbance", {"windows_s": wins, "b_n": b_rel * d.base.field_strength},
+                                    (), {"d_n": n_d, "term_body": _body(d.base.trajectory.at(sensed), n_d)}))
+
+
+def _current(q: Mapping[str, Any], d: Draft) -> None:
+    """current_interference: c I(t)."""
+    pw, c = d.power(), np.array(q["c"])
+    d.add_term("current_interference", lambda s: pw.current(s)[:, None] * c, {"c": c}, (Kind.BATTERY_CURRENT,))
+
+
+def _throttle(q: Mapping[str, Any], d: Draft) -> None:
+    """throttle_interference: c u(t)^p."""
+    pw, c, expo = d.power(), np.array(q["c"]), float(q["p"])
+    d.add_term("throttle_interference", lambda s: pw.throttle(s)[:, None] ** expo * c, {"c": c, "p": expo},
+               (Kind.THROTTLE,))
+
+
+def _temperature(q: Mapping[str, Any], d: Draft) -> None:
+    """temperature_drift: k (T(t) - T0) of a warming board, whose temperature is logged."""
+    base = d.base
+    k, t_ref = np.array(q["k"]), float(q["T0"])
+    temp = phys.temperature(d.duration)
+    noise = base.noise_scale * AUX_NOISE["temperature"] * _rng(base.seed, 5).standard_normal(len(base.t_mag))
+    d.streams.append(_aux(Kind.TEMPERATURE, TEMPERATURE_ID, base.t_mag, temp(base.t_mag) + noise, "degC", base))
+    d.add_term("temperature_drift", lambda s: (temp(s) - t_ref)[:, None] * k, {"k": k, "T0": t_ref},
+               (Kind.TEMPERATURE,))
+
+
+def _scale(eid: str, q: Mapping[str, Any], d: Draft) -> FloatArray:
+    """1 + s of a scale-factor effect, with its truth entry."""
+    s = np.array(q["s"])
+    d.effects.append(InjectedEffect(eid, {"s": s}, (), {}))
     return 1.0 + s
+
+
+def _gyro_scale(q: Mapping[str, Any], d: Draft) -> None:
+    """gyro_scale: w_meas = (I + diag(s)) w."""
+    d.gyro_gain = _scale("gyro_scale", q, d)
+
+
+def _accel_scale(q: Mapping[str, Any], d: Draft) -> None:
+    """accel_scale: f_meas = (I + diag(s)) f."""
+    d.accel_gain = _scale("accel_scale", q, d)
+
+
+def _lever_arm(q: Mapping[str, Any], d: Draft) -> None:
+    """lever_arm: the accelerometer r_m from the centre of rotation senses w' x r + w x (w x r)."""
+    r = np.array(q["r_m"])
+    d.lever_arm = r
+    w, w_dot = d.base.trajectory.rate_and_acceleration(d.base.t_imu)
+    d.effects.append(InjectedEffect("lever_arm", {"r_m": r}, (),
+                                    {"term": lever_force(w, w_dot, r), "omega": w, "omega_dot": w_dot}))
+
+
+#: effect id -> its injection, in the order they are applied: time_offset before the magnetometer's other effects
+#: (they are sensed at t - tau_s); the logged channels and the additive terms keep this order
+INJECTIONS: dict[str, Injection] = {
+    "nongravity_acceleration": _nongravity,
+    "time_offset": _time_offset,
+    "transient_disturbance": _transient,
+    "current_interference": _current,
+    "throttle_interference": _throttle,
+    "temperature_drift": _temperature,
+    "gyro_scale": _gyro_scale,
+    "accel_scale": _accel_scale,
+    "lever_arm": _lever_arm,
+}
 
 
 def inject(specs: tuple[EffectSpec, ...], base: Base) -> Injected:
@@ -266,20 +356,13 @@ def inject(specs: tuple[EffectSpec, ...], base: Base) -> Injected:
     t = base.t_imu
     duration = float(t[-1]) if len(t) else 0.0
     p = {s.id: s.resolved(duration) for s in specs}
-    streams: list[Stream] = []
-    effects: list[InjectedEffect] = []
-    moves = _translation(p.get("nongravity_acceleration"), base, streams, effects)
-    lever = np.array(p["lever_arm"]["r_m"]) if "lever_arm" in p else None
-    tau, disturbance, terms = _mag(p, base, duration, streams, effects)
-    done = Injected(base.trajectory, base.g_n, base.m_n, moves, lever, _gain(p, "gyro_scale", effects),
-                    _gain(p, "accel_scale", effects), tau, disturbance, terms)
-    if lever is not None:
-        w, w_dot = base.trajectory.rate_and_acceleration(t)
-        effects.append(InjectedEffect("lever_arm", {"r_m": lever}, (),
-                                      {"term": done.lever(t), "omega": w, "omega_dot": w_dot}))
-    order = list(EFFECTS)
-    effects.sort(key=lambda e: order.index(e.id))
-    return replace(done, streams=tuple(streams), effects=tuple(effects))
+    draft = Draft(base, duration, [] if base.motion is None else [base.motion])
+    if base.log_power:
+        draft.power()                               # logged without a magnetic term
+    for eid, injection in INJECTIONS.items():
+        if eid in p:
+            injection(p[eid], draft)
+    return draft.done()
 
 
 def _json(value: Any, factor: float) -> Any:

@@ -4,7 +4,7 @@ Scenarios produce attitude knots on a fine grid of OVERSAMPLE knots per IMU peri
 a cubic Hermite curve in the chart at each knot (C1: the body rate w(t) is continuous and w'(t) exists
 between the knots), and beyond the first and last knot it continues at the end rates. The translation is a
 piecewise-linear NED acceleration on its own knots, integrated exactly, so the acceleration is continuous and
-an instantaneous sample of it is defined. Nothing here knows how a sensor samples (synth_sampling.py).
+an instantaneous sample of it is defined. Nothing here knows how a sensor samples (synth/sampling.py).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The simulator's auxiliary truth as functions of time: power system, warm-up, sway, geodesy and windows.
 
 Built from seeded generators only; no estimator's equations are reused. The attitude and the scenario's own
-translation are in synth_motion.py.
+translation are in synth/motion.py.
 """
 
 from __future__ import annotations

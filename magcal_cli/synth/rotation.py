@@ -1,7 +1,7 @@
 """The pure-rotation scenarios `paper` (methods.md section 5) and `handheld`, as attitude knots on the fine grid.
 
-Both return a `Scenario` whose trajectory is defined at every instant (synth_motion.py) with knots at
-OVERSAMPLE times the IMU rate; the sensors sample it later (synth_sampling.py).
+Both return a `Scenario` whose trajectory is defined at every instant (synth/motion.py) with knots at
+OVERSAMPLE times the IMU rate; the sensors sample it later (synth/sampling.py).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def paper(rng: np.random.Generator, rate: float, duration: float | None) -> Scen
     The random part is drawn once per IMU sample (as in the authors' simulate.m, so its statistics do not depend
     on the fine grid), at the IMU stamps and at the end, then band-limited to rate / 8 (`band_limited`, std kept
     at 0.05 rad/s per axis: a real gyro's anti-aliasing filter never passes a rate with content up to Nyquist,
-    and docs/simulate-scenarios.md says why), and spread smoothly onto the fine grid (synth_motion.smooth); the
+    and docs/simulate-scenarios.md says why), and spread smoothly onto the fine grid (motion.smooth); the
     knots integrate it at the midpoints of the fine intervals.
     """
     axes = 0.1 * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1]], dtype=float)

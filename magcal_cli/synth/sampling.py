@@ -31,7 +31,7 @@ BLOCK = 1 << 17
 
 
 class ImuTruth(Protocol):
-    """What an ideal IMU measures, as functions of time (synth_inject.Injected)."""
+    """What an ideal IMU measures, as functions of time (inject.Injected)."""
 
     def rate(self, t: FloatArray) -> FloatArray:
         """Instantaneous measured body rate (M, 3) rad/s."""

@@ -1,7 +1,7 @@
 """The `multirotor` and `rover` scenarios: attitude plus a translation that the attitude makes physical.
 
 Conventions: NED navigation frame, FRD body axes (x forward, y right, z down, as PX4 and ArduPilot log them),
-R = Rz(yaw) Ry(pitch) Rx(roll) body->NED. Both return their truth on the fine grid (synth_motion.py): attitude
+R = Rz(yaw) Ry(pitch) Rx(roll) body->NED. Both return their truth on the fine grid (synth/motion.py): attitude
 knots at OVERSAMPLE times the IMU rate and a `Motion`, a continuous NED acceleration whose double integral is
 the logged position, so the accelerometer's f(t) = R(t)^T (a_n(t) - g_n) and the position agree at every
 instant. A multirotor's acceleration comes from its thrust axis: a_n = R (-k v_b,x, -k v_b,y, -T) + g_n (rotor
@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3
+from magcal_cli.align import columns
 from magcal_cli.models.accel import G
 from magcal_cli.streams import FloatArray
 from magcal_cli.synth.motion import OVERSAMPLE, Motion, Trajectory, fine_times, smooth
@@ -307,7 +308,7 @@ def multirotor(rng: np.random.Generator, rate: float, duration: float, limits: L
     rot = so3.from_rpy(smooth(np.column_stack([rolls, pitches, yaw]), dt, tf))
     # the acceleration the controller held over [t_k, t_k+1), continuous through the interval midpoints (same
     # integral over the log, so the vehicle still comes to rest)
-    a_n = np.column_stack([np.interp(tf, t[:-1] + 0.5 * dt, acc[:, i]) for i in range(3)])
+    a_n = columns(tf, t[:-1] + 0.5 * dt, acc)
     dtf = dt / OVERSAMPLE
     return Scenario(Trajectory.from_knots(rot, dtf), Motion.from_acceleration(a_n, dtf), still, ((t_to, t_td),))
 

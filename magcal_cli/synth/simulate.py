@@ -1,19 +1,19 @@
 """Synthetic recordings with known truth: the `paper` (Huang et al. 2025), `handheld`, `multirotor`, `rover` scenarios.
 
 Truth and noise are drawn as in methods.md section 5 (the authors' simulate/simulate.m), in NED. The trajectory
-is a continuous-time truth (synth_motion.py: attitude knots at OVERSAMPLE times the IMU rate, C1 in between;
+is a continuous-time truth (synth/motion.py: attitude knots at OVERSAMPLE times the IMU rate, C1 in between;
 a translation whose acceleration is continuous), and every sensor samples it as real sensors do, at its own
-stamps (synth_sampling.py): IMU sample k at t_k = k / rate is the instantaneous body rate and specific force
+stamps (synth/sampling.py): IMU sample k at t_k = k / rate is the instantaneous body rate and specific force
 R^T (a_n - g_n) (Sampling.INSTANT) or their means over [t_k - 1/rate, t_k] (Sampling.PRECEDING, a delta-angle
 IMU), plus bias and noise; the magnetometer reads D R(t_j)^T m_n + o + noise at its own stamps
 t_j = phase + j / mag_rate. a_n = 0 (pure rotation) in paper and handheld; multirotor and rover carry their own
-translation (synth_scenarios.py), log their GNSS position and list it as the nongravity_acceleration effect.
-`effects` adds physics the base model leaves out (synth_effects.py, synth_inject.py); they draw from their
+translation (synth/scenarios.py), log their GNSS position and list it as the nongravity_acceleration effect.
+`effects` adds physics the base model leaves out (synth/effects.py, synth/inject.py); they draw from their
 own generators, so a simulation with effects has the same trajectory and noise as one without. `vibration`
-makes the IMU noise std a function of time, higher while the motors run (synth_vibration.py); `n_mags` adds
+makes the IMU noise std a function of time, higher while the motors run (synth/vibration.py); `n_mags` adds
 magnetometers `/imu/mag1`.. with their own D, o and noise generator, in the same field and trajectory.
 What a firmware does to the field before it logs it is no part of the physics: `Simulation.previous` carries
-the onboard calibration the `.bin` writer applies (synth_firmware.py).
+the onboard calibration the `.bin` writer applies (synth/firmware.py).
 """
 
 from __future__ import annotations
@@ -214,17 +214,17 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     `truth` replaces the drawn calibration (its noise_std is still set from the rates). `effects` are injected
     (auxiliary channels join the recording); `noise_scale` multiplies every noise std (0: noise-free);
     `trajectory` (N+1, 3, 3) body->NED rotations at the IMU rate (the knots of the C1 truth) replaces the
-    scenario's rotations and translation (then there is none). `power_profile` (synth_physics.POWER_PROFILES)
+    scenario's rotations and translation (then there is none). `power_profile` (physics.POWER_PROFILES)
     shapes the throttle and current of the power effects (default "flight"). `imu_sampling` says what an IMU
-    sample stands for (INSTANT or PRECEDING, synth_sampling.py); `mag_phase_s` is the magnetometer's first
+    sample stands for (INSTANT or PRECEDING, synth/sampling.py); `mag_phase_s` is the magnetometer's first
     stamp, 0 <= phase < 1/mag_rate (default: drawn from the seed in [0, min(5 ms, 1/mag_rate))).
 
     `vibration` (default: True for the multirotor's own flight, else False) draws the IMU noise at the rest
-    level with the motors off and the flight level while they run (synth_vibration.VIBRATION_STD, times
+    level with the motors off and the flight level while they run (vibration.VIBRATION_STD, times
     noise_scale). `n_mags` magnetometers read the field (`/imu/mag`, `/imu/mag1`, ...; effects act on the first
     alone). `log_power` logs the power model's current, voltage and throttle without any magnetic term.
     `tilt_limit_deg` and `accel_limit_mps2` bound the multirotor's tilt and horizontal acceleration
-    (synth_scenarios.Limits; None, None: the original flight).
+    (scenarios.Limits; None, None: the original flight).
     """
     if scenario not in SCENARIOS:
         msg = f"simulate: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}"

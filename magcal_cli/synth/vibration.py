@@ -14,6 +14,7 @@ import numpy.typing as npt
 
 from magcal_cli.errors import MagcalError
 from magcal_cli.streams import FloatArray
+from magcal_cli.synth.effects import POWER_EFFECTS
 from magcal_cli.synth.physics import window
 
 Intervals = tuple[tuple[float, float], ...]
@@ -22,8 +23,6 @@ Intervals = tuple[tuple[float, float], ...]
 VIBRATION_STD = {"gyroscope": (0.003, 0.01), "accelerometer": (0.03, 0.15)}
 #: seconds the motors take to spin up (before take-off) and down (after touchdown)
 SPIN_S = 1.0
-#: effects whose power model runs motors for the whole log (where the scenario has no phases of its own)
-POWER_EFFECTS = ("current_interference", "throttle_interference")
 
 
 def motor_weight(t: npt.ArrayLike, motors: Intervals) -> FloatArray:

@@ -49,7 +49,7 @@ def write_log(sim: Simulation, path: Path) -> None:
     if sim.imu_sampling is not want:
         msg = (f"{path}: a {ext or 'ROS 2 bag'} log holds {want.value} IMU samples but the simulation's are "
                f"{sim.imu_sampling.value}; simulate with imu_sampling=Sampling.{want.name} "
-               "(logwriters.imu_sampling(path) gives it; magcal simulate chooses it from OUT)")
+               "(synth.logs.imu_sampling(path) gives it; magcal simulate chooses it from OUT)")
         raise MagcalError(msg)
     writer: Callable[[Simulation, Path], None] = resolve(target, f"writing {path.suffix or 'bag'} logs")
     writer(sim, path)

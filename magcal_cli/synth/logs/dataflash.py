@@ -1,7 +1,7 @@
 """ArduPilot DataFlash `.bin` writer for simulations: a 4.x record set with the field logged *corrected*.
 
 The simulated firmware flies with an earlier onboard calibration (COMPASS_OFS/DIA/ODI, optionally SCALE and
-motor compensation; `Simulation.previous`, synth_firmware.py) and logs MAG the way AP_Compass does: corrected,
+motor compensation; `Simulation.previous`, synth/firmware.py) and logs MAG the way AP_Compass does: corrected,
 in the body frame, truncated to int16 mGauss, with OfsX.. and MOX.. beside it. Every magnetometer of the
 simulation (up to three) is a compass: MAG instance I = k with the parameters COMPASS_*, *2, *3.
 Metadata records (FMT, UNIT, MULT, FMTU, PARM, VER, MSG) are packed with struct; sensor records are built as
