@@ -15,7 +15,8 @@ import numpy as np
 
 from magcal_cli import so3
 from magcal_cli.config import Config
-from magcal_cli.pipeline import METHODS, select_problem
+from magcal_cli.methods.table import METHODS
+from magcal_cli.pipeline import select_problem
 from magcal_cli.registry import resolve
 from magcal_cli.synth.simulate import simulate
 
@@ -27,7 +28,7 @@ def main() -> None:
     ap.add_argument("--method", default="kok2012", choices=sorted(METHODS))
     ap.add_argument("--scenario", default="handheld")
     args = ap.parse_args()
-    run = resolve(METHODS[args.method], f"the {args.method} method")
+    run = resolve(METHODS[args.method].run, f"the {args.method} method")
     rows, inside, total, times = [], 0, 0, []
     for seed in range(args.seeds):
         sim = simulate(args.scenario, seed)

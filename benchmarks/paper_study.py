@@ -28,12 +28,13 @@ from pathlib import Path
 import numpy as np
 
 from magcal_cli.config import Config
+from magcal_cli.methods.table import METHODS
 from magcal_cli.models.ekf import aug as ekf_aug
 from magcal_cli.models.ekf import core as ekf
 from magcal_cli.models.ekf import ml as ekf_ml
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import MethodResult
-from magcal_cli.pipeline import METHODS, select_problem
+from magcal_cli.pipeline import select_problem
 from magcal_cli.registry import resolve
 from magcal_cli.synth.simulate import Simulation, simulate
 
@@ -91,6 +92,7 @@ def result_theta(res: MethodResult) -> np.ndarray:
 def crlb(sim: Simulation, problem: Problem) -> np.ndarray | None:
     """Inverse Fisher information (19, 19) of the joint MAP model at the truth, or None without `map`."""
     try:
+        from magcal_cli.models.epochs import Noise, epochs_for
         from magcal_cli.models.map import fit as mapm
     except ImportError:
         return None
@@ -98,10 +100,10 @@ def crlb(sim: Simulation, problem: Problem) -> np.ndarray | None:
     if info_at is None:
         return None
     sd = sim.truth.noise_std
-    noise = mapm.Noise(np.full(3, sd["accelerometer"]), np.full(3, sd["gyroscope"]), np.full(3, sd["magnetometer"]))
+    noise = Noise(np.full(3, sd["accelerometer"]), np.full(3, sd["gyroscope"]), np.full(3, sd["magnetometer"]))
     mag = problem.mags[0]
     step = int(round(problem.acc.rate_hz / mag.rate_hz))
-    k = mapm.epochs_for(problem, mag, 1.0).t.size
+    k = epochs_for(problem, mag, 1.0).t.size
     return np.asarray(info_at(problem, mag, sim.rotations[::step][:k], truth_theta(sim), noise))
 
 
@@ -125,7 +127,7 @@ def run_setup(setup: Setup, datasets: int, duration: float | None, methods: Sequ
             preps = [ekf.prepare(p, p.mags[0]) for p in problems]
             thetas = [e.theta for e in BATCHED[m](preps)]
         else:
-            run = resolve(METHODS[m], f"the {m} method")
+            run = resolve(METHODS[m].run, f"the {m} method")
             thetas = [result_theta(run(p, Config(method=m))) for p in problems]
         cells[m].seconds = (time.perf_counter() - t0) / datasets
         cells[m].errors = [(th - tr).tolist() for th, tr in zip(thetas, truths, strict=True)]
@@ -291,7 +293,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     ap.add_argument("--rates", default="10,20,40,80", help="IMU sampling rates (Hz)")
     ap.add_argument("--ratios", default="1,2,4,8", help="magnetometer-to-IMU rate ratios at the top rate")
     ap.add_argument("--methods", default=",".join(m for m in ORDER if m in METHODS),
-                    help="methods to compare (registered in pipeline.METHODS)")
+                    help="methods to compare (registered in methods.table.METHODS)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results", help="output directory")
     args = ap.parse_args(argv)
     args.argv = list(argv) if argv is not None else list(os.sys.argv[1:])

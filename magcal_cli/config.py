@@ -8,9 +8,6 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from magcal_cli.streams import Sampling
 
-METHODS = ("auto", "kok2012", "map")
-
-
 @dataclass(frozen=True)
 class StillConfig:
     """Stationary-segment detection; thresholds scale with the noise level estimated from the log."""

@@ -14,8 +14,8 @@ from scipy import stats
 
 from magcal_cli.config import StillConfig
 from magcal_cli.errors import InsufficientDataError, StreamError
-from magcal_cli.models.accel import G
 from magcal_cli.streams import FloatArray, Stream
+from magcal_cli.units import G
 
 
 @dataclass(frozen=True, eq=False)

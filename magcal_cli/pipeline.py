@@ -2,96 +2,51 @@
 
 from __future__ import annotations
 
-import hashlib
-import os
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from magcal_cli import __version__, timing, units
-from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Quality, Source
+from magcal_cli.calibration.assemble import (
+    diagnosis_block,
+    dip_check,
+    effect_entries,
+    findings_for,
+    mag_calibration,
+)
+from magcal_cli.calibration.run import RunResult, sha256, utc_now
+from magcal_cli.calibration.types import Calibration, ImuCalibration, Source
 from magcal_cli.config import Config
 from magcal_cli.detect import (
     IMPACT,
-    StillResult,
     check_signal,
     detect_still,
     gyro_noise_scale,
     pooled_std,
     unmeasured_windows,
 )
-from magcal_cli.errors import ConvergenceError, InsufficientDataError, MagcalError, StreamError
+from magcal_cli.errors import InsufficientDataError, MagcalError, StreamError
 from magcal_cli.findings import Finding, Severity
-from magcal_cli.models.accel import G
+from magcal_cli.methods.choose import attitude_instead, choose, not_carried, run_method
+from magcal_cli.methods.table import METHODS
 from magcal_cli.models.partial import MagPrior, flown_prior
 from magcal_cli.models.problem import Problem
-from magcal_cli.models.result import MagFit, MethodResult
-from magcal_cli.params import MAG
 from magcal_cli.progress import Hook, active, current
 from magcal_cli.readers import ReadOptions, open_recording
-from magcal_cli.readers.checks import normalised_field
 from magcal_cli.registry import resolve
-from magcal_cli.streams import FloatArray, Kind, Recording, Stream
-from magcal_cli.wmm import ReferenceField, reference_for
+from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.units import G
+from magcal_cli.wmm import reference_for
 
 Progress = Hook
-MethodRun = Callable[[Problem, Config], MethodResult]
-
-#: method name -> "module:function(problem, config) -> MethodResult"
-METHODS: dict[str, str] = {
-    "kok2012": "magcal_cli.models.kok2012:run",
-    "map": "magcal_cli.methods.map_run:run",
-    "ekf-ml": "magcal_cli.models.ekf.ml:run",
-    "ekf-aug": "magcal_cli.models.ekf.aug:run",
-    "attitude": "magcal_cli.models.attitude_ref:run",
-}
 
 
 #: the channels effect plug-ins may use, handed to the estimators beside the IMU and magnetometers
 AUX_KINDS = frozenset({Kind.BATTERY_CURRENT, Kind.BATTERY_VOLTAGE, Kind.THROTTLE, Kind.TEMPERATURE,
                        Kind.POSITION, Kind.ATTITUDE})
 
-
-@dataclass(frozen=True, eq=False)
-class MagSeries:
-    """A magnetometer's readings and calibrated unit field over time, for reports and plots."""
-
-    t: FloatArray
-    raw: FloatArray
-    calibrated: FloatArray
-
-
-@dataclass(frozen=True, eq=False)
-class RunResult:
-    """Everything one `fit` produced: the document, what it was computed from and what was noticed."""
-
-    calibration: Calibration
-    recording: Recording
-    still: StillResult
-    findings: tuple[Finding, ...]
-    series: dict[str, MagSeries]
-
-
-def sha256(path: Path) -> str:
-    """Hex SHA-256 of a file, or of a bag directory's files in name order."""
-    digest = hashlib.sha256()
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    for f in files:
-        with f.open("rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                digest.update(block)
-    return digest.hexdigest()
-
-
-def utc_now() -> str:
-    """ISO-8601 UTC timestamp; SOURCE_DATE_EPOCH makes it reproducible (as reproducible builds do)."""
-    epoch = os.environ.get("SOURCE_DATE_EPOCH")
-    stamp = float(epoch) if epoch and epoch.isdigit() else time.time()
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(stamp))
 
 
 def _known_physics(cfg: Config, aux: tuple[Stream, ...]) -> tuple[str, ...]:
@@ -103,10 +58,10 @@ def _known_physics(cfg: Config, aux: tuple[Stream, ...]) -> tuple[str, ...]:
 
 def select_problem(rec: Recording, cfg: Config) -> Problem:
     """Pick the IMU and magnetometers named by the config and cut them to [start, end]."""
-    return _select(rec, cfg)[0]
+    return select_streams(rec, cfg)[0]
 
 
-def _select(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
+def select_streams(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
     """The problem, and warnings for magnetometers left out because they cannot be used (while others can)."""
     where = rec.path.name
     gyro_ids = set(rec.ids(Kind.GYROSCOPE))
@@ -187,18 +142,7 @@ def onboard_priors(rec: Recording, mags: list[Stream]) -> dict[str, MagPrior]:
     return out
 
 
-def coverage_pct(m_b: FloatArray, cells: int = 100) -> float:
-    """Share of `cells` near-equal-area sphere cells (Fibonacci lattice) that the unit field directions visit."""
-    k = np.arange(cells) + 0.5
-    z = 1.0 - 2.0 * k / cells
-    phi = np.pi * (1.0 + np.sqrt(5.0)) * k
-    centres = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], axis=1)
-    u = m_b / np.linalg.norm(m_b, axis=1, keepdims=True)
-    hit = np.unique(np.argmax(u[:: max(1, len(u) // 20000)] @ centres.T, axis=1))
-    return 100.0 * hit.size / cells
-
-
-def _with_position(rec: Recording, cfg: Config) -> Config:
+def with_position(rec: Recording, cfg: Config) -> Config:
     """The config with `location` from the log's position stream and `date` from its clock, when not given."""
     pos = [st.values[np.isfinite(st.values).all(axis=1)] for st in rec.streams if st.kind is Kind.POSITION]
     if cfg.location is None and pos and len(pos[0]):
@@ -208,203 +152,6 @@ def _with_position(rec: Recording, cfg: Config) -> Config:
     if cfg.location is not None and cfg.date is None and utc is not None:
         cfg = replace(cfg, date=time.strftime("%Y-%m-%d", time.gmtime(utc)))
     return cfg
-
-
-def _mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = None,
-                     effects: tuple[dict[str, object], ...] = (), rec: Recording | None = None
-                     ) -> tuple[MagCalibration, MagSeries]:
-    """Convert an SI fit to the stream's native unit and measure its quality on every reading, with the
-    accepted magnetometer effects removed (the calibration is the base model plus them)."""
-    from magcal_cli.effects.correct import remove
-
-    f = units.from_si(stream.native_unit)
-    scale = MAG.factors({"field": f, "angle": float(np.rad2deg(1.0))})
-    d, o = fit.D * f, fit.o * f
-    raw = stream.xyz * f
-    t, y = stream.t, raw
-    if effects and rec is not None:
-        t, y, _ = remove(effects, stream.id, rec, stream.t, raw)
-    m_b = (y - o) @ np.linalg.inv(d).T
-    used = np.all(np.isfinite(m_b), axis=1)                # excluded (transient) readings are NaN
-    norm_err = np.linalg.norm(m_b[used], axis=1) - 1.0
-    quality = Quality(len(stream), fit.residual_rms * f, float(100.0 * np.sqrt(np.mean(norm_err**2))),
-                      coverage_pct(m_b[used]), bool(fit.converged), int(fit.iterations))
-    strength, source = (float(np.cbrt(np.linalg.det(d))), "data") if ref is None else (ref.intensity * f, "wmm")
-    cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
-                         fit.cov * np.outer(scale, scale), strength, source, quality, held_document(fit, f),
-                         fit.reference)
-    return cal, MagSeries(t, raw, m_b)
-
-
-def held_document(fit: MagFit, f: float) -> tuple[dict[str, Any], ...]:
-    """The document's `held` entries of a fit: parameter names as the document writes them (D[i][j], o[i],
-    dip_deg, imu.accelerometer_bias[i], imu.gyroscope_bias[i]), priors in the magnetometer unit (factor f from
-    SI) or degrees, and where the prior came from."""
-    out = []
-    for h in fit.held:
-        block, _, label = h.name.partition(".")
-        axis = "xyz".index(label) if label in ("x", "y", "z") else None
-        name, k = {"D": (f"D[{label[:1]}][{label[1:]}]", f), "o": (f"o[{axis}]", f),
-                   "dip": ("dip_deg", float(np.rad2deg(1.0)))}.get(block, (f"imu.{block}[{axis}]", 1.0))
-        out.append({"parameter": name, "held": True, "prior": h.prior * k, "prior_std": h.prior_std * k,
-                    "source": h.source})
-    return tuple(out)
-
-
-#: a fitted dip further than this from the World Magnetic Model's says the model missed something
-DIP_TOLERANCE_DEG = 5.0
-
-
-def _dip_check(mags: list[MagCalibration], ref: ReferenceField | None) -> list[Finding]:
-    """Warn when a fitted dip disagrees with the WMM: acceleration, a local disturbance or a frame error."""
-    if ref is None:
-        return []
-    out = []
-    for m in mags:
-        diff = m.dip_deg - float(np.rad2deg(ref.dip))
-        if abs(diff) > max(DIP_TOLERANCE_DEG, 3.0 * float(m.std_of("dip"))):
-            out.append(Finding(
-                Severity.WARNING, "dip_disagrees_with_wmm",
-                f"{m.id}: the fitted dip {m.dip_deg:.1f} deg differs from the World Magnetic Model's "
-                f"{np.rad2deg(ref.dip):.1f} deg at the log's position by {diff:+.1f} deg: the accelerometer saw "
-                "non-gravity acceleration (flight manoeuvres, vibration) or the local field is disturbed; the "
-                "attitude the calibration implies is tilted by about that much. Calibrate from a recording "
-                "with the vehicle moved by hand, or check the field near the vehicle",
-                {"dip_deg": m.dip_deg, "wmm_dip_deg": float(np.rad2deg(ref.dip))}))
-    return out
-
-
-def _findings(rec: Recording, problem: Problem, result: MethodResult, mags: list[MagCalibration]) -> list[Finding]:
-    """What the report should tell the user beyond the numbers."""
-    out = [Finding(Severity.INFO, "reader_note", note) for note in rec.notes]
-    out += [Finding(Severity.INFO, "method_note", note) for note in result.notes]
-    out += list(result.findings)
-    if result.method == "kok2012":
-        out.append(Finding(Severity.INFO, "accel_bias_not_modelled",
-                           "Kok 2012 takes the accelerometer as an unbiased vertical; an accelerometer bias b "
-                           "tilts every vertical by up to |b|/g rad and shows up in the misalignment and dip."))
-    for stream in problem.mags:
-        if normalised_field(stream.xyz):
-            out.append(Finding(Severity.WARNING, "normalised_field",
-                               f"{stream.id}: the log holds the field normalised to a unit vector, not the raw "
-                               "readings; the calibration ran, but hard iron is not recoverable in absolute terms "
-                               "and the field strength is arbitrary. Log the raw magnetometer.",
-                               {"magnitude_si": float(np.median(np.linalg.norm(stream.xyz, axis=1)))}))
-    for m in mags:
-        q = m.quality
-        if q is not None and q.coverage_pct < 30.0:
-            out.append(Finding(Severity.WARNING, "low_coverage",
-                               f"{m.id}: the field directions cover only {q.coverage_pct:.0f} % of the sphere; "
-                               "rotate the vehicle about all three axes (roll it over, pitch it up and down).",
-                               {"coverage_pct": q.coverage_pct}))
-        if q is not None and not q.converged:
-            out.append(Finding(Severity.WARNING, "not_converged",
-                               f"{m.id}: the solver stopped before its convergence test passed.",
-                               {"iterations": q.iterations}))
-    return out
-
-
-def _method_for(problem: Problem, cfg: Config) -> tuple[str, list[Finding]]:
-    """The method to run: auto picks MAP when there is gyro data, but Kok 2012 for a field normalised upstream,
-    whose magnitude the joint model needs (Kok 2012 uses only directions); MAP on such a field is refused."""
-    normalised = [m.id for m in problem.mags if normalised_field(m.xyz)]
-    if normalised and cfg.method in ("auto", "map") and len(problem.gyr):
-        ids = ", ".join(normalised)
-        if cfg.method == "map":
-            msg = (f"{problem.where}: {ids}: the field was normalised to unit length upstream, so --method map cannot "
-                   "determine the calibration (it needs the raw field's magnitude); use --method kok2012 for the "
-                   "misalignment and dip only, or log the raw magnetometer readings")
-            raise InsufficientDataError(msg)
-        return "kok2012", [Finding(Severity.WARNING, "method_choice",
-                                   f"{ids}: the field was normalised to unit length upstream, so auto chose Kok 2012 "
-                                   "(directions only) over the joint MAP method (which needs the field's magnitude); "
-                                   "only the misalignment and dip are meaningful")]
-    return (("map" if len(problem.gyr) else "kok2012") if cfg.method == "auto" else cfg.method), []
-
-
-def diagnosis_block(blocks: tuple[dict[str, Any], ...], mags: dict[str, Stream]) -> dict[str, Any]:
-    """The document's `diagnosis`: the magnetometer with the strongest mismatch at the top level (the contract's
-    single block), every magnetometer's block under `sensors`; SI field values in each one's unit."""
-    from magcal_cli.calibration.diagnosis import in_units
-
-    per = [in_units(b, mags[b["sensor"]].native_unit) for b in blocks]
-    top = min(per, key=lambda b: float(b["ppc"]["global_p"]))
-    return {**top, "summary": " ".join(b["summary"] for b in per), "sensors": per}
-
-
-def _effect_entries(result: MethodResult, mags: dict[str, Stream]) -> tuple[dict[str, object], ...]:
-    """The document's `effects[]`: magnetometer effects in that magnetometer's unit."""
-    from magcal_cli.calibration.effects import entry
-
-    return tuple(entry(f, mags[f.sensor].native_unit if f.sensor in mags else None) for f in result.effects)
-
-
-def _call(run: MethodRun, problem: Problem, cfg: Config, method: str) -> MethodResult:
-    """One method run; numerical breakdowns become a ConvergenceError that names the method."""
-    try:
-        return run(problem, cfg)
-    except np.linalg.LinAlgError as exc:                 # singular or non-finite systems: degenerate data
-        msg = (f"{problem.where}: the {method} solver failed numerically ({exc}); the data are degenerate for it "
-               "(damaged or repeated samples?). Check the log with magcal inspect, or try another --method")
-        raise ConvergenceError(msg) from None
-
-
-def _run_method(run: MethodRun, problem: Problem, cfg: Config, method: str) -> tuple[MethodResult, list[Finding]]:
-    """Run the method on every magnetometer; when several are fitted and some cannot be, keep the others.
-
-    A magnetometer that cannot be calibrated (too little motion for it, disturbed, no convergence) must not
-    cost the user the others: they are refitted one by one and the failures become warnings. Only when no
-    magnetometer can be calibrated is it an error.
-    """
-    try:
-        return _call(run, problem, cfg, method), []
-    except (InsufficientDataError, ConvergenceError):
-        if len(problem.mags) == 1:
-            raise
-    parts: list[MethodResult] = []
-    failed: list[Finding] = []
-    first: MagcalError | None = None
-    for m in problem.mags:
-        try:
-            parts.append(_call(run, replace(problem, mags=(m,)), cfg, method))
-        except (InsufficientDataError, ConvergenceError) as exc:
-            first = first or exc
-            failed.append(Finding(Severity.WARNING, "not_calibrated", f"{m.id} was not calibrated: {exc}",
-                                  {"sensor": m.id}))
-    if not parts:
-        assert first is not None
-        raise first
-    imu = min((p.imu for p in parts), key=lambda i: float(np.sum(i.accel_bias_std)) if i.accel_bias_std is not None
-              else np.inf)
-    noise = {k: v for p in parts for k, v in p.noise.items()}
-    mag_ids = {f.id for p in parts for f in p.mags}
-    # magnetometer effects from every part, IMU effects from the part whose IMU biases are kept
-    effects = tuple(e for p in parts for e in p.effects if e.sensor in mag_ids) + \
-        tuple(e for p in parts if p.imu is imu for e in p.effects if e.sensor not in mag_ids)
-    merged = MethodResult(parts[0].method, tuple(f for p in parts for f in p.mags), imu, noise,
-                          tuple(n for p in parts for n in p.notes), tuple(f for p in parts for f in p.findings),
-                          effects, tuple(d for p in parts for d in p.diagnosis))
-    return merged, failed
-
-
-def _attitude_instead(problem: Problem, cfg: Config, exc: InsufficientDataError
-                      ) -> tuple[MethodResult, list[Finding]]:
-    """--method auto on a log whose own motion cannot determine the calibration: the vehicle's attitude estimate
-    and the World Magnetic Model as the reference, where the log has both (issue 12 item 2); else `exc`."""
-    from magcal_cli.models import attitude_ref
-
-    if cfg.method != "auto" or reference_for(cfg) is None:
-        raise exc
-    try:
-        att = attitude_ref.attitude_stream(problem)
-        result = attitude_ref.run(problem, cfg)
-    except InsufficientDataError:
-        raise exc from None
-    why = Finding(Severity.WARNING, "attitude_reference",
-                  f"the log's own motion cannot determine the calibration ({exc}); it was calibrated against the "
-                  f"vehicle's attitude estimate ({att.id}) and the World Magnetic Model instead, so it inherits "
-                  "the errors of that estimate (its heading came from the compass calibration it flew with)")
-    return result, [why]
 
 
 def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress | None = None) -> RunResult:
@@ -417,31 +164,19 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     return calibrate_recording(rec, cfg, progress)
 
 
-def _not_carried(method: str, effects: tuple[str, ...]) -> tuple[str, ...]:
-    """The requested effects `method` cannot model: the joint MAP models every effect, the EKFs the additive
-    magnetometer terms (models/ekf_effects.py), the other methods none."""
-    if method == "map" or not effects:
-        return ()
-    if method not in ("ekf-ml", "ekf-aug"):
-        return effects
-    from magcal_cli.models.ekf.effects import not_carried
-
-    return not_carried(effects, method)
-
-
 def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None = None) -> RunResult:
     """Calibrate every selected magnetometer of a recording already read (or built in code) against its IMU."""
     path = rec.path
     progress = progress or current()
-    problem, dropped = _select(rec, cfg)
-    method, chosen = _method_for(problem, cfg)
-    cfg = _with_position(rec, cfg)
+    problem, dropped = select_streams(rec, cfg)
+    method, chosen = choose(problem, cfg)
+    cfg = with_position(rec, cfg)
     if cfg.diagnose and method != "map":
         chosen.append(Finding(Severity.INFO, "diagnosis_skipped",
                               f"the mismatch diagnosis (--effects auto) runs with the joint MAP method only; "
                               f"the {method} method fitted the base model"))
         cfg = replace(cfg, diagnose=False)
-    refused = _not_carried(method, cfg.effects)
+    refused = not_carried(method, cfg.effects)
     if refused:
         from magcal_cli.models.ekf.effects import carried
 
@@ -458,16 +193,16 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None =
              f"for {', '.join(m.id for m in problem.mags)}")
     try:
         with active(progress):          # the estimators and the diagnosis report through progress.current()
-            result, failed = _run_method(resolve(target, f"the {method} method"), problem, cfg, method)
+            result, failed = run_method(resolve(target.run, f"the {method} method"), problem, cfg, method)
     except InsufficientDataError as exc:
-        result, failed = _attitude_instead(problem, cfg, exc)
+        result, failed = attitude_instead(problem, cfg, exc)
     mags, series = [], {}
     ref = reference_for(cfg)
     streams = {m.id: m for m in problem.mags}
-    effect_entries = _effect_entries(result, streams)
+    entries = effect_entries(result, streams)
     for fit in result.mags:
         stream = streams[fit.id]
-        cal, ser = _mag_calibration(fit, stream, ref, effect_entries, rec)
+        cal, ser = mag_calibration(fit, stream, ref, entries, rec)
         mags.append(cal)
         series[stream.id] = ser
     imu = ImuCalibration(result.imu.id, result.imu.accel_bias, result.imu.gyro_bias,
@@ -487,8 +222,8 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None =
     stored = path.resolve() if path.exists() else path         # absolute: later commands work from any directory
     source = Source(str(stored), rec.format, digest, float(t_used.min()), float(t_used.max()),
                     dict(problem.timing))
-    findings = chosen + dropped + failed + _findings(rec, problem, result, mags) + _dip_check(mags, ref)
+    findings = chosen + dropped + failed + findings_for(rec, problem, result, mags) + dip_check(mags, ref)
     diagnosis = diagnosis_block(result.diagnosis, streams) if result.diagnosis else None
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
-                      effects=effect_entries, diagnosis=diagnosis, notes=tuple(f.message for f in findings))
+                      effects=entries, diagnosis=diagnosis, notes=tuple(f.message for f in findings))
     return RunResult(doc, rec, problem.still, tuple(findings), series)

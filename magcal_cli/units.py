@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from magcal_cli.errors import StreamError
 
+#: standard gravity (m/s^2): the magnitude every estimator and the detector take for the vertical
+G = 9.80665
+
 #: factor that turns a value in the named unit into SI (tesla, m/s^2, rad/s, s, degC, A, V, 1)
 TO_SI: dict[str, float] = {
     "tesla": 1.0,
@@ -13,7 +16,7 @@ TO_SI: dict[str, float] = {
     "gauss": 1e-4,
     "milligauss": 1e-7,
     "m/s^2": 1.0,
-    "g": 9.80665,
+    "g": G,
     "rad/s": 1.0,
     "deg/s": 3.141592653589793 / 180.0,
     "s": 1.0,

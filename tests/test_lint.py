@@ -1,4 +1,4 @@
-"""The package passes ruff and mypy --strict (STYLE: CI runs tests, ruff and mypy)."""
+"""The package passes ruff, mypy --strict, its import contract and the house rules (STYLE; issue 26)."""
 
 from __future__ import annotations
 
@@ -29,3 +29,22 @@ def test_mypy_strict() -> None:
     """mypy --strict (pyproject.toml) over the package."""
     out = _run("mypy", "magcal_cli")
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr
+
+
+def test_import_contract() -> None:
+    """lint-imports: the layers and the no-circles contract of pyproject.toml (docs/architecture.md)."""
+    if importlib.util.find_spec("importlinter") is None:
+        pytest.skip("import-linter is not installed (pip install -e '.[test]' brings it)")
+    code = "import sys; from importlinter.cli import lint_imports_command; sys.exit(lint_imports_command())"
+    out = subprocess.run([sys.executable, "-c", code, "--no-cache"], cwd=ROOT, capture_output=True, text=True,
+                         check=False)
+    assert out.returncode == 0, out.stdout[-4000:] + out.stderr
+
+
+def test_house_rules() -> None:
+    """benchmarks/house.py --check: module sizes, top-level count, one FloatArray, no circles or knots, no private
+    name across modules, every module tested (its figures are printed with -s)."""
+    out = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "house.py"), "--check"], cwd=ROOT,
+                         capture_output=True, text=True, check=False)
+    print(out.stdout)
+    assert out.returncode == 0, out.stdout[-4000:] + out.stderr

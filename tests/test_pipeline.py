@@ -67,16 +67,16 @@ def test_a_dip_far_from_the_world_magnetic_model_is_flagged() -> None:
     """A fitted dip 10 deg from the WMM's is a warning that names both values (log171.bin in flight)."""
     import datetime as dt
 
+    from magcal_cli.calibration.assemble import dip_check
     from magcal_cli.calibration.types import MagCalibration
-    from magcal_cli.pipeline import _dip_check
     from magcal_cli.wmm import ReferenceField
 
     ref = ReferenceField(np.deg2rad(-66.0), 57e-6, 0.2, "WMM2025", -35.4, 149.2, 600.0, dt.date(2015, 6, 1))
     cov = np.diag(np.full(13, 1e-4))
     near = MagCalibration("MAG[0]", "milligauss", np.eye(3) * 570, np.zeros(3), -64.0, cov, 570.0)
     far = MagCalibration("MAG[1]", "milligauss", np.eye(3) * 570, np.zeros(3), -76.3, cov, 570.0)
-    (finding,) = _dip_check([near, far], ref)
+    (finding,) = dip_check([near, far], ref)
     assert finding.code == "dip_disagrees_with_wmm"
     assert finding.message.startswith("MAG[1]: the fitted dip -76.3 deg differs from the World Magnetic "
                                       "Model's -66.0 deg at the log's position by -10.3 deg")
-    assert _dip_check([near, far], None) == []
+    assert dip_check([near, far], None) == []

@@ -172,7 +172,7 @@ def test_cli_progress_only_on_a_terminal_without_q(runner: CliRunner, tmp_path: 
 
 def test_warnings_grouped_one_line_per_kind_and_in_full_with_v() -> None:
     """log171's kinds: a long warning repeated per compass is one line naming them; a short single one stays whole."""
-    from magcal_cli.cli.main import _warning_lines
+    from magcal_cli.cli.common import warning_lines
     from magcal_cli.findings import Finding, Severity
 
     long_tail = " (quantised readings, unmodelled motion or a disturbance); the uncertainty of D was widened" * 3
@@ -185,13 +185,13 @@ def test_warnings_grouped_one_line_per_kind_and_in_full_with_v() -> None:
         Finding(Severity.INFO, "reader_note", "MAG[0]: undid the firmware correction"),
     )
     mags = ["MAG[0]", "MAG[1]", "MAG[2]"]
-    assert _warning_lines(found, mags, verbose=False) == [
+    assert warning_lines(found, mags, verbose=False) == [
         "IMU[0]: the IMU did not measure the motion at 227.4-228.0 s",
         "3 magnetometers (MAG[0], MAG[1], MAG[2]): residuals correlated in time beyond the noise model (uncertainty "
         "widened up to 10.6x)",
         "MAG[2]: accelerometer bias poorly determined by the motion in this log (docs/recording-guide.md says which "
         "motion determines it)"]
-    assert _warning_lines(found, mags, verbose=True) == [f.message for f in found[:5]]
+    assert warning_lines(found, mags, verbose=True) == [f.message for f in found[:5]]
 
 
 def minute(path: Path) -> Simulation:

@@ -302,9 +302,9 @@ def singular(problem: object, cfg: object) -> None:
 def test_numerical_failure_is_a_clean_error(runner: CliRunner, tmp_path: Path, sim: Simulation,
                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """A LinAlgError inside a method (degenerate data) is one line, not an internal error."""
-    from magcal_cli import pipeline
+    from magcal_cli.methods.table import METHODS
 
-    monkeypatch.setitem(pipeline.METHODS, "kok2012", "tests.test_robustness:singular")
+    monkeypatch.setitem(METHODS, "kok2012", METHODS["kok2012"]._replace(run="tests.test_robustness:singular"))
     write_log(sim, tmp_path / "x.bin")
     assert one_error(fit(runner, tmp_path / "x.bin", tmp_path / "o", "--method", "kok2012")) == (
         "x.bin: the kok2012 solver failed numerically (SVD did not converge); the data are degenerate for it "

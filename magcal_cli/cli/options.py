@@ -139,3 +139,40 @@ def timing(func: F) -> F:
         func = click.option(name, name.strip("-").replace("-", "_"), type=click.Choice(TIMING_CHOICES),
                             default=None, callback=sampling, help=TIMING_HELP.format(what=what, example=example))(func)
     return func
+
+MAG_HELP = ("Magnetometer stream id(s) to {what}; repeatable and comma-separated (e.g. --mag 'MAG[0],MAG[1]'), "
+            "or 'all' [default: all].")
+FORMAT_HELP = "Force the log format instead of sniffing it (e.g. mcap)."
+
+
+def wmm_date(_: click.Context, __: click.Parameter, value: str | None) -> str | None:
+    """--date YYYY-MM-DD checked, or a usage error."""
+    from magcal_cli.errors import MagcalError
+    from magcal_cli.wmm import parse_date
+
+    try:
+        return None if value is None else parse_date(value).isoformat()
+    except MagcalError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+
+def mag(what: str) -> Callable[[F], F]:
+    """--mag ID[,ID...]|all, declared once for every command that selects magnetometers."""
+    return click.option("--mag", "mags", multiple=True, callback=mag_ids, metavar="ID[,ID...]|all",
+                        help=MAG_HELP.format(what=what))
+
+
+def fmt(func: F) -> F:
+    """--format, declared once for every command that reads a log."""
+    return click.option("--format", "fmt", default=None, callback=log_format, help=FORMAT_HELP)(func)
+
+
+def force(help_text: str = "Overwrite existing outputs.") -> Callable[[F], F]:
+    """--force, declared once for every command that writes files."""
+    return click.option("--force", is_flag=True, help=help_text)
+
+
+def as_json(help_text: str) -> Callable[[F], F]:
+    """--json, declared once for every command that can print a machine-readable document."""
+    return click.option("--json", "as_json", is_flag=True, help=help_text)

@@ -15,7 +15,9 @@ from magcal_cli.findings import Finding, Severity
 from magcal_cli.models import consistency
 from magcal_cli.models.epochs import BIAS_SCALE, Noise
 from magcal_cli.models.gyro import Preintegrated
-from magcal_cli.models.map.fit import MapEstimate, fit_map, mag_layout
+from magcal_cli.models.map.cost import mag_layout
+from magcal_cli.models.map.estimate import MapEstimate
+from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.map.joint import fit_joint_or_note
 from magcal_cli.models.map.shared import is_shared, shared
 from magcal_cli.models.problem import Problem

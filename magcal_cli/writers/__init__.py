@@ -15,7 +15,7 @@ from magcal_cli.errors import OutputError
 from magcal_cli.registry import resolve
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 
 class Writer(Protocol):

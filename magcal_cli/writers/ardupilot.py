@@ -6,11 +6,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from magcal_cli.atomic import write_text
-from magcal_cli.firmware.export import Options, export
+from magcal_cli.firmware.common import Options
+from magcal_cli.firmware.export import export
 from magcal_cli.firmware.paramfile import render
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 
 class ArduPilotWriter:

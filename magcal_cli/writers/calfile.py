@@ -9,7 +9,7 @@ from magcal_cli.atomic import write_text
 from magcal_cli.calibration.document import dumps_json, dumps_yaml
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 
 class JsonWriter:

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 from magcal_cli.errors import MagcalError
 
 if TYPE_CHECKING:
-    from magcal_cli.pipeline import RunResult
+    from magcal_cli.calibration.run import RunResult
 
 #: the file system refusing a read or write: the user's environment, not a bug (exit 1, not 123)
 USER_ERRNOS = frozenset({errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.ENOTDIR,

@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
+from magcal_cli.methods.table import METHODS
 from magcal_cli.pipeline import calibrate_recording
 from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.simulate import simulate
@@ -184,7 +185,7 @@ def test_merge_keeps_effects(monkeypatch: pytest.MonkeyPatch) -> None:
         return MethodResult("map", (fit,), ImuFit(problem.imu_id, np.zeros(3), np.zeros(3), np.ones(3),
                                                   np.ones(3)), effects=effects)
 
-    monkeypatch.setitem(pipeline.METHODS, "map", fake)
+    monkeypatch.setitem(METHODS, "map", METHODS["map"]._replace(run=fake))
     res = pipeline.calibrate_recording(rec, Config(method="map"))
     assert [(e["id"], e["sensor"]) for e in res.calibration.effects] == [("time_offset", mag.id),
                                                                           ("gyro_scale", "/imu/data")]

@@ -1,0 +1,121 @@
+"""`magcal batch`: fit many logs in parallel, locally or on a Dask cluster."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import click
+
+from magcal_cli.cli import options
+from magcal_cli.cli.common import (
+    CONTEXT,
+    effects_option,
+    gates_option,
+    handle_errors,
+    parse_outputs,
+    say,
+    verbosity,
+)
+from magcal_cli.methods.table import CHOICES
+
+if TYPE_CHECKING:
+    from magcal_cli.streams import Sampling
+
+
+BATCH_EXIT = ("Exit codes: 0 every log fitted (or up to date); 1 a log could not be fitted (each log's own exit code, "
+              "as magcal fit would give it, is in the table and the JSON); 2 usage error (no log found, an output "
+              "that exists without --force); 3 a log failed a --fail-on gate (and none failed otherwise); 123 "
+              "internal error; 130 interrupted (Ctrl-C), nothing half-written left.")
+
+
+@click.command("batch", context_settings=CONTEXT, epilog=BATCH_EXIT)
+@click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
+@click.option("-o", "--outdir", type=click.Path(path_type=Path), required=True,
+              help="Output directory: each log's outputs go to DIR/<log stem>/ (a longer unique name when stems "
+                   "collide), with the batch.json status that makes a rerun skip it.")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), default=None,
+              help="Local worker processes, one log at a time each [default: the number of cores].")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Fit on the Dask cluster at this scheduler (e.g. tcp://10.0.0.5:8786) instead of local processes; "
+                   "the workers need the same paths and magcal with: pip install 'magcal-cli[fleet]'.")
+@options.mag("calibrate in every log")
+@click.option("--method", type=click.Choice(CHOICES), default="auto", show_default=True,
+              help="Calibration method, as in magcal fit.")
+@click.option("--effects", "effects", default="auto", show_default=True, metavar="auto|none|ID[,ID...]",
+              callback=effects_option, help="Physics beyond the base model, as in magcal fit.")
+@click.option("--outputs", default=None,
+              help="Comma-separated outputs per log, as in magcal fit [default: json,yaml,report,plots and the "
+                   "firmware file of ArduPilot and PX4 logs].")
+@click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: gates_option(v, "fit"),
+              help="A log whose magnetometer meets a condition is 'gate failed' (its exit 3), as in magcal fit.")
+@click.option("--strict", is_flag=True, help="Refuse cut logs instead of reading them up to their last record.")
+@options.as_json("Print one JSON document with one entry per log.")
+@options.force("Overwrite outputs that are not up to date (up-to-date logs are "
+               "still skipped; remove DIR/<log>/batch.json to refit one).")
+@options.timing
+@verbosity
+@click.pass_context
+@handle_errors
+def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: int | None, scheduler: str | None,
+              mags: tuple[str, ...], method: str, effects: tuple[str, ...], outputs: str | None,
+              fail_on: tuple[Any, ...], strict: bool, as_json: bool, force: bool, imu_timing: Sampling | None,
+              mag_timing: Sampling | None) -> None:
+    """Fit many logs (files, folders searched recursively, globs) in parallel, locally or on a Dask cluster.
+
+    Each log is fitted as 'magcal fit LOG -o DIR/<name>/' would; logs whose outputs are complete and newer than
+    the log are skipped, and a failing log never stops the others. The summary goes to stdout.
+    """
+    import os
+    import time
+
+    from magcal_cli.batch.plan import BatchUsageError, FitOptions, discover, exit_code, plan
+    from magcal_cli.batch.report import Runner, document, progress_line, table
+
+    if jobs is not None and scheduler is not None:
+        msg = "--jobs sets local processes; with --scheduler the cluster's workers fit the logs. Give one of them"
+        raise click.UsageError(msg)
+    if scheduler is not None:
+        from magcal_cli.batch.dask import require_distributed
+
+        require_distributed()                       # before any work: one line naming the extra to install
+    names = None if outputs is None else tuple(parse_outputs(outputs))
+    opts = FitOptions(method, effects, names, mags, fail_on, strict, imu_timing, mag_timing)
+    try:
+        work = plan(discover(list(inputs), outdir), outdir, opts, force)
+    except BatchUsageError as exc:
+        raise click.UsageError(str(exc)) from None
+    workers = jobs or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    where = f"the Dask cluster at {scheduler}" if scheduler else f"{workers} local worker{'s' * (workers != 1)}"
+    say(ctx, f"{len(work.order)} logs: {len(work.jobs)} to fit, {len(work.skipped)} up to date; fitting on {where}")
+    count = [0]
+
+    def done(r: Any) -> None:
+        count[0] += 1
+        say(ctx, progress_line(r, count[0], len(work.order)))
+        if r.traceback and ctx.obj.get("verbose"):
+            click.echo(r.traceback, err=True, nl=False)
+
+    for r in work.skipped:
+        done(r)
+    start = time.perf_counter()
+    if scheduler is not None:
+        from magcal_cli.batch.dask import run_dask
+
+        reports, seen = run_dask(work.jobs, scheduler, done)
+        runner = Runner("dask", seen, scheduler)
+    else:
+        from magcal_cli.batch.run import run_local
+
+        reports, runner = run_local(work.jobs, workers, done), Runner("local", workers)
+    wall = time.perf_counter() - start
+    by_log = {r.log: r for r in (*work.skipped, *reports)}
+    ordered = [by_log[log] for log in work.order if log in by_log]
+    click.echo(document(ordered, wall, runner, outdir) if as_json else table(ordered, wall, runner), nl=False)
+    code = exit_code(ordered)
+    if code:
+        bad = [r for r in ordered if (r.exit_code not in (0, 3) if code == 1 else r.exit_code == 3)]
+        click.echo(f"Error: batch: {len(bad)} of {len(ordered)} logs {'could not be fitted' if code == 1 else 'failed a --fail-on gate'}"
+                   f" ({', '.join(r.name for r in bad[:5])}{', ...' if len(bad) > 5 else ''}). Their errors are in the "
+                   f"summary and in {outdir}/<log>/batch.json", err=True)
+        ctx.exit(code)
