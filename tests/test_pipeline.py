@@ -1,4 +1,8 @@
-"""Stream selection and the messages for logs that are too short."""
+"""Stream selection and the messages for logs that are too short.
+
+Modules it covers (the mirrored test file aside): magcal_cli.calibration.assemble, magcal_cli.calibration.run,
+magcal_cli.config.
+"""
 
 from __future__ import annotations
 

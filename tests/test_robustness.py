@@ -152,7 +152,7 @@ def test_unreadable_file_by_mode(runner: CliRunner, tmp_path: Path, sim: Simulat
 
 # --- truncation and corruption --------------------------------------------------------------------------------
 
-# cut logs (the end of a file inside a record): tests/test_cut_logs.py
+# cut logs (the end of a file inside a record): tests/readers/test_cut.py
 
 
 def test_corrupt_dataflash_bytes_are_skipped_and_counted(tmp_path: Path, sim: Simulation) -> None:

@@ -28,7 +28,7 @@ def _gyro(t: np.ndarray, sampling: Sampling, window: float | None = None) -> Str
 
 
 def test_the_options_offer_exactly_the_conventions_timing_converts() -> None:
-    """options.py spells the choices out so that the CLI starts without numpy; they must stay Sampling's."""
+    """cli/options.py spells the choices out so that the CLI starts without numpy; they must stay Sampling's."""
     assert options.TIMING_CHOICES == timing.CHOICES
 
 

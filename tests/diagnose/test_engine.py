@@ -1,4 +1,9 @@
-"""The mismatch diagnosis on logs with known truth: what it finds, what it refuses to claim, and the CLI."""
+"""The mismatch diagnosis on logs with known truth: what it finds, what it refuses to claim, and the CLI.
+
+Modules it covers (the mirrored test file aside): magcal_cli.calibration.diagnosis, magcal_cli.cli.diagnose,
+magcal_cli.diagnose.parallel, magcal_cli.diagnose.ppc, magcal_cli.diagnose.score, magcal_cli.diagnose.select,
+magcal_cli.diagnose.summary, magcal_cli.diagnose.validate.
+"""
 
 from __future__ import annotations
 

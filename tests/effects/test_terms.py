@@ -1,4 +1,10 @@
-"""Every effect term's analytic Jacobians against central finite differences, and the effect registry."""
+"""Every effect term's analytic Jacobians against central finite differences, and the effect registry.
+
+Modules it covers (the mirrored test file aside): magcal_cli.effects.accel_scale, magcal_cli.effects.base,
+magcal_cli.effects.current, magcal_cli.effects.gyro_scale, magcal_cli.effects.lever_arm,
+magcal_cli.effects.nongravity, magcal_cli.effects.temperature, magcal_cli.effects.throttle,
+magcal_cli.effects.time_offset, magcal_cli.effects.transient.
+"""
 
 from __future__ import annotations
 

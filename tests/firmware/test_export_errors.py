@@ -1,4 +1,8 @@
-"""Slot mapping, limits and every export error message."""
+"""Slot mapping, limits and every export error message.
+
+Modules it covers (the mirrored test file aside): magcal_cli.firmware.ardupilot, magcal_cli.firmware.common,
+magcal_cli.firmware.effects, magcal_cli.firmware.export, magcal_cli.firmware.px4.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,9 @@
 """Additive magnetometer effects in the EKF baselines (issue 10): exact sensitivities and Jacobians with the effect
-parameters, truth recovered within the reported uncertainty, and the effects the EKFs cannot carry refused."""
+parameters, truth recovered within the reported uncertainty, and the effects the EKFs cannot carry refused.
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.ekf.aug, magcal_cli.models.ekf.core,
+magcal_cli.models.ekf.effects, magcal_cli.models.ekf.ml.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""The algebraic ellipsoid fit (Kok 2012, Sec. IV-A)."""
+"""The algebraic ellipsoid fit (Kok 2012, Sec. IV-A).
+
+Modules it covers (the mirrored test file aside): magcal_cli.ellipsoid.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""Analytic Jacobians of the magnetometer, accelerometer and vertical factors against finite differences."""
+"""Analytic Jacobians of the magnetometer, accelerometer and vertical factors against finite differences.
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.accel, magcal_cli.models.mag.
+"""
 
 from __future__ import annotations
 

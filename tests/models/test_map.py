@@ -1,5 +1,9 @@
 """Joint MAP calibration (Huang et al. 2025): Jacobians, truth within the reported covariance, multi-rate
-data, observability findings and the errors for motion that cannot determine the calibration."""
+data, observability findings and the errors for motion that cannot determine the calibration.
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.map.fit, magcal_cli.models.map.init,
+magcal_cli.models.map.noise, magcal_cli.models.result, magcal_cli.models.spikes.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,9 @@
-"""The joint fit of many magnetometers on one IMU (models/map_joint*.py, issue 14 item 3) and the consistency check."""
+"""The joint fit of many magnetometers on one IMU (models/map_joint*.py, issue 14 item 3) and the consistency check.
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.factor, magcal_cli.models.map.joint,
+magcal_cli.models.map.joint_cov, magcal_cli.models.map.joint_solve, magcal_cli.models.map.start,
+magcal_cli.models.normal, magcal_cli.models.observability, magcal_cli.synth.array.
+"""
 
 from __future__ import annotations
 

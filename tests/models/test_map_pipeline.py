@@ -1,5 +1,8 @@
 """The joint MAP method through the pipeline and CLI: default method, every std in the document, the World
-Magnetic Model reference, several magnetometers on one IMU."""
+Magnetic Model reference, several magnetometers on one IMU.
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.consistency, magcal_cli.wmm.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,8 @@
 """Joint MAP on real BROAD trials (../shared/realdata/broad): a factory-calibrated magnetometer stays near
-identity; a magnet fixed to the board is calibrated away (norm and mocap heading)."""
+identity; a magnet fixed to the board is calibrated away (norm and mocap heading).
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.epochs.
+"""
 
 from __future__ import annotations
 

@@ -1,6 +1,9 @@
 """The cap of field directions a log covers decides what a partial calibration may estimate (issue 12): a log whose
 field directions stay in a narrow cap gets at most an offsets-only fit, or a refusal that says what motion is
-missing; never a D that is wrong beyond its stated std."""
+missing; never a D that is wrong beyond its stated std.
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.map.hold.
+"""
 
 from __future__ import annotations
 

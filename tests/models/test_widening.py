@@ -1,4 +1,7 @@
-"""Time-clustered widening of the MAP covariance: silent on well-specified data, on under a slow disturbance."""
+"""Time-clustered widening of the MAP covariance: silent on well-specified data, on under a slow disturbance.
+
+Modules it covers (the mirrored test file aside): magcal_cli.models.sandwich.
+"""
 
 from __future__ import annotations
 

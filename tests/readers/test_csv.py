@@ -1,4 +1,7 @@
-"""CSV: the canonical and x-io headers, units, empty cells, optional columns, held values, errors, round trip."""
+"""CSV: the canonical and x-io headers, units, empty cells, optional columns, held values, errors, round trip.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.csvfile, magcal_cli.units.
+"""
 
 from __future__ import annotations
 

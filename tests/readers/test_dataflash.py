@@ -1,4 +1,10 @@
-"""ArduPilot DataFlash: vectorised parser, firmware correction and inverse, round trips, text, real logs."""
+"""ArduPilot DataFlash: vectorised parser, firmware correction and inverse, round trips, text, real logs.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.dataflash.ardupilot,
+magcal_cli.readers.dataflash.binary, magcal_cli.readers.dataflash.compass,
+magcal_cli.readers.dataflash.format, magcal_cli.readers.dataflash.load, magcal_cli.readers.dataflash.rawfield,
+magcal_cli.readers.dataflash.reader, magcal_cli.readers.dataflash.streams, magcal_cli.readers.dataflash.text.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""MCAP: ROS 2 CDR, ROS 1 and JSON channels, zstd and lz4 chunks, the extra sensor types, errors, real file."""
+"""MCAP: ROS 2 CDR, ROS 1 and JSON channels, zstd and lz4 chunks, the extra sensor types, errors, real file.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.ros.mcap, magcal_cli.readers.ros.mcap_stream.
+"""
 
 from __future__ import annotations
 

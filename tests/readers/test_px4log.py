@@ -1,4 +1,7 @@
-"""Legacy PX4 sdlog2 `.px4log`: detection by message set, TIME-stamped groups, gauss field, real log."""
+"""Legacy PX4 sdlog2 `.px4log`: detection by message set, TIME-stamped groups, gauss field, real log.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.dataflash.px4log.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,8 @@
-"""ROS 1 bags and ROS 2 bag directories: round trips, message types, time bases, checks, errors, real bags."""
+"""ROS 1 bags and ROS 2 bag directories: round trips, message types, time bases, checks, errors, real bags.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.ros.bag, magcal_cli.readers.ros.bag1_scan,
+magcal_cli.readers.ros.msg, magcal_cli.readers.ros.types2.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,8 @@
-"""Vectorised ROS decoding (rosvec, MCAP chunk arrays, batched bags) against rosbags' per-message decoding."""
+"""Vectorised ROS decoding (rosvec, MCAP chunk arrays, batched bags) against rosbags' per-message decoding.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.ros.bag1_fast,
+magcal_cli.readers.ros.mcap_chunk, magcal_cli.readers.ros.vec.
+"""
 
 from __future__ import annotations
 

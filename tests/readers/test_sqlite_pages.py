@@ -1,4 +1,8 @@
-"""The sqlite3 bag storage read from the file's B-tree pages: the same rows as SQLite's, or None off the plain case."""
+"""The sqlite3 bag storage read from the file's B-tree pages: the same rows as SQLite's, or None off the plain case.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.ros.bag2_direct,
+magcal_cli.readers.ros.bag_batch, magcal_cli.readers.ros.sqlite_pages.
+"""
 
 from __future__ import annotations
 

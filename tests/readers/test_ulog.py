@@ -1,4 +1,8 @@
-"""PX4 ULog: simulator round trip, topic variants built in code, every error message, the real logs, fits."""
+"""PX4 ULog: simulator round trip, topic variants built in code, every error message, the real logs, fits.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.ulog.load, magcal_cli.readers.ulog.reader,
+magcal_cli.readers.ulog.sensors, magcal_cli.readers.ulog.vehicle, magcal_cli.streams.
+"""
 
 from __future__ import annotations
 

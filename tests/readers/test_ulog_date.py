@@ -1,5 +1,8 @@
 """The date of a PX4 ULog (issue 12): the vehicle clock counts from boot, so the flight's date comes from the GPS
-receiver's UTC time (`time_utc_usec`) and the WMM is evaluated when the log was flown."""
+receiver's UTC time (`time_utc_usec`) and the WMM is evaluated when the log was flown.
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.ulog.topics.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,13 @@
-"""report.html: its order, its self-containment, the grouped warnings and the numbers behind its plots."""
+"""report.html: its order, its self-containment, the grouped warnings and the numbers behind its plots.
+
+Modules it covers (the mirrored test file aside): magcal_cli.findings, magcal_cli.writers.report.data,
+magcal_cli.writers.report.html, magcal_cli.writers.report.sections.base,
+magcal_cli.writers.report.sections.diagnosis, magcal_cli.writers.report.sections.effects,
+magcal_cli.writers.report.sections.magnetometer, magcal_cli.writers.report.sections.markup,
+magcal_cli.writers.report.sections.method, magcal_cli.writers.report.sections.notes,
+magcal_cli.writers.report.sections.provenance, magcal_cli.writers.report.sections.summary,
+magcal_cli.writers.report.text, magcal_cli.writers.report.verdict.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,8 @@
 """The IMU effects' plots in report.html (issue 13 item 1): per axis, the residual against its channel follows the
-injected effect before it is removed and flattens after, and the figure reaches the page."""
+injected effect before it is removed and flattens after, and the figure reaches the page.
+
+Modules it covers (the mirrored test file aside): magcal_cli.writers.report.imu, magcal_cli.writers.report.plots.
+"""
 
 from __future__ import annotations
 

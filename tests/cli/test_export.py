@@ -1,4 +1,7 @@
-"""`magcal export` and `fit --fail-on` / automatic firmware outputs on the command line."""
+"""`magcal export` and `fit --fail-on` / automatic firmware outputs on the command line.
+
+Modules it covers (the mirrored test file aside): magcal_cli.writers.fitrun.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +15,7 @@ from magcal_cli.calibration.document import dumps_json
 from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibration, Source
 from magcal_cli.cli.main import cli
 
-from . import fwsim
+from ..firmware import fwsim
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "sample_logs" / "handheld.bin"

@@ -1,5 +1,9 @@
 """Issue 13 items 3-6: no user mistake exits 123, one meaning per --mag, documents that work from any directory,
-and `check`'s "not measured". Each test pins the exact message and exit code (spec/cli.md)."""
+and `check`'s "not measured". Each test pins the exact message and exit code (spec/cli.md).
+
+Modules it covers (the mirrored test file aside): magcal_cli.atomic, magcal_cli.cli.common, magcal_cli.cli.options,
+magcal_cli.cli.simulate, magcal_cli.errors.
+"""
 
 from __future__ import annotations
 
@@ -16,7 +20,7 @@ from click.testing import CliRunner, Result
 from magcal_cli.calibration.document import dumps_json, load
 from magcal_cli.cli.main import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def run(*args: object) -> Result:

@@ -1,4 +1,7 @@
-"""The calibration document: exact JSON/YAML round trips, schema checks, the misalignment uncertainty."""
+"""The calibration document: exact JSON/YAML round trips, schema checks, the misalignment uncertainty.
+
+Modules it covers (the mirrored test file aside): magcal_cli.calibration.types.
+"""
 
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from magcal_cli.calibration.types import Calibration, ImuCalibration, MagCalibra
 from magcal_cli.errors import CalibrationFileError
 from magcal_cli.params import MAG
 
-SAMPLE_TRUTH = Path(__file__).resolve().parents[1] / "sample_logs" / "handheld.bin.truth.json"
+SAMPLE_TRUTH = Path(__file__).resolve().parents[2] / "sample_logs" / "handheld.bin.truth.json"
 
 
 def _calibration(seed: int) -> Calibration:

@@ -1,5 +1,9 @@
 """`magcal simulate --effect`: each injected effect has the physics of calibration-file.md, and every log format
-carries the channels it needs back to the readers (kinds, units, current positive while discharging)."""
+carries the channels it needs back to the readers (kinds, units, current positive while discharging).
+
+Modules it covers (the mirrored test file aside): magcal_cli.synth.inject, magcal_cli.synth.logs.rosbag,
+magcal_cli.synth.physics.
+"""
 
 from __future__ import annotations
 

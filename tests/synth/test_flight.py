@@ -1,7 +1,11 @@
 """Flights as real vehicles log them: IMU vibration while the motors run, several compasses in one `.bin`, the
 firmware's stale motor compensation, a bounded flight envelope, a PX4 flight with its power channels, and the
 paper protocol's band-limited rate. Checked against the truth and the physics only, never against the
-estimator (reading a log back through its reader is not estimation)."""
+estimator (reading a log back through its reader is not estimation).
+
+Modules it covers (the mirrored test file aside): magcal_cli.synth.firmware, magcal_cli.synth.logs.dataflash,
+magcal_cli.synth.logs.ulog, magcal_cli.synth.truth, magcal_cli.synth.vibration.
+"""
 
 from __future__ import annotations
 

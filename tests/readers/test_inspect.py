@@ -1,4 +1,7 @@
-"""`magcal inspect`: the table and --json on simulated and real logs, the parameters row, one-line errors."""
+"""`magcal inspect`: the table and --json on simulated and real logs, the parameters row, one-line errors.
+
+Modules it covers (the mirrored test file aside): magcal_cli.cli.inspect, magcal_cli.readers.checks.
+"""
 
 from __future__ import annotations
 
@@ -144,7 +147,7 @@ def test_every_real_ros_and_csv_file_reads_or_fails_in_one_line(realdata: Path) 
 @pytest.mark.parametrize("name", ["handheld.bag", "handheld_ros2", "handheld.csv"])
 def test_sample_logs(name: str) -> None:
     """The shipped sample logs of the ROS and CSV formats read: 50 Hz IMU, 25 Hz field, the truth's span."""
-    root = Path(__file__).resolve().parents[1] / "sample_logs"
+    root = Path(__file__).resolve().parents[2] / "sample_logs"
     code, out, err = run(str(root / name), "--json")
     assert code == 0, err
     truth = json.loads((root / f"{name}.truth.json").read_text())

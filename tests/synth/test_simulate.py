@@ -1,4 +1,7 @@
-"""The simulator produces data that obeys the models exactly (up to its stated noise)."""
+"""The simulator produces data that obeys the models exactly (up to its stated noise).
+
+Modules it covers (the mirrored test file aside): magcal_cli.synth.rotation.
+"""
 
 from __future__ import annotations
 

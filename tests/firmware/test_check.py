@@ -1,5 +1,8 @@
 """`magcal check`: heading error, interference and the new calibration's change against simulated truth; the
-real ArduPilot logs; the command line (exit 3, --json, --params, --calibration); every message."""
+real ArduPilot logs; the command line (exit 3, --json, --params, --calibration); every message.
+
+Modules it covers (the mirrored test file aside): magcal_cli.cli.check, magcal_cli.firmware.flown.
+"""
 
 from __future__ import annotations
 
@@ -20,9 +23,9 @@ from magcal_cli.firmware.export import export
 from magcal_cli.firmware.paramfile import render
 from magcal_cli.streams import Kind, Recording
 
-from .firmware.flightsim import flight
+from .flightsim import flight
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "sample_logs" / "handheld.bin"
 GATE = (gates.Condition("heading_error_deg", ">", 5.0),)
 

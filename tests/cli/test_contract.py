@@ -1,4 +1,8 @@
-"""The command line contract: help everywhere, exit codes, one-line errors, nothing half-written."""
+"""The command line contract: help everywhere, exit codes, one-line errors, nothing half-written.
+
+Modules it covers (the mirrored test file aside): magcal_cli.cli.fit, magcal_cli.cli.main,
+magcal_cli.methods.table.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +16,7 @@ from click.testing import CliRunner
 from magcal_cli import __version__
 from magcal_cli.cli.main import cli
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "sample_logs" / "handheld.mcap"
 
 

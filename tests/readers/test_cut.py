@@ -1,5 +1,9 @@
 """Cut logs (issue 12 item 4): every format is read up to its last complete record with a warning; --strict
-refuses it with one `Error:` line, exit 1 and no output (spec/cli.md)."""
+refuses it with one `Error:` line, exit 1 and no output (spec/cli.md).
+
+Modules it covers (the mirrored test file aside): magcal_cli.readers.ros.bag2_sqlite,
+magcal_cli.readers.ros.partial.
+"""
 
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ from magcal_cli.synth.logs.mcap import write_mcap
 from magcal_cli.synth.logs.rosbag import write_bag, write_ros2
 from magcal_cli.synth.simulate import Simulation
 
-from .fuzzing import seed_simulation, text_log
+from ..fuzzing import seed_simulation, text_log
 
 #: every format and layout a reader handles: DataFlash binary and text, ULog, MCAP, ROS 1, ROS 2 (both
 #: storages), CSV

@@ -1,6 +1,10 @@
 """The simulator samples its continuous-time truth as real sensors do: IMU values at (INSTANT) or averaged over the
 period ending at (PRECEDING) their stamps, the magnetometer at its own rate and phase. Checked against the truth
-and closed-form motions only, never against the estimator."""
+and closed-form motions only, never against the estimator.
+
+Modules it covers (the mirrored test file aside): magcal_cli.synth.logs.csvfile, magcal_cli.synth.logs.mcap,
+magcal_cli.synth.motion.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,9 @@
 """magcal batch: logs from files, folders and globs fitted in local processes or on a real local Dask cluster,
-a corrupt log reported without stopping the others, resumability, --json, exit codes."""
+a corrupt log reported without stopping the others, resumability, --json, exit codes.
+
+Modules it covers (the mirrored test file aside): magcal_cli.batch.dask, magcal_cli.batch.plan,
+magcal_cli.batch.report, magcal_cli.batch.run, magcal_cli.cli.batch, magcal_cli.writers.calfile.
+"""
 
 from __future__ import annotations
 

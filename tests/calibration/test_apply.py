@@ -1,4 +1,7 @@
-"""`magcal apply`: the calibrated field over time as CSV, interference subtracted, messages."""
+"""`magcal apply`: the calibrated field over time as CSV, interference subtracted, messages.
+
+Modules it covers (the mirrored test file aside): magcal_cli.cli.apply.
+"""
 
 from __future__ import annotations
 
@@ -16,7 +19,7 @@ from magcal_cli.cli.main import cli
 from magcal_cli.errors import StreamError
 from magcal_cli.streams import Kind
 
-from .flightsim import flight
+from ..firmware.flightsim import flight
 
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "sample_logs" / "handheld.bin"
