@@ -20,6 +20,7 @@ import numpy.typing as npt
 from scipy import stats
 
 from magcal_cli import so3
+from magcal_cli.align import columns
 from magcal_cli.diagnose.parallel import pmap
 from magcal_cli.models.epochs import Epochs
 from magcal_cli.models.factor import Factor
@@ -85,7 +86,7 @@ def regressors(problem: Problem, ctx: FitContext) -> dict[str, FloatArray]:
             if ok.sum() >= 2 and np.ptp(s.values[ok, 0]) > 0:
                 out[s.id] = np.interp(t, s.t[ok], s.values[ok, 0])
     g = problem.gyr
-    w = np.stack([np.interp(t, g.t, g.xyz[:, i]) for i in range(3)], axis=1) - ctx.pre.bias
+    w = columns(t, g.t, g.xyz) - ctx.pre.bias
     out["rotation rate"] = np.linalg.norm(w, axis=1)
     return out
 

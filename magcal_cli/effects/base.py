@@ -2,7 +2,7 @@
 
 An effect extends the base model y = D R^T m_n + o (plus the accelerometer and gyro models) by a term that is
 exactly zero at parameter zero (calibration-file.md "Effects"; mismatch.md section 1). The joint MAP adds the
-term and its Jacobians to the magnetometer, accelerometer or gyro factor (`models/map_effects.py`).
+term and its Jacobians to the magnetometer, accelerometer or gyro factor (`models/map/effects.py`).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from magcal_cli.align import columns
 from magcal_cli.params import ParamBlock
 from magcal_cli.streams import FloatArray, Kind, Stream
 
@@ -80,7 +81,8 @@ class Point:
     @classmethod
     def unknown(cls, k: int) -> Point:
         """K epochs whose model quantities are not known (NaN): an additive term (`Effect.additive`) reads none of
-        them, so a filter evaluates it once over all epochs before the orientations exist (models/ekf_effects.py)."""
+        them, so a filter evaluates it once over all epochs before the orientations exist
+        (models/ekf/effects.py)."""
         vec = np.full((k, 3), np.nan)
         return cls(np.full((k, 3, 3), np.nan), vec, vec, vec, np.full((3, 3), np.nan))
 
@@ -120,7 +122,7 @@ class Effect:
     compensates: ClassVar[str | None] = None
     #: the term is an offset added to the magnetometer reading that depends only on the effect's own channels and
     #: parameters -- not on the orientation, the base parameters or row weights (Term.d_state None, no d_base):
-    #: the EKF baselines carry such a term as extra parameters or states (models/ekf_effects.py)
+    #: the EKF baselines carry such a term as extra parameters or states (models/ekf/effects.py)
     additive: ClassVar[bool] = False
     #: the term vanishes with the vehicle at rest (motors off: no current, no throttle), so the offsets it leaves are
     #: the hard iron itself; of an ambiguous pair the diagnosis carries such a one (diagnose/select.py)
@@ -169,7 +171,7 @@ def resample(stream: Stream, t: FloatArray) -> FloatArray:
         msg = f"the {stream.kind.value} channel {stream.id} has fewer than two valid samples"
         raise NotTestable(msg)
     v, ts = stream.values[ok], stream.t[ok]
-    return np.stack([np.interp(t, ts, v[:, i]) for i in range(v.shape[1])], axis=1)
+    return columns(t, ts, v)
 
 
 def pick(aux: tuple[Stream, ...], kind: Kind, prefer: tuple[str, ...] = ()) -> Stream:

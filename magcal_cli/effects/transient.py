@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 import numpy as np
 from scipy.ndimage import median_filter
 
+from magcal_cli.align import columns
 from magcal_cli.detect import padded_runs
 from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
 from magcal_cli.errors import MagcalError
@@ -80,7 +81,7 @@ class Transient(Effect):
     def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
                declination: float = 0.0) -> Inputs:
         """The disturbed windows of this magnetometer, and the weight of each epoch."""
-        y = np.stack([np.interp(kin.t, mag.t, mag.xyz[:, i]) for i in range(3)], axis=1)
+        y = columns(kin.t, mag.t, mag.xyz)
         try:
             found = detect(kin.t, y)
         except MagcalError:
