@@ -2,7 +2,7 @@
 
 1. One magnetometer, 5 minutes at 62.5 Hz with the magnetometer decimated x3 (6,250 epochs): median wall time
    of the whole fit (initial values, noise re-estimation rounds, covariance) over repeated runs.
-2. 30 magnetometers on one IMU (the paper's real setup): total time of `map.run`.
+2. 30 magnetometers on one IMU (the paper's real setup): total time of `map_run.run`.
 3. The identical problem and start (noise levels fixed) solved by `scipy.optimize.least_squares` (trf, sparse
    analytic Jacobian, states as a chart R0 Exp(phi)): time until it reaches magcal's final cost.
 4. Runtime against duration (1, 5, 20 minutes).
@@ -125,7 +125,7 @@ def scipy_comparison(problem) -> dict[str, float]:  # noqa: ANN001
 
 
 def thirty_magnetometers(minutes: float = 5.0, n_mags: int = 30) -> tuple[float, int]:
-    """Total time of map.run for n_mags magnetometers (different D, o) on one simulated IMU."""
+    """Total time of map_run.run for n_mags magnetometers (different D, o) on one simulated IMU."""
     rng = np.random.default_rng(7)
     rot = paper_trajectory(rng, RATE, minutes * 60.0)
     problem, _, _ = record(rot, RATE, 7, mag_step=DECIMATE, n_mags=n_mags)

@@ -3,7 +3,7 @@ effect out costs (D, o, dip, heading errors with the term versus without it).
 
 For each effect and seed: the handheld scenario without the effect fitted with the base model (the no-effect
 level), the same log with the effect injected fitted with --effects none (the bias it causes) and with
---effects ID (the term). The injection is independent physics (synth_inject.py), not the estimator's term.
+--effects ID (the term). The injection is independent physics (synth/inject.py), not the estimator's term.
 `--method` fits with another method (the EKFs carry the additive magnetometer effects); `--skip-none` leaves out
 the --effects none fits (the bias an effect causes is the MAP table's, and ekf-ml costs ~40 s a fit).
 

@@ -713,8 +713,8 @@ def problems(res: dict[str, Any]) -> list[str]:
             out.append(
                 "  - *Diagnosis:* flights with yaw through 360° but little tilt ("
                 + "; ".join(tilts) + ", 1st–99th percentile of ATT). The readings lie near a tilted circle, and "
-                "the algebraic ellipsoid fit that starts the MAP method (models/map_init.intrinsic_fit → "
-                "models/ellipsoid.fit_ellipsoid) returns a degenerate quadric (by hand: two of its three "
+                "the algebraic ellipsoid fit that starts the MAP method (models/map/init.intrinsic_fit → "
+                "ellipsoid.fit_ellipsoid) returns a degenerate quadric (by hand: two of its three "
                 "eigenvalues ≈ 0, i.e. a pair of planes), so its Cholesky step fails and the fit stops before the "
                 "joint MAP, and before any effect, is reached. The base model fails identically (`--effects none`), "
                 "as do `--method auto`, `--method kok2012` and `--mag MAG[1]` alone (checked by hand). The joint "
@@ -729,8 +729,8 @@ def problems(res: dict[str, Any]) -> list[str]:
         out.append(
             "- **The quality numbers ignore an accepted effect.** `magnetometers[].quality.field_norm_rms_pct` (and "
             "`coverage_pct`, and `RunResult.series[].calibrated`) are computed from A·(y − b) without the effect "
-            "term (pipeline._mag_calibration), so an accepted current_interference makes the calibration look "
-            "worse than the base fit: " + "; ".join(
+            "term (calibration/assemble.mag_calibration), so an accepted current_interference makes the "
+            "calibration look worse than the base fit: " + "; ".join(
                 f"{log} {c['id']} {c['norm_rms_pct_none']:.1f} % (none) → {c['norm_rms_pct_with_doc']:.1f} % in "
                 f"the document, {c['norm_rms_pct_with_term_removed']:.1f} % with c·I removed" for log, c in bad_q)
             + ". The number feeds `--fail-on field_norm_rms_pct>…`, the report's advice (\"> 1 %: something the "

@@ -1,7 +1,7 @@
 """The shape of the package in figures (issue 26): sizes, layout, circles, private imports, test mirror.
 
     python benchmarks/house.py            # print the figures
-    python benchmarks/house.py --check    # also exit 1 when a house rule is broken (tests/test_house.py)
+    python benchmarks/house.py --check    # also exit 1 when a house rule is broken (tests/test_lint.py)
 
 Rules checked: no module over MAX_LINES lines; at most MAX_TOP modules at the top level of the package (not
 counting `__init__` and `__main__`); one `FloatArray`; no import cycle between modules or between the

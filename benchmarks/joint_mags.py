@@ -2,9 +2,9 @@
 
 Huang et al. 2025's board: 30 magnetometers on one IMU, simulated with the paper protocol for 5 minutes at
 62.5 Hz with the magnetometers every 3rd sample (6,250 epochs, as benchmarks/bench_map.py), every magnetometer
-with its own D and o (synth_array.simulate_array). For each seed, in one process and one after the other:
-- separate: `map.fit_map` per magnetometer, later ones starting from the first one's IMU noise levels and sharing
-  its preintegration (what `map_run.run` did before the joint fit: today's cost);
+with its own D and o (synth.array.simulate_array). For each seed, in one process and one after the other:
+- separate: `map.fit.fit_map` per magnetometer, later ones starting from the first one's IMU noise levels and
+  sharing its preintegration (what `map_run.run` did before the joint fit: today's cost);
 - joint: `map_run.run` with `--method map` (the joint fit, the consistency check and the assembly).
 Printed: wall and CPU time of each, and per method the RMS error against the truth of D, o (uT) and dip (deg)
 over the 30 magnetometers, the mean NEES of (vec D, o, dip) (13 for an honest covariance) and the share of

@@ -1,7 +1,7 @@
 """Huang et al. 2025 simulation protocol (methods.md section 5): joint MAP versus Kok 2012 in magcal.
 
-For each seed: `synth.simulate("paper", seed)`, both methods on the same Problem (Kok 2012 uses quasi-static
-verticals: the protocol has no still segment). Prints per parameter group
+For each seed: `synth.simulate.simulate("paper", seed)`, both methods on the same Problem (Kok 2012 uses
+quasi-static verticals: the protocol has no still segment). Prints per parameter group
   - RMSE over the seeds (Kok 2012 does not estimate b_a and b_g: its error there is the bias itself),
   - mean NEES of the MAP estimate with its 95 % chi-square band (consistency of the reported covariance),
   - RMSE^2 / CRLB, the CRLB from the Fisher information at the truth (true trajectory, truth, true noise).

@@ -1,13 +1,13 @@
 """Huang et al. 2025, Sec. IV-A reproduced: kok2012, map, ekf-ml and ekf-aug on the paper's simulation protocol.
 
 Two experiments (methods.md section 5): the sampling rate (10/20/40/80 Hz, magnetometer at the IMU rate) and the
-magnetometer-to-IMU rate ratio (1/2/4/8 at 80 Hz); dataset i is `synth.simulate("paper", seed=i, ...)` in every
-configuration. Per method and configuration: the RMSE over the datasets of b_a, b_g, o and D (root of the mean
-squared error norm, the authors' compute_stat.m), the computation time per dataset, and the Cramer-Rao bound (the
-inverse Fisher information of the joint MAP model at the truth with the true noise levels). Methods run as a user's
-`magcal fit` would: from the log alone (kok2012 with quasi-static verticals, as the protocol has no still segment).
-ekf-ml and ekf-aug run all datasets of a configuration in one batched filter loop; their time per dataset is the
-batch's time divided by the number of datasets.
+magnetometer-to-IMU rate ratio (1/2/4/8 at 80 Hz); dataset i is `synth.simulate.simulate("paper", seed=i, ...)`
+in every configuration. Per method and configuration: the RMSE over the datasets of b_a, b_g, o and D (root of
+the mean squared error norm, the authors' compute_stat.m), the computation time per dataset, and the
+Cramer-Rao bound (the inverse Fisher information of the joint MAP model at the truth with the true noise
+levels). Methods run as a user's `magcal fit` would: from the log alone (kok2012 with quasi-static verticals,
+as the protocol has no still segment). ekf-ml and ekf-aug run all datasets of a configuration in one batched
+filter loop; their time per dataset is the batch's time divided by the number of datasets.
 
 Writes paper_study.md (tables, the published values, the checks), paper_study.json and paper_study_{rate,ratio}.png.
 

@@ -34,7 +34,8 @@ OUTPUTS = "json,ardupilot,px4"
 
 
 def logs(realdata: Path) -> list[Path]:
-    """The sample logs and the real logs, sorted by name within each."""
+    """The sample logs (this checkout's, so both sides read the same paths, which the outputs record) and the
+    real logs, sorted by name within each."""
     samples = sorted(p for p in (ROOT / "sample_logs").iterdir() if not p.name.endswith(".json"))
     real = sorted(p for g in LOG_GLOBS for p in realdata.glob(g)) if realdata.is_dir() else []
     return samples + real

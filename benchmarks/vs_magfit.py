@@ -309,7 +309,8 @@ def evaluate(spec: dict[str, Any], runs: list[dict[str, Any]]) -> list[dict[str,
     if truth is not None:
         spec["truth_summary"] = {k: truth[k] for k in ("field_mG", "dip_deg", "misalignment_deg",
                                                       "no_rotation_deg")}
-    # the simulator's field is the WMM's at its GPS position and date, declination included (synth.at_home)
+    # the simulator's field is the WMM's at its GPS position and date, declination included
+    # (synth.truth.at_home)
     decl = ref.declination
     spec["yaw_declination_deg"] = float(np.degrees(decl))
     rows = []

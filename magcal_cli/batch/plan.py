@@ -1,8 +1,8 @@
 """magcal batch: find the logs in files, folders and globs, plan one `magcal fit` per log into DIR/<name>/, skip
 the logs whose outputs are up to date, and summarise the results as a table or one JSON document.
 
-The fits themselves run in `batch_run` (local processes) or `batch_dask` (a Dask cluster); this module decides
-what to run and reports it. No click: cli.py parses the command line.
+The fits themselves run in `batch.run` (local processes) or `batch.dask` (a Dask cluster); this module decides
+what to run and reports it. No click: cli/batch.py parses the command line.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 #: the per-log status file, written last (atomically): its presence means the log's outputs are complete
 STATUS_FILE = "batch.json"
 FORMAT_VERSION = 1
-#: what --effects auto parses to (as in cli.AUTO): the diagnosis chooses the effects
+#: what --effects auto parses to (as in cli.common.AUTO): the diagnosis chooses the effects
 AUTO_EFFECTS = ("auto",)
 DEFAULT_OUTPUTS = ("json", "yaml", "report", "plots")
 GLOB_CHARS = frozenset("*?[")

@@ -39,7 +39,7 @@ def choose(problem: Problem, cfg: Config) -> tuple[str, list[Finding]]:
 
 def not_carried(method: str, effects: tuple[str, ...]) -> tuple[str, ...]:
     """The requested effects `method` cannot model: the joint MAP models every effect, the EKFs the additive
-    magnetometer terms (models/ekf_effects.py), the other methods none."""
+    magnetometer terms (models/ekf/effects.py), the other methods none."""
     carries = METHODS[method].carries if method in METHODS else "none"
     if carries == "all" or not effects:
         return ()

@@ -1,5 +1,5 @@
 """The joint MAP method for a whole log (`--method map`): every magnetometer against the IMU, the known physics
-of a flight and the diagnosis, assembled into the method's result. The estimator itself is `map.py`."""
+of a flight and the diagnosis, assembled into the method's result. The estimator itself is `map/fit.py`."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def held_entries(est: MapEstimate) -> tuple[HeldEntry, ...]:
     names = est.held.names()
     return tuple(HeldEntry(n, float(est.held.prior_mean[c] * si[c] + total[c]), float(est.held.prior_std[c] * si[c]),
                            s) for n, c, s in zip(names, est.held.cols, est.held.sources, strict=True)
-                 if not is_shared(s))             # the shared IMU bias is no partial calibration (map_shared.py)
+                 if not is_shared(s))             # the shared IMU bias is no partial calibration (map/shared.py)
 
 
 def with_known_physics(problem: Problem, mag: Stream, loss: str, dip_prior: float | None, start: Noise | None,
@@ -147,7 +147,7 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
                             / BIAS_SCALE))
 
     best = min(ests, key=bias_std) if joint is None else joint.estimates[0]     # the joint fit's IMU biases
-    if joint is None and len(ests) > 1:                # one IMU, one accelerometer bias (map_shared.py)
+    if joint is None and len(ests) > 1:                # one IMU, one accelerometer bias (map/shared.py)
         ests = shared(problem, ests, best, loss, dip_prior, declination)
     imu = ImuFit(problem.imu_id, best.value("accelerometer_bias"), best.value("gyroscope_bias"),
                  best.std_of("accelerometer_bias"), best.std_of("gyroscope_bias"))

@@ -1,10 +1,10 @@
 """Several magnetometers on one IMU, simulated: Huang et al. 2025's board of 30 magnetometers (issue 14 item 3).
 
 `simulate` draws one magnetometer; here the same IMU and trajectory carry `n_mags` of them, each with its own
-soft iron, misalignment and hard iron drawn as `synth.draw_truth` draws them (methods.md section 5), all in the
-one field (the same dip and strength: they sit on one board) and with the simulation's magnetometer noise, which
-`noise_factors` can raise per magnetometer (a bad compass). Readings come from their own generator, so the IMU
-and the first magnetometer are exactly `simulate`'s.
+soft iron, misalignment and hard iron drawn as `synth.truth.draw_truth` draws them (methods.md section 5), all
+in the one field (the same dip and strength: they sit on one board) and with the simulation's magnetometer
+noise, which `noise_factors` can raise per magnetometer (a bad compass). Readings come from their own
+generator, so the IMU and the first magnetometer are exactly `simulate`'s.
 """
 
 from __future__ import annotations

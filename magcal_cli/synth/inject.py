@@ -9,7 +9,7 @@ and voltage, throttle and temperature at the magnetometer stamps, position at 10
 unless the noise is scaled to zero) and the injected effects in SI, with their signals at the stamps.
 
 Each effect is one injection function and its line in INJECTIONS (effect id -> function); its ids, keys and
-defaults are in synth/effects.py, and tests/test_synth_effects.py ties both to the estimator's effects.EFFECTS.
+defaults are in synth/effects.py, and tests/synth/test_registry.py ties both to the estimator's effects.EFFECTS.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Shared core of the two EKF baselines (methods.md section 4): inputs, start values, measurement model, results.
 
-Both filters (`ekf_ml`, `ekf_aug`) run an error-state EKF over the orientation R (body -> NED, right perturbation
+Both filters (`ml`, `aug`) run an error-state EKF over the orientation R (body -> NED, right perturbation
 R = R_hat Exp(phi)) at the magnetometer epochs, with the gyro as input and the accelerometer (interpolated onto the
 epochs, as the joint MAP does) and the magnetometer as measurements. The gyro samples between two epochs enter
 through Forster preintegration (`gyro.preintegrate`): composing the per-sample predictions R <- R Exp(w dt),

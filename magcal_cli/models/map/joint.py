@@ -5,8 +5,8 @@ The magnetometers of a log all see the body turn through one orientation traject
 estimated once, from the accelerometer, the gyro and every magnetometer's factors (methods.md section 3 with M
 magnetometer factors per epoch). theta = (b_a, db_g, then D, o, dip of each magnetometer): each magnetometer keeps
 the separate fit's model, its own dip included, so a disturbed compass cannot pull the others' dip (how far the
-magnetometers disagree is reported by `consistency.py`), and each has its own noise level (variance components),
-which down-weights a noisy one in the shared trajectory.
+magnetometers disagree is reported by `models/consistency.py`), and each has its own noise level (variance
+components), which down-weights a noisy one in the shared trajectory.
 
 The magnetometers must read at common epochs (one board, one clock: Huang et al.'s array, the simulator's); then
 the coupling of the trajectory with the 6 + 13 M parameters has rank 48 whatever M is, and
@@ -266,7 +266,7 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
     widen = joint_widening(sol, fs, je.t)
     cov = sol.cov_theta
     if last_step is not None:
-        # as map.fit_map: the covariance with the final levels at the same point (one assembly, no iterations)
+        # as fit.fit_map: the covariance with the final levels at the same point (one assembly, no iterations)
         noise = noise.rescaled(last_step)
         pre = pre.scaled(float(np.exp(last_step[3])))
         data = joint_data(je, pre, noise, layout, hold)
