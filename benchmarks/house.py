@@ -37,13 +37,23 @@ def modules() -> dict[str, Path]:
     return out
 
 
+def absolute(name: str, path: Path, node: ast.ImportFrom) -> str:
+    """The absolute module an `from X import ...` names, relative imports resolved against `name`'s package."""
+    if not node.level:
+        return node.module or ""
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    base = package[: len(package) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
 def imports(name: str, path: Path, known: set[str]) -> set[str]:
     """The package modules `name` imports (at any depth of the file: lazy imports count)."""
     out = set()
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("magcal_cli"):
-            out.add(node.module)
-            out.update(f"{node.module}.{a.name}" for a in node.names if f"{node.module}.{a.name}" in known)
+        if isinstance(node, ast.ImportFrom) and absolute(name, path, node).startswith("magcal_cli"):
+            module = absolute(name, path, node)
+            out.add(module)
+            out.update(f"{module}.{a.name}" for a in node.names if f"{module}.{a.name}" in known)
         elif isinstance(node, ast.Import):
             out.update(a.name for a in node.names if a.name.startswith("magcal_cli"))
     return {m for m in out if m in known and m != name}
@@ -122,12 +132,12 @@ def private_uses(name: str, path: Path, known: set[str]) -> list[str]:
     bound = {}
     out = []
     for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("magcal_cli"):
+        if isinstance(node, ast.ImportFrom) and (module := absolute(name, path, node)).startswith("magcal_cli"):
             for a in node.names:
                 if a.name.startswith("_") and not a.name.startswith("__"):
-                    out.append(f"{name}: imports {node.module}.{a.name}")
-                if f"{node.module}.{a.name}" in known:
-                    bound[a.asname or a.name] = f"{node.module}.{a.name}"
+                    out.append(f"{name}: imports {module}.{a.name}")
+                if f"{module}.{a.name}" in known:
+                    bound[a.asname or a.name] = f"{module}.{a.name}"
         elif isinstance(node, ast.Import):
             for a in node.names:
                 if a.name.startswith("magcal_cli") and a.asname:
