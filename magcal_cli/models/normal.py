@@ -176,13 +176,7 @@ def step(ne: NormalEquations, lam: float, u: int, need_w: bool = False, lam_thet
     """
     n, p = ne.gx.shape[0], ne.gt.size
     s, x, y, cb, diag = _schur(ne, lam, u, lam_theta)
-    # Jacobi scaling before the inverse: theta mixes units (tesla, rad, m/s^2) with very different scales
-    sd = np.diag(s)
-    if np.any(~np.isfinite(sd)) or np.any(sd <= 0.0):
-        msg = "Schur complement not positive definite"
-        raise np.linalg.LinAlgError(msg)
-    js = 1.0 / np.sqrt(sd)
-    s_inv = js[:, None] * np.linalg.inv(js[:, None] * s * js[None, :]) * js[None, :]
+    s_inv = schur_inverse(s)
     dt = s_inv @ (x.T @ y - ne.gt)
     back = np.empty((3 * n, 1 + p if need_w else 1), order="F")
     back[:, 0] = y + x @ dt
@@ -243,3 +237,15 @@ def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> 
         # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
         # its null directions (what the motion cannot determine)
         return _schur(ne, 1e-9, u, 0.0)[0]
+
+
+def schur_inverse(s: FloatArray) -> FloatArray:
+    """S^-1 of a Schur complement, Jacobi-scaled before the inverse: theta mixes units (tesla, rad, m/s^2) with
+    very different scales. A non-positive or non-finite diagonal raises LinAlgError."""
+    sd = np.diag(s)
+    if np.any(~np.isfinite(sd)) or np.any(sd <= 0.0):
+        msg = "Schur complement not positive definite"
+        raise np.linalg.LinAlgError(msg)
+    js = 1.0 / np.sqrt(sd)
+    out: FloatArray = js[:, None] * np.linalg.inv(js[:, None] * s * js[None, :]) * js[None, :]
+    return out

@@ -31,7 +31,7 @@ from magcal_cli.models.accel import accel_factor
 from magcal_cli.models.factor import Factor, scale_rows
 from magcal_cli.models.gyro import Preintegrated, gyro_factor
 from magcal_cli.models.mag import MagLayout
-from magcal_cli.models.normal import band, selected_inverse
+from magcal_cli.models.normal import band, schur_inverse, selected_inverse
 from magcal_cli.models.solve import Options, iterate
 from magcal_cli.params import MAG, Layout
 from magcal_cli.streams import FloatArray
@@ -280,12 +280,7 @@ def step(ne: Normal, lam: float, lam_theta: float | None = None
     gram = y_b.T @ y_b
     s = htt - ne.coef.T @ gram @ ne.coef
     s = 0.5 * (s + s.T)
-    sd = np.diag(s)
-    if np.any(~np.isfinite(sd)) or np.any(sd <= 0.0):
-        msg = "Schur complement not positive definite"
-        raise np.linalg.LinAlgError(msg)
-    js = 1.0 / np.sqrt(sd)
-    s_inv = js[:, None] * np.linalg.inv(js[:, None] * s * js[None, :]) * js[None, :]
+    s_inv = schur_inverse(s)
     dt = s_inv @ (ne.coef.T @ (y_b.T @ y) - ne.gt)
     dx = -_tb(cb, (y + y_b @ (ne.coef @ dt))[:, None], "N")[:, 0]
     return dx.reshape(k, 3), dt, s_inv, diag, cb, y_b
