@@ -48,7 +48,6 @@ AUX_KINDS = frozenset({Kind.BATTERY_CURRENT, Kind.BATTERY_VOLTAGE, Kind.THROTTLE
                        Kind.POSITION, Kind.ATTITUDE})
 
 
-
 def _known_physics(cfg: Config, aux: tuple[Stream, ...]) -> tuple[str, ...]:
     """Effects `--effects auto` models in every fit: a flight's acceleration where its position measured it."""
     from magcal_cli.effects.nongravity import flying

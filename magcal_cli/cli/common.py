@@ -163,7 +163,6 @@ def parse_outputs(value: str) -> list[str]:
     return names
 
 
-
 def gates_option(value: str | None, command: str) -> tuple[Any, ...]:
     """--fail-on parsed against the metrics `command` measures, or a usage error."""
     from magcal_cli.firmware import gates

@@ -156,7 +156,6 @@ def wmm_date(_: click.Context, __: click.Parameter, value: str | None) -> str | 
         raise click.BadParameter(str(exc)) from None
 
 
-
 def mag(what: str) -> Callable[[F], F]:
     """--mag ID[,ID...]|all, declared once for every command that selects magnetometers."""
     return click.option("--mag", "mags", multiple=True, callback=mag_ids, metavar="ID[,ID...]|all",

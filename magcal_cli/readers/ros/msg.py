@@ -160,7 +160,6 @@ class Collector:
         return Recording(path, fmt, tuple(streams), t0=t0 * 1e-9, notes=tuple(notes))
 
 
-
 def _time_bases(arrays: dict[tuple[str, str], tuple[IntArray, IntArray, FloatArray]], options: ReadOptions,
                 notes: list[str]) -> dict[tuple[str, str], IntArray]:
     """Header stamps, or receive time when asked, when a topic's stamps are zero or on another clock."""
