@@ -27,6 +27,10 @@ class StreamError(MagcalError):
     """Stream absent, empty, wrong shape or wrong unit."""
 
 
+class SelectionError(StreamError):
+    """A stream id given on the command line (--mag, --imu) that the log does not have: a usage mistake (exit 2)."""
+
+
 class InsufficientDataError(MagcalError):
     """Too few stationary segments or too little orientation coverage to determine the calibration."""
 

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from magcal_cli.errors import StreamError
+from magcal_cli.errors import SelectionError, StreamError
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -201,4 +201,4 @@ class Recording:
         hint = f" Use {flag} with one of them." if flag else ""
         msg = (f"{self.path.name}: no {kind.value} stream {stream_id!r}; "
                f"available: {', '.join(s.id for s in found)}.{hint}")
-        raise StreamError(msg)
+        raise SelectionError(msg) if flag else StreamError(msg)

@@ -11,15 +11,20 @@ from typing import Any, TypeVar
 
 import click
 
-from magcal_cli.errors import MagcalError
+from magcal_cli.cli.options import option
+from magcal_cli.errors import MagcalError, SelectionError
 from magcal_cli.writers import fitrun
 
 F = TypeVar("F", bound=Callable[..., Any])
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
 EXIT_CODES = ("Exit codes: 0 success; 1 the input could not be used (unreadable, truncated or unsupported log, "
-              "missing stream, too little motion, no convergence); 2 usage error; 3 a quality gate failed; "
-              "123 internal error (a bug); 130 interrupted (Ctrl-C), nothing half-written left. A closed pipe "
-              "(e.g. | head) ends the command quietly with 1.")
+              "missing stream, too little motion, no convergence); 2 usage error (a bad option, a stream id the "
+              "log does not have, an output that exists or is a file where a folder belongs); 3 a quality gate "
+              "failed; 123 internal error (a bug); 130 interrupted (Ctrl-C), nothing half-written left. A reader "
+              "that closes the pipe before taking all of the output (e.g. | head -c 10) ends the command quietly "
+              "with 1.")
+#: how long a finished command waits for a pipe's reader to take (or drop) its output, at most (s)
+PIPE_WAIT_S = 1.0
 
 
 class QualityGateError(Exception):
@@ -40,19 +45,62 @@ def progress_line(ctx: click.Context) -> Any:
     return Progress.for_stderr(bool(ctx.obj.get("quiet")))
 
 
-#: finding code -> its one-line form in the terminal ({max_factor} and {what} filled from the group's evidence)
-BRIEF = {"correlated_residuals": "residuals correlated in time beyond the noise model (uncertainty widened up to "
-                                 "{max_factor:.1f}x)",
-         "poorly_observable": "{what} poorly determined by the motion in this log (docs/recording-guide.md says "
-                              "which motion determines it)",
-         "dip_disagrees_with_wmm": "fitted dip differs from the World Magnetic Model's"}
+#: finding code -> its folded line in the terminal: what happened and what to do, said once for every magnetometer
+#: it names; the {fields} come from the group's evidence and messages (`_fields`)
+BRIEF = {
+    "correlated_residuals": "residuals correlated in time beyond the noise model (uncertainty widened up to "
+                            "{max_factor:.1f}x)",
+    "poorly_observable": "{what} poorly determined by the motion in this log{fix}",
+    "low_coverage": "the field directions cover only {coverage} of the sphere; record again, rolling and pitching "
+                    "the vehicle through all orientations",
+    "attitude_reference": "calibrated against the vehicle's attitude estimate and the World Magnetic Model, as the "
+                          "log's own motion determines too little, so it inherits that estimate's heading errors; "
+                          "for a calibration of its own, record again turning the vehicle about all three axes",
+    "dip_disagrees_with_wmm": "fitted dip differs from the World Magnetic Model's by up to {dip_off:.1f} deg; "
+                              "calibrate from a recording with the vehicle moved by hand, or check the field near "
+                              "the vehicle",
+    "not_calibrated": "not calibrated{fix}",
+    "not_converged": "the solver stopped before converging, so the numbers are not final; do not use this "
+                     "calibration, record again with more rotation",
+    "normalised_field": "the log holds the field normalised to unit length, so hard iron and field strength are "
+                        "lost; log the raw magnetometer readings",
+    "method_choice": "the field was normalised upstream, so only the misalignment and dip are meaningful; log the "
+                     "raw magnetometer readings for a full calibration",
+    "magnetometer_inconsistent": "the magnetometers disagree after calibration; find the disturbance near them "
+                                 "(power wiring, motors, steel) before using them for heading",
+    "known_physics_dropped": "the acceleration from the GPS was left out, as it disagrees with the accelerometer; "
+                             "check the GPS for glitches, lag or an antenna far from the IMU",
+    "diagnosis_failed": "the mismatch diagnosis could not run, so the base calibration is reported without it; -v "
+                        "prints why",
+    "unmeasured_motion": "the IMU did not measure the motion in places (an impact or the gyro at its range), so "
+                         "those samples are not used; nothing to do",
+}
 #: a kind with a single warning no longer than this is printed in full
 FULL_CHARS = 240
+#: the advice a finding's message ends with
+TO_FIX = re.compile(r"To fix: (.+?)\.?$")
+#: where a folded line points when its findings' messages give no advice of their own
+NO_FIX = {"poorly_observable": " (docs/recording-guide.md says which motion determines it)"}
+
+
+def _fields(code: str, mine: list[Any]) -> dict[str, str | float]:
+    """What a folded line quotes from its findings: the largest widening and dip offset, the coverage, the
+    parameters poorly determined and the advice their messages end with."""
+    cover = sorted(float(f.evidence["coverage_pct"]) for f in mine if "coverage_pct" in f.evidence)
+    what = sorted({m.group(1) for f in mine if (m := re.search(r"leaves the (.+?) poorly determined", f.message))})
+    fixes = list(dict.fromkeys(m.group(1) for f in mine if (m := TO_FIX.search(f.message))))
+    return {"max_factor": max((float(f.evidence.get("max_factor", 0.0)) for f in mine), default=0.0),
+            "dip_off": max((abs(float(f.evidence["dip_deg"]) - float(f.evidence["wmm_dip_deg"])) for f in mine
+                            if {"dip_deg", "wmm_dip_deg"} <= f.evidence.keys()), default=0.0),
+            "coverage": "?" if not cover else f"{cover[0]:.0f} %" if round(cover[0]) == round(cover[-1]) else
+                        f"{cover[0]:.0f}-{cover[-1]:.0f} %",
+            "what": ", ".join(what) or "parameters",
+            "fix": f"; to fix: {'; '.join(fixes)}" if fixes else NO_FIX.get(code, "; -v prints why")}
 
 
 def warning_lines(findings: tuple[Any, ...], mag_ids: list[str], verbose: bool) -> list[str]:
-    """The fit's warnings for the terminal: every one in full with -v, else one line per kind naming the
-    magnetometers (report.html and report.txt keep the full text)."""
+    """The fit's warnings for the terminal: every one in full with -v, else one line per kind that names the
+    magnetometers once and says what to do (report.html and report.txt keep the full text)."""
     from magcal_cli.findings import Severity
     from magcal_cli.writers.report.verdict import groups
 
@@ -64,14 +112,53 @@ def warning_lines(findings: tuple[Any, ...], mag_ids: list[str], verbose: bool) 
         if len(g.messages) == 1 and len(g.messages[0]) <= FULL_CHARS:
             out.append(g.messages[0])
             continue
-        mine = [f for f in warnings if f.code == g.code]
-        factor = max((float(f.evidence.get("max_factor", 0.0)) for f in mine), default=0.0)
-        what = sorted({m.group(1) for f in mine if (m := re.search(r"leaves the (.+?) poorly determined", f.message))})
-        text = BRIEF.get(g.code, g.title[:1].lower() + g.title[1:]).format(max_factor=factor,
-                                                                           what=", ".join(what) or "parameters")
+        fields = _fields(g.code, [f for f in warnings if f.code == g.code])
+        text = BRIEF.get(g.code, g.title[:1].lower() + g.title[1:] + "{fix}").format(**fields)
         who = ", ".join(g.sensors) if len(g.sensors) < 3 else f"{len(g.sensors)} magnetometers ({', '.join(g.sensors)})"
         out.append(f"{who}: {text}" if who else text)
     return out
+
+
+def output_lost(wait_s: float = PIPE_WAIT_S) -> bool:
+    """After a command that succeeded: True when standard output is a pipe whose reader closed it before taking
+    all of the output (`| head -c 10`), which the contract calls a closed pipe (exit 1).
+
+    Output that fits in the pipe is accepted at once, so the write itself cannot tell; this waits (up to `wait_s`)
+    until the reader has taken every byte (delivered: False) or has gone with bytes unread (lost: True). A reader
+    that took everything and stopped later (`| head -1` on a short table) was delivered the whole output.
+    """
+    import fcntl
+    import os
+    import select
+    import stat
+    import struct
+    import termios
+    import time
+
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        return True
+    except (OSError, ValueError):
+        return False
+    try:
+        fd = sys.stdout.fileno()
+        if not stat.S_ISFIFO(os.fstat(fd).st_mode):
+            return False
+        poller = select.poll()
+        poller.register(fd, 0)                  # a pipe's write end reports POLLERR once its reader is gone
+        deadline = time.monotonic() + wait_s
+        while True:
+            unread = struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, struct.pack("i", 0)))[0]
+            if unread == 0:
+                return False
+            if any(events & select.POLLERR for _, events in poller.poll(0)):
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+    except (OSError, ValueError, AttributeError):       # not a file, or no FIONREAD here: nothing to tell
+        return False
 
 
 def handle_errors(func: F) -> F:
@@ -80,8 +167,12 @@ def handle_errors(func: F) -> F:
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         ctx = click.get_current_context()
+        for note in (ctx.obj or {}).get("deprecated", []):
+            say(ctx, note)
         try:
             return func(*args, **kwargs)
+        except SelectionError as exc:              # a stream id from the command line the log lacks: a usage mistake
+            raise click.UsageError(str(exc), ctx) from None
         except MagcalError as exc:
             raise click.ClickException(str(exc)) from None
         except QualityGateError as exc:
@@ -91,7 +182,7 @@ def handle_errors(func: F) -> F:
             click.echo("Error: interrupted; outputs not yet renamed into place were discarded.", err=True)
             ctx.exit(130)
         except (click.ClickException, click.exceptions.Exit, BrokenPipeError):
-            raise                       # click's main: a closed stdout (| head) exits 1 quietly
+            raise                       # click's main: a closed stdout (| head) exits 1 quietly (and main())
         except OSError as exc:
             if exc.errno not in USER_ERRNOS:
                 internal_error(ctx, exc)
@@ -125,55 +216,10 @@ def verbosity(func: F) -> F:
         ctx.ensure_object(dict)
         ctx.obj["verbose"] = ctx.obj.get("verbose", False) or value
 
-    func = click.option("-q", "--quiet", is_flag=True, expose_value=False, callback=set_quiet,
-                        help="Print nothing on stderr but errors.")(func)
-    return click.option("-v", "--verbose", is_flag=True, expose_value=False, callback=set_verbose,
-                        help="More detail on stderr; a traceback for internal errors.")(func)
+    func = option("quiet", callback=set_quiet)(func)
+    return option("verbose", callback=set_verbose)(func)
 
 
 #: the file system refusing a read or write: the user's environment, not a bug (exit 1, not 123); batch shares it
 USER_ERRNOS = fitrun.USER_ERRNOS
 
-
-#: what --effects auto parses to: the diagnosis chooses the effects
-AUTO = ("auto",)
-
-
-def effects_option(_: click.Context, __: click.Parameter, value: str) -> tuple[str, ...]:
-    """--effects parsed into effect ids, or AUTO."""
-    from magcal_cli.effects import EffectError, parse
-
-    if value.strip() == "auto":
-        return AUTO
-    try:
-        return parse(value)
-    except EffectError as exc:
-        raise click.BadParameter(str(exc).removeprefix("--effects: ")) from None
-
-
-def parse_outputs(value: str) -> list[str]:
-    """The --outputs list, validated against the writer registry."""
-    from magcal_cli.writers import WRITERS
-
-    names = [v.strip() for v in value.split(",") if v.strip()]
-    bad = [n for n in names if n not in WRITERS]
-    if bad or not names:
-        msg = f"unknown output(s) {', '.join(bad) or '(none)'}; choose from {', '.join(WRITERS)}"
-        raise click.BadParameter(msg, param_hint="--outputs")
-    return names
-
-
-def gates_option(value: str | None, command: str) -> tuple[Any, ...]:
-    """--fail-on parsed against the metrics `command` measures, or a usage error."""
-    from magcal_cli.firmware import gates
-
-    if value is None:
-        return ()
-    if command == "fit":
-        from magcal_cli.firmware.metrics import METRICS
-    else:
-        from magcal_cli.firmware.check import METRICS
-    try:
-        return gates.parse(value, METRICS)
-    except MagcalError as exc:
-        raise click.BadParameter(str(exc).split(": ", 1)[-1], param_hint="--fail-on") from None

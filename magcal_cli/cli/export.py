@@ -7,12 +7,16 @@ from typing import Any
 
 import click
 
-from magcal_cli.cli import options
+from magcal_cli.cli import guards, options
 from magcal_cli.cli.common import CONTEXT, EXIT_CODES, handle_errors, say, verbosity
 from magcal_cli.errors import MagcalError
 
 #: log formats that carry the vehicle's parameters, which `export` reads from a document's source log
 PARAM_FORMATS = ("dataflash", "ulog")
+#: the document's log format -> the firmware -o writes for (the flight controller that wrote the log)
+FIRMWARE_OF = {"dataflash": "ardupilot", "ulog": "px4", "px4log": "px4"}
+#: the compass slots --slot takes: ArduPilot COMPASS_*, COMPASS_*2, COMPASS_*3; PX4 CAL_MAG0_* to CAL_MAG3_*
+SLOTS = {"ardupilot": (1, 3), "px4": (0, 3)}
 
 
 def _vehicle_params(ctx: click.Context, params_path: Path | None, cal_path: Path, cal: Any) -> dict[str, float]:
@@ -40,19 +44,24 @@ def _vehicle_params(ctx: click.Context, params_path: Path | None, cal_path: Path
 
 @click.command("export", context_settings=CONTEXT, epilog=EXIT_CODES)
 @click.argument("calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--ardupilot", "ardupilot_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write ArduPilot COMPASS_* parameters to this file (Mission Planner NAME,VALUE).")
-@click.option("--px4", "px4_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Write PX4 CAL_MAGn_* parameters to this file (QGroundControl .params).")
+@options.option("output", help="Write the parameters of the flight controller whose log was calibrated (ArduPilot "
+                               "for a DataFlash log, PX4 for a ULog or .px4log) to this file ('-': standard output).")
+@click.option("--ardupilot", "ardupilot_out", type=click.Path(dir_okay=False, allow_dash=True, path_type=Path),
+              default=None, metavar="FILE|-",
+              help="Write ArduPilot COMPASS_* parameters to this file (Mission Planner NAME,VALUE; '-': standard "
+                   "output), whatever log the calibration came from.")
+@click.option("--px4", "px4_out", type=click.Path(dir_okay=False, allow_dash=True, path_type=Path), default=None,
+              metavar="FILE|-",
+              help="Write PX4 CAL_MAGn_* parameters to this file (QGroundControl .params; '-': standard output), "
+                   "whatever log the calibration came from.")
 @click.option("--style", type=click.Choice(["default", "mavproxy", "nsh"]), default="default", show_default=True,
               help="default: Mission Planner .param / QGroundControl .params; mavproxy: 'NAME VALUE' lines "
                    "(ArduPilot); nsh: 'param set NAME VALUE' lines (PX4).")
 @options.mag("export")
 @click.option("--slot", type=int, default=None,
               help="Parameter slot for one --mag: ArduPilot 1-3, PX4 0-3 [default: from the device ids].")
-@click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), default=None,
-              help="The vehicle's parameters (.param/.params file or a log): slots, orientations, features "
-                   "[default: the document's source log, if it exists].")
+@options.option("params", help="The vehicle's parameters (.param/.params file or a log): slots, orientations, "
+                               "features [default: the document's source log, if it exists].")
 @click.option("--rotation", type=click.Choice(["auto", "enum", "custom"]), default="auto", show_default=True,
               help="External compasses: the nearest orientation enum, custom Euler angles, or auto (custom when "
                    "the enum misses by more than --custom-above-deg and the firmware has custom rotations).")
@@ -65,40 +74,80 @@ def _vehicle_params(ctx: click.Context, params_path: Path | None, cal_path: Path
 @verbosity
 @click.pass_context
 @handle_errors
-def export_cmd(ctx: click.Context, calibration: Path, ardupilot_out: Path | None, px4_out: Path | None, style: str,
-               mags: tuple[str, ...], slot: int | None, params_path: Path | None, rotation: str,
-               custom_above_deg: float, external: bool | None, force: bool) -> None:
-    """Write firmware parameters for the calibration in CALIBRATION (a magcal document)."""
+def export_cmd(ctx: click.Context, calibration: Path, out: Path | None, ardupilot_out: Path | None,
+               px4_out: Path | None, style: str, mags: tuple[str, ...], slot: int | None, params_path: Path | None,
+               rotation: str, custom_above_deg: float, external: bool | None, force: bool) -> None:
+    """Write firmware parameters for the calibration in CALIBRATION (a magcal document).
+
+    -o writes the parameters of the flight controller that recorded the calibrated log; --ardupilot and --px4
+    name the firmware (both at once write two files). '-' writes to standard output.
+    """
     from magcal_cli.atomic import check_writable, write_text
     from magcal_cli.firmware.common import Options
     from magcal_cli.firmware.export import export
     from magcal_cli.firmware.paramfile import render
 
-    targets = [(fw, out) for fw, out in (("ardupilot", ardupilot_out), ("px4", px4_out)) if out is not None]
-    if not targets:
-        msg = "give --ardupilot OUT.param or --px4 OUT.params"
+    targets = [(fw, path) for fw, path in (("ardupilot", ardupilot_out), ("px4", px4_out)) if path is not None]
+    if out is not None and targets:
+        msg = ("give -o (the firmware of the calibrated log) or --ardupilot/--px4 (a firmware by name), not both")
         raise click.UsageError(msg)
+    if out is None and not targets:
+        msg = ("give -o FILE (the parameters of the firmware that wrote the calibrated log), or --ardupilot "
+               "OUT.param or --px4 OUT.params; '-' writes to standard output")
+        raise click.UsageError(msg)
+    if sum(guards.is_stdout(path) for _, path in targets) > 1:
+        msg = "only one of --ardupilot and --px4 can write to standard output ('-')"
+        raise click.UsageError(msg)
+    if slot is not None and len(mags) > 1:
+        msg = f"--slot applies to one magnetometer, but --mag gives {len(mags)} ({', '.join(mags)}); give one --mag"
+        raise click.UsageError(msg)
+    cal = guards.calibration_document(calibration, "CALIBRATION", "Run: magcal export CAL.json -o OUT.param "
+                                      "(or --ardupilot OUT.param, --px4 OUT.params); a log with the vehicle's "
+                                      "parameters goes to --params")
+    if out is not None:
+        targets = [(_firmware_of(calibration, cal), out)]
     kinds = {fw: {"default": "mission-planner" if fw == "ardupilot" else "qgc"}.get(style, style) for fw, _ in targets}
     for firmware, kind in kinds.items():
         if (firmware, kind) in (("ardupilot", "nsh"), ("px4", "mavproxy")):
             msg = f"{style} is not a {firmware} parameter format"
             raise click.BadParameter(msg, param_hint="--style")
-    if slot is not None and len(mags) > 1:
-        msg = f"--slot applies to one magnetometer, but --mag gives {len(mags)} ({', '.join(mags)}); give one --mag"
-        raise click.UsageError(msg)
-    cal = options.calibration_document(calibration, "CALIBRATION", "Run: magcal export CAL.json --ardupilot "
-                                       "OUT.param (or --px4 OUT.params); a log with the vehicle's parameters goes "
-                                       "to --params")
-    options.refuse_existing((out for _, out in targets), force)
-    for _, out in targets:
-        check_writable(out.parent, hint="Choose another output file")
+    guards.mags_in(mags, [m.id for m in cal.magnetometers], f"the calibration {calibration}")
+    for firmware, _ in targets:
+        first, last = SLOTS[firmware]
+        if slot is not None and not first <= slot <= last:
+            msg = f"{firmware} has no slot {slot}; give --slot {first} to {last} (or leave it out: the device ids decide)"
+            raise click.BadParameter(msg, param_hint="'--slot'")
+    files = [path for _, path in targets if not guards.is_stdout(path)]
+    guards.refuse_existing(files, force)
+    for path in files:
+        check_writable(path.parent, hint="Choose another output file")
     params = _vehicle_params(ctx, params_path, calibration, cal)
     opts = Options(rotation, custom_above_deg, external, slot)
-    for firmware, out in targets:
+    stdout = any(guards.is_stdout(path) for _, path in targets)
+    for firmware, path in targets:
         exp = export(cal, firmware, params, opts, list(mags) or None)
         for line in exp.notes + exp.warnings:
             say(ctx, line)
-        for m in exp.mags:
-            click.echo(m.lost_text())
-        write_text(out, render(exp.params, kinds[firmware], exp.header(), exp.integers))
-        click.echo(f"wrote {out}")
+        text = render(exp.params, kinds[firmware], exp.header(), exp.integers)
+        if not guards.is_stdout(path):
+            write_text(path, text)
+        # results on stdout, unless the parameters themselves go there: then the rest is a remark on stderr
+        lines = [m.lost_text() for m in exp.mags] + ([] if guards.is_stdout(path) else [f"wrote {path}"])
+        for line in lines:
+            if stdout:
+                say(ctx, line)
+            else:
+                click.echo(line)
+        if guards.is_stdout(path):
+            click.echo(text, nl=False)
+
+
+def _firmware_of(cal_path: Path, cal: Any) -> str:
+    """The firmware whose parameters -o writes: that of the flight controller that wrote the calibrated log."""
+    firmware = FIRMWARE_OF.get(cal.source.format)
+    if firmware is None:
+        msg = (f"{cal_path}: its log ({cal.source.format or 'of unknown format'}) was not written by a flight "
+               "controller, so -o does not know which firmware's parameters to write; give --ardupilot FILE or "
+               "--px4 FILE instead")
+        raise click.UsageError(msg)
+    return firmware

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import sys
 import warnings
 
 import click
 
 from magcal_cli import __version__
 from magcal_cli.cli import apply, batch, check, diagnose, export, fit, inspect, simulate
-from magcal_cli.cli.common import CONTEXT, EXIT_CODES
+from magcal_cli.cli.common import CONTEXT, EXIT_CODES, output_lost
 
 __all__ = ["cli", "main"]
 
@@ -28,6 +29,12 @@ for command in (fit.fit, diagnose.diagnose_cmd, check.check_cmd, batch.batch_cmd
 
 def main() -> None:
     """Console entry point. numpy's RuntimeWarnings on degenerate data stay off stderr, where an error is one
-    line (the fuzz tests, which call `cli`, still see and fail on them)."""
+    line (the fuzz tests, which call `cli`, still see and fail on them). A success whose output the reader of a
+    pipe dropped unread exits 1 (a closed pipe, spec/cli.md), as a write into the closed pipe does."""
     warnings.filterwarnings("ignore", category=RuntimeWarning)
-    cli(prog_name="magcal")
+    try:
+        cli(prog_name="magcal")
+    except SystemExit as exc:
+        if exc.code in (0, None) and output_lost():
+            sys.exit(1)
+        raise

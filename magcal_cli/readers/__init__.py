@@ -59,9 +59,28 @@ MAGIC: dict[bytes, str] = {
 EXTENSIONS: dict[str, str] = {".mcap": "mcap", ".bag": "rosbag", ".ulg": "ulog", ".bin": "dataflash",
                               ".log": "dataflash", ".csv": "csv", ".px4log": "dataflash"}
 
+#: the names `magcal inspect` prints (Recording.format) that are not a reader's name -> the reader that reads them
+FORMAT_ALIASES: dict[str, str] = {"px4log": "dataflash", "rosbag2": "rosbag"}
+#: readers whose files always start with their magic bytes (a ROS 2 bag: a folder with metadata.yaml)
+SIGNED = ("mcap", "rosbag", "ulog", "broad")
+#: how a format is called in a message
+TITLES: dict[str, str] = {"mcap": "an MCAP file", "rosbag": "a ROS bag", "rosbag2": "a ROS 2 bag",
+                          "dataflash": "an ArduPilot DataFlash log", "px4log": "a PX4 sdlog2 log (.px4log)",
+                          "ulog": "a PX4 ULog", "csv": "a CSV log", "broad": "a BROAD dataset trial"}
 
-def sniff(path: Path) -> str:
-    """The format of `path`: a ROS 2 bag directory, else magic bytes, else the extension."""
+
+def format_names() -> list[str]:
+    """What --format accepts: every reader's name and every other name `magcal inspect` prints, sorted."""
+    return sorted({*READERS, *FORMAT_ALIASES})
+
+
+def _title(name: str) -> str:
+    return TITLES.get(name, f"a {name} log")
+
+
+def signature(path: Path) -> str | None:
+    """The format `path` announces itself: a ROS 2 bag directory, or the magic bytes it starts with (None: no
+    known magic, e.g. a text format)."""
     if path.is_dir():
         if (path / "metadata.yaml").is_file():
             return "rosbag"
@@ -76,9 +95,14 @@ def sniff(path: Path) -> str:
     if not head:
         msg = f"{path}: the file is empty. Re-copy the log from the vehicle"
         raise LogReadError(msg)
-    for magic, name in MAGIC.items():
-        if head.startswith(magic):
-            return name
+    return next((name for magic, name in MAGIC.items() if head.startswith(magic)), None)
+
+
+def sniff(path: Path) -> str:
+    """The format of `path`: a ROS 2 bag directory, else magic bytes, else the extension."""
+    signed = signature(path)
+    if signed is not None:
+        return signed
     by_ext = EXTENSIONS.get(path.suffix.lower())
     if by_ext is not None and by_ext not in ("mcap", "rosbag", "ulog"):
         return by_ext
@@ -97,13 +121,39 @@ def get_reader(name: str) -> Reader:
 
 
 def open_recording(path: Path, fmt: str | None = None, options: ReadOptions | None = None) -> Recording:
-    """Read `path` with the reader for `fmt` (sniffed when None); readers report the fraction read as the "reading"
-    stage of `progress.current()`, which ends at 1 here."""
+    """Read `path` with the reader for `fmt` (sniffed when None; a name `magcal inspect` prints or a reader's), or
+    refuse it when it is not that format; readers report the fraction read as the "reading" stage of
+    `progress.current()`, which ends at 1 here."""
     path = Path(path)
     if not path.exists():
         msg = f"{path}: no such file or directory. Check the path"
         raise LogReadError(msg)
-    name = fmt or sniff(path)
-    rec = get_reader(name).read(path, options or ReadOptions())
+    if fmt is None:
+        rec = get_reader(sniff(path)).read(path, options or ReadOptions())
+    else:
+        reader = FORMAT_ALIASES.get(fmt, fmt)
+        refuse_other_format(path, fmt, reader)
+        rec = get_reader(reader).read(path, options or ReadOptions())
+        if fmt != reader and rec.format != fmt:                 # px4log and rosbag2: the reader reads more than that
+            msg = (f"{path}: not {_title(fmt)}: it is {_title(rec.format)}. Leave --format out, or give "
+                   f"--format {rec.format}")
+            raise UnsupportedFormatError(msg)
     current()("reading", 1, 1)
     return rec
+
+
+def refuse_other_format(path: Path, fmt: str, reader: str) -> None:
+    """A forced format (--format) that the file's own signature contradicts, or that needs a signature the file
+    lacks: UnsupportedFormatError saying what the file looks like (a reader would find nothing or garbage)."""
+    signed = signature(path)
+    if signed is not None and signed != reader:
+        msg = (f"{path}: not {_title(fmt)}: its first bytes are those of {_title(signed)}. Leave --format out, or "
+               f"give --format {signed}")
+        raise UnsupportedFormatError(msg)
+    if signed is None and reader in SIGNED:
+        guess = EXTENSIONS.get(path.suffix.lower())
+        looks = (f"by its extension it looks like {_title(guess)}. Leave --format out, or give --format {guess}"
+                 if guess is not None and guess not in SIGNED else
+                 "it looks like no format magcal reads. Check the file, or name its format with --format")
+        msg = f"{path}: not {_title(fmt)}: it does not start with the magic bytes of one; {looks}"
+        raise UnsupportedFormatError(msg)

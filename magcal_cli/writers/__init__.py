@@ -8,6 +8,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar, Protocol
 
@@ -34,19 +35,21 @@ WRITERS: dict[str, str | type[Writer]] = {
     "json": "magcal_cli.writers.calfile:JsonWriter",
     "yaml": "magcal_cli.writers.calfile:YamlWriter",
     "report": "magcal_cli.writers.report.text:TextReport",
-    "plots": "magcal_cli.writers.report.html:HtmlReport",
+    "html": "magcal_cli.writers.report.html:HtmlReport",
     "ardupilot": "magcal_cli.writers.ardupilot:ArduPilotWriter",
     "px4": "magcal_cli.writers.px4:Px4Writer",
 }
+#: old output names -> today's (still accepted; the command line notes the change): `plots` wrote report.html
+OUTPUT_ALIASES: dict[str, str] = {"plots": "html"}
 
-DEFAULT_OUTPUTS = ("json", "yaml", "report", "plots")
+DEFAULT_OUTPUTS = ("json", "yaml", "report", "html")
 #: Recording.format -> the firmware output fit adds when --outputs is not given (the vehicle takes these)
 FIRMWARE_OUTPUTS = {"dataflash": "ardupilot", "ulog": "px4"}
 
 
 def get_writer(name: str) -> Writer:
-    """Instantiate the writer registered as `name`."""
-    target = WRITERS.get(name)
+    """Instantiate the writer registered as `name` (or an old name of it, OUTPUT_ALIASES)."""
+    target = WRITERS.get(OUTPUT_ALIASES.get(name, name))
     if target is None:
         msg = f"--outputs: unknown output {name!r}; available: {', '.join(WRITERS)}"
         raise OutputError(msg)
@@ -61,7 +64,7 @@ def check_targets(outdir: Path, names: list[str], force: bool) -> None:
     if force:
         return
     for name in names:
-        cls = WRITERS[name]
+        cls = WRITERS[OUTPUT_ALIASES.get(name, name)]
         files = cls.files if not isinstance(cls, str) else get_writer(name).files
         for f in files:
             if (outdir / f).exists():
@@ -101,7 +104,10 @@ def write_outputs(result: RunResult, outdir: Path, names: list[str],
         except OSError as exc:
             msg = f"{outdir}: cannot create the output directory ({exc.strerror or exc}). Choose another -o"
             raise OutputError(msg) from None
-        staged = [p for name in names for p in get_writer(name).write(result, stage)]
+        writers = [get_writer(name) for name in names]
+        # the reports' provenance lists every file of the run, its own among them
+        result = replace(result, outputs=tuple(dict.fromkeys(f for w in writers for f in w.files)))
+        staged = [p for w in writers for p in w.write(result, stage)]
         with _sigint_deferred():
             final = []
             for p in staged:

@@ -69,9 +69,9 @@ def test_a_log_given_as_calibration_elsewhere_and_binary_junk(logs: Path, tmp_pa
     result = run("export", logs / "s.bin", "--ardupilot", tmp_path / "a.param")
     assert result.exit_code == 2
     assert last_error(result) == (f"Error: {logs / 's.bin'}: a dataflash log where CALIBRATION (a calibration .json "
-                                  "or .yaml from magcal fit) belongs. Run: magcal export CAL.json --ardupilot "
-                                  "OUT.param (or --px4 OUT.params); a log with the vehicle's parameters goes to "
-                                  "--params")
+                                  "or .yaml from magcal fit) belongs. Run: magcal export CAL.json -o OUT.param (or "
+                                  "--ardupilot OUT.param, --px4 OUT.params); a log with the vehicle's parameters goes "
+                                  "to --params")
     result = run("check", logs / "s.bin", "--calibration", logs / "s.bin", "--no-refit")
     assert result.exit_code == 2
     assert last_error(result).endswith("belongs. A log or parameter file the vehicle flew with goes to --params")
@@ -188,7 +188,7 @@ def test_unknown_format_and_extension_are_usage_errors(logs: Path, tmp_path: Pat
     result = run("fit", logs / "s.bin", "--format", "ulgg")
     assert result.exit_code == 2
     assert last_error(result) == ("Error: Invalid value for '--format': 'ulgg' is not a log format; choose from "
-                                  "broad, csv, dataflash, mcap, rosbag, ulog, or leave --format out")
+                                  "broad, csv, dataflash, mcap, px4log, rosbag, rosbag2, ulog, or leave --format out")
     assert run("inspect", logs / "s.bin", "--format", "ulgg").exit_code == 2
     result = run("simulate", tmp_path / "x.foo")
     assert result.exit_code == 2 and "simulating" not in result.stderr          # refused before simulating

@@ -71,7 +71,8 @@ def test_export_errors(tmp_path: Path) -> None:
     runner = CliRunner()
     doc = write_doc(tmp_path / "cal.json")
     result = runner.invoke(cli, ["export", str(doc)])
-    assert result.exit_code == 2 and "give --ardupilot OUT.param or --px4 OUT.params" in result.output
+    assert result.exit_code == 2 and "give -o FILE (the parameters of the firmware that wrote the calibrated log), " \
+                                     "or --ardupilot OUT.param or --px4 OUT.params" in result.output
     result = runner.invoke(cli, ["export", str(doc), "--ardupilot", str(tmp_path / "a"), "--style", "nsh"])
     assert result.exit_code == 2 and "nsh is not a ardupilot parameter format" in result.output
     (tmp_path / "exists.param").write_text("")

@@ -98,7 +98,7 @@ def test_cli_effects_option(tmp_path: Path, runner: CliRunner) -> None:
     assert bad.exit_code == 2 and "unknown effect 'bogus'" in bad.stderr
     ekf = runner.invoke(cli, ["fit", str(log), "--effects", "current_interference", "--method", "kok2012",
                               "-o", str(tmp_path / "y")])
-    assert ekf.exit_code == 1 and "--method map" in ekf.stderr and "Traceback" not in ekf.output
+    assert ekf.exit_code == 2 and "--method map" in ekf.stderr and "Traceback" not in ekf.output
 
 
 def test_transient_windows_found_and_excluded() -> None:
