@@ -36,7 +36,7 @@ from magcal_cli.models.problem import Problem
 from magcal_cli.progress import Hook, active, current
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.registry import resolve
-from magcal_cli.streams import Kind, Recording, Stream
+from magcal_cli.streams import Kind, Recording, Sampling, Stream
 from magcal_cli.units import G
 from magcal_cli.wmm import reference_for
 
@@ -153,6 +153,38 @@ def with_position(rec: Recording, cfg: Config) -> Config:
     return cfg
 
 
+def command_config(mag: str = "all", imu: str | None = None, *, method: str = "auto",
+                   effects: tuple[str, ...] | None = None, start_s: float | None = None, end_s: float | None = None,
+                   strict: bool = False, imu_timing: Sampling | None = None, mag_timing: Sampling | None = None
+                   ) -> Config:
+    """The Config `fit`, `diagnose` and `check`'s refit calibrate a log with, from the options they share.
+
+    One function, so the three commands read the same records, select the same streams, choose the same method and
+    reach the same observability verdict for the same log (issue 30): `diagnose` used to force the joint MAP method
+    and refused 01_07_59.px4log, which `fit` calibrated with the attitude method auto fell back to; it and `check`'s
+    refit also refused a cut log (Config's default), which `fit` reads up to its last complete record. `method` auto
+    picks as `methods.choose` does; `effects` None is --effects auto (the mismatch diagnosis chooses the effects, and
+    a flight's known physics is modelled), a tuple models exactly those effects; `strict` refuses a cut log.
+    `fit` adds its own options (location, date, robust loss) with `dataclasses.replace`.
+    """
+    return Config(method=method, mag=mag, imu=imu, start_s=start_s, end_s=end_s, allow_truncated=not strict,
+                  effects=() if effects is None else effects, diagnose=effects is None, imu_timing=imu_timing,
+                  mag_timing=mag_timing)
+
+
+def not_diagnosable(why: str) -> Finding:
+    """The finding that the mismatch diagnosis did not run: `why` says which method calibrated the log instead."""
+    return Finding(Severity.INFO, "diagnosis_skipped",
+                   f"not diagnosed: the mismatch diagnosis runs with the joint MAP method only, and {why}")
+
+
+def not_diagnosed(result: RunResult) -> str | None:
+    """Why the mismatch diagnosis did not run on a result fitted with the diagnosis asked for (`command_config`
+    with effects None), in one sentence for `diagnose` to print as its result; None when it ran, or when the
+    diagnosis was not asked for."""
+    return next((f.message for f in result.findings if f.code == "diagnosis_skipped"), None)
+
+
 def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress | None = None) -> RunResult:
     """Calibrate every selected magnetometer of one log against its IMU (progress: default the current hook)."""
     path = Path(path)
@@ -171,9 +203,8 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None =
     method, chosen = choose(problem, cfg)
     cfg = with_position(rec, cfg)
     if cfg.diagnose and method != "map":
-        chosen.append(Finding(Severity.INFO, "diagnosis_skipped",
-                              f"the mismatch diagnosis (--effects auto) runs with the joint MAP method only; "
-                              f"the {method} method fitted the base model"))
+        chosen.append(not_diagnosable(f"auto chose the {method} method for this log" if cfg.method == "auto" else
+                                      f"--method {method} calibrated it"))
         cfg = replace(cfg, diagnose=False)
     refused = not_carried(method, cfg.effects)
     if refused:
@@ -194,7 +225,10 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None =
         with active(progress):          # the estimators and the diagnosis report through progress.current()
             result, failed = run_method(resolve(target.run, f"the {method} method"), problem, cfg, method)
     except InsufficientDataError as exc:
-        result, failed = attitude_instead(problem, cfg, exc)
+        result, failed = attitude_instead(problem, cfg, exc, progress)
+        if cfg.diagnose:
+            failed.append(not_diagnosable(f"this log's own motion cannot determine the joint MAP calibration, so the "
+                                          f"{result.method} method calibrated it"))
     mags, series = [], {}
     ref = reference_for(cfg)
     streams = {m.id: m for m in problem.mags}

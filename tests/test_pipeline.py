@@ -1,4 +1,4 @@
-"""Stream selection and the messages for logs that are too short.
+"""Stream selection and the messages for logs that are too short; fit, diagnose and check calibrate a log alike.
 
 Modules it covers (the mirrored test file aside): magcal_cli.calibration.assemble, magcal_cli.calibration.run,
 magcal_cli.config.
@@ -6,15 +6,22 @@ magcal_cli.config.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from magcal_cli import pipeline
+from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
-from magcal_cli.errors import StreamError
+from magcal_cli.errors import InsufficientDataError, StreamError
 from magcal_cli.pipeline import select_problem
+from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind, Recording, Stream
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_logs" / "handheld.bin"
 
 
 def _recording(n_mag: int) -> Recording:
@@ -84,3 +91,43 @@ def test_a_dip_far_from_the_world_magnetic_model_is_flagged() -> None:
     assert finding.message.startswith("MAG[1]: the fitted dip -76.3 deg differs from the World Magnetic "
                                       "Model's -66.0 deg at the log's position by -10.3 deg")
     assert dip_check([near, far], None) == []
+
+
+def test_fit_diagnose_and_check_calibrate_a_log_with_one_config(monkeypatch: pytest.MonkeyPatch,
+                                                                tmp_path: Path) -> None:
+    """Issue 30 item 2: the Config each command hands the pipeline for the same log is the same
+    (`pipeline.command_config`): diagnose forced --method map (and refused logs fit calibrates) and refused a cut
+    log fit reads; check's refit modelled no effects and refused cut logs too."""
+    seen: list[Config] = []
+
+    def spy(path: Path, cfg: Config, fmt: str | None = None, progress: object = None) -> None:
+        seen.append(cfg)
+        msg = f"{path.name}: the Config is all this test needs"
+        raise InsufficientDataError(msg)
+
+    monkeypatch.setattr(pipeline, "calibrate", spy)
+    for args in (["fit", SAMPLE, "-o", tmp_path / "fit"], ["diagnose", SAMPLE], ["check", SAMPLE]):
+        CliRunner().invoke(cli, [*map(str, args), "-q"])
+    fit, diagnose, check = seen
+    assert diagnose == fit
+    assert fit == pipeline.command_config()
+    rec = open_recording(SAMPLE)
+    assert [m.id for m in select_problem(rec, check).mags] == [m.id for m in select_problem(rec, fit).mags]
+    assert replace(check, mag=fit.mag) == fit
+
+
+def test_px4log_fit_and_diagnose_agree(realdata: Path, tmp_path: Path) -> None:
+    """01_07_59.px4log (issue 30): fit exits 0 with the attitude method auto falls back to, while diagnose exited 1
+    with the joint MAP's refusal. diagnose now makes the same choice and exits 0 as fit does, saying in one line
+    why there is no diagnosis; fit's progress names the method that ran (it said "fitting map" only)."""
+    log = str(realdata / "px4" / "01_07_59.px4log")
+    fit = CliRunner().invoke(cli, ["fit", log, "-o", str(tmp_path / "fit"), "--outputs", "json"])
+    assert fit.exit_code == 0, fit.output
+    assert fit.stdout.startswith("MAG[0]: attitude, ")
+    fitting = [line for line in fit.stderr.splitlines() if "fitting" in line]
+    assert fitting[-1].endswith("fitting attitude (against ATT and the World Magnetic Model) for MAG[0], MAG[1]")
+    diagnose = CliRunner().invoke(cli, ["diagnose", log, "-q"])
+    assert diagnose.exit_code == 0, diagnose.output
+    assert diagnose.stdout == ("MAG[0], MAG[1]: not diagnosed: the mismatch diagnosis runs with the joint MAP method "
+                               "only, and this log's own motion cannot determine the joint MAP calibration, so the "
+                               "attitude method calibrated it\n")

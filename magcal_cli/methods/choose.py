@@ -98,21 +98,24 @@ def run_method(run: MethodRun, problem: Problem, cfg: Config, method: str) -> tu
     return merged, failed
 
 
-def attitude_instead(problem: Problem, cfg: Config, exc: InsufficientDataError
-                      ) -> tuple[MethodResult, list[Finding]]:
+def attitude_instead(problem: Problem, cfg: Config, exc: InsufficientDataError,
+                     progress: Callable[[str], None] = lambda _: None) -> tuple[MethodResult, list[Finding]]:
     """--method auto on a log whose own motion cannot determine the calibration: the vehicle's attitude estimate
-    and the World Magnetic Model as the reference, where the log has both (issue 12 item 2); else `exc`."""
+    and the World Magnetic Model as the reference, where the log has both (issue 12 item 2); else `exc`. The
+    progress line then names the method that runs."""
     from magcal_cli.models import attitude_ref
 
     if cfg.method != "auto" or reference_for(cfg) is None:
         raise exc
     try:
         att = attitude_ref.attitude_stream(problem)
+        progress(f"the log's own motion cannot determine the calibration; fitting attitude (against {att.id} and "
+                 f"the World Magnetic Model) for {', '.join(m.id for m in problem.mags)}")
         result = attitude_ref.run(problem, cfg)
     except InsufficientDataError:
         raise exc from None
     why = Finding(Severity.WARNING, "attitude_reference",
-                  f"the log's own motion cannot determine the calibration ({exc}); it was calibrated against the "
-                  f"vehicle's attitude estimate ({att.id}) and the World Magnetic Model instead, so it inherits "
-                  "the errors of that estimate (its heading came from the compass calibration it flew with)")
+                  f"{str(exc).rstrip('.')}. It was calibrated against the vehicle's attitude estimate {att.id} and "
+                  "the World Magnetic Model instead, so it inherits the errors of that estimate, whose heading came "
+                  "from the compass calibration the vehicle flew with")
     return result, [why]

@@ -5,12 +5,21 @@ vehicle_attitude) and a position, the field the compass should read is known: y_
 World Magnetic Model's direction (declination and dip) at the log's position and date. The model is linear in
 (D, o), so each sensor axis is one small least-squares problem (ArduPilot WebTools MAGFit and pymavlink's
 magfit_WMM.py fit the same model with an iterative optimiser). What the attitude does not vary (the body-z
-field of a level flight) leans on the prior the partial calibration uses (the onboard calibration, else a
-sphere), and such entries are reported as held. The EKF's attitude errors are correlated in time, so the
-uncertainty is a block sandwich (10 s blocks) and never below the model-based one.
+field of a level flight) is held at the prior the partial calibration uses (the onboard calibration, else a
+sphere): as in the joint MAP (`partial.choose`), an entry the data, their correlation in time counted, know no
+better than its prior is held there, and the entries it is confounded with are estimated around it. The EKF's
+attitude errors are correlated in time, so the uncertainty is a block sandwich (10 s blocks) and never below the
+model-based one.
+
+Before issue 30 the held entries were only named after the fit (posterior std above half the prior's): their values
+were the data's, which a level flight's small tilts (and the EKF's correlated attitude errors) pull along the
+direction the data cannot see. 01_07_59.px4log's MAG[0] ended with "held" offsets at -82 and +85 mG against a
+prior of 0 +- 28 mG, each with the z column of D moved the opposite way.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -21,6 +30,7 @@ from magcal_cli.config import Config
 from magcal_cli.effects.base import NotTestable
 from magcal_cli.effects.current import Current, varying_current
 from magcal_cli.errors import InsufficientDataError
+from magcal_cli.models import partial
 from magcal_cli.models.kok2012 import gyro_bias_from_still
 from magcal_cli.models.map.effects import ALPHA
 from magcal_cli.models.partial import MagPrior, sphere_prior
@@ -36,8 +46,9 @@ NED_ATTITUDES = ("ATT", "vehicle_attitude", "AHR2")
 WMM_DIP_STD = np.deg2rad(0.21)
 #: block length (s) of the sandwich: the EKF's attitude error wanders over seconds
 BLOCK_S = 10.0
-#: an entry whose posterior std is above this share of its prior std was set by the prior: held
-HELD_SHARE = 0.5
+#: which entry of an axis [D_i0, D_i1, D_i2, o_i, c_i] gives way first when the data cannot separate two (a column
+#: of D before the offset it is confounded with, as `partial.PREFERENCE`); the interference has no prior, never held
+AXIS_RANK = np.array([partial.PREFERENCE["D"]] * 3 + [partial.PREFERENCE["o"], 9])
 #: Huber threshold (robust std) for readings the attitude or the field do not explain (spikes, transients)
 HUBER_K = 3.0
 #: a battery current that varies less than this (A, std) cannot separate interference from the offsets
@@ -67,29 +78,73 @@ def attitude_stream(problem: Problem) -> Stream:
     raise InsufficientDataError(msg)
 
 
+@dataclass(frozen=True, eq=False)
+class AxisFit:
+    """One sensor axis fitted: the coefficients, their covariance (block sandwich, never below the model's), the
+    noise std, the residuals, and the data's information about the coefficients narrowed by the sandwich's widening
+    (what the data know, their correlation in time counted; without the prior)."""
+
+    beta: FloatArray
+    cov: FloatArray
+    sigma: float
+    r: FloatArray
+    info: FloatArray
+
+
 def _solve_axis(x: FloatArray, y: FloatArray, prior_mean: FloatArray, prior_var: FloatArray,
-                blocks: npt.NDArray[np.int64]) -> tuple[FloatArray, FloatArray, float, FloatArray]:
-    """Robust MAP of y = x beta (+ Gaussian prior), its covariance (block sandwich, never below the model's),
-    the noise std and the residuals."""
+                blocks: npt.NDArray[np.int64], held: npt.NDArray[np.int64] | None = None) -> AxisFit:
+    """Robust MAP of y = x beta (+ Gaussian prior), its covariance and the data's information.
+
+    The `held` coefficients are pinned at their prior means (`partial.PIN`) while fitting; the covariance carries
+    their prior's own doubt (a soft prior) into the free ones, as the joint MAP's does. The widening is one factor
+    for every coefficient, the largest sandwich / model variance ratio of a free one (the sandwich taken with the
+    held ones fixed: their scores at the pinned value are the prior's pull, not noise).
+    """
+    held = np.zeros(0, np.int64) if held is None else held
+    free = np.setdiff1d(np.arange(x.shape[1]), held)
     w = np.ones(y.size)
     beta = np.linalg.lstsq(x, y, rcond=None)[0]
     p = 1.0 / prior_var
+    p_fit = p.copy()
+    p_fit[held] = p[held] / partial.PIN**2
     for _ in range(4):                                            # Huber IRLS: a few rounds settle it
         r = y - x @ beta
         sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), 1e-15)
         w = np.minimum(1.0, HUBER_K * sigma / np.maximum(np.abs(r), 1e-300))
-        h = (x * (w / sigma**2)[:, None]).T @ x + np.diag(p)
-        beta = np.linalg.solve(h, (x * (w / sigma**2)[:, None]).T @ y + p * prior_mean)
+        data = (x * (w / sigma**2)[:, None]).T @ x
+        beta = np.linalg.solve(data + np.diag(p_fit), (x * (w / sigma**2)[:, None]).T @ y + p_fit * prior_mean)
     r = y - x @ beta
-    model = np.linalg.inv(h)
-    score = x * (w * r / sigma**2)[:, None]
-    per_block = np.zeros((int(blocks.max()) + 1, x.shape[1]))
+    # the sandwich of the free coefficients with the held ones fixed (the model's, conditional on them)
+    ff = np.ix_(free, free)
+    model = np.linalg.inv(data[ff] + np.diag(p[free]))
+    score = x[:, free] * (w * r / sigma**2)[:, None]
+    per_block = np.zeros((int(blocks.max()) + 1, free.size))
     np.add.at(per_block, blocks, score)
-    meat = per_block.T @ per_block + np.diag(p)
+    meat = per_block.T @ per_block + np.diag(p[free])
     sandwich = model @ meat @ model
-    widen = max(1.0, float(np.max(np.diag(sandwich) / np.diag(model))))
-    cov = np.asarray(model * widen, dtype=np.float64)
-    return np.asarray(beta, dtype=np.float64), cov, sigma, r
+    ratio = np.maximum(np.diag(sandwich) / np.diag(model), 1.0)
+    most = float(np.max(ratio, initial=1.0))
+    cov = np.asarray(np.linalg.inv(data + np.diag(p)) * most, dtype=np.float64)
+    widen = np.full(x.shape[1], np.sqrt(most))
+    widen[free] = np.sqrt(ratio)
+    return AxisFit(np.asarray(beta, dtype=np.float64), cov, sigma, r, data / np.outer(widen, widen))
+
+
+def _held_fit(x: FloatArray, y: FloatArray, prior_mean: FloatArray, prior_var: FloatArray,
+              blocks: npt.NDArray[np.int64]) -> tuple[AxisFit, npt.NDArray[np.int64]]:
+    """The axis fitted with what the data, their correlation in time counted, know no better than the prior held
+    at it (`partial.choose`, as the joint MAP holds its entries), rather than left to wander along the direction
+    the attitude does not vary; and the coefficients held. Holding changes the residuals and so the widening: the
+    choice is redone at the new fit, keeping what is held, until it stays."""
+    fitted = _solve_axis(x, y, prior_mean, prior_var, blocks)
+    held = np.zeros(0, np.int64)
+    for _ in range(x.shape[1]):
+        more = partial.choose(fitted.info, np.sqrt(prior_var), held, AXIS_RANK[:x.shape[1]])
+        if more.size == held.size:
+            break
+        held = more
+        fitted = _solve_axis(x, y, prior_mean, prior_var, blocks, held)
+    return fitted, held
 
 
 def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField,
@@ -127,7 +182,8 @@ def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField
         var = np.full(4, sd**2)
         if current is not None:                                   # no prior on the interference: free
             mean, var = np.append(mean, 0.0), np.append(var, np.inf)
-        beta, cv, _, r = _solve_axis(x, y[:, i], mean, var, blocks)
+        fitted, hold = _held_fit(x, y[:, i], mean, var, blocks)
+        beta, cv, r = fitted.beta, fitted.cov, fitted.r
         d[i], o[i] = beta[:3], beta[3]
         if current is not None:
             c_i[i], c_var[i] = beta[4], cv[4, 4]
@@ -135,9 +191,8 @@ def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField
         rms.append(float(np.sqrt(np.mean(r**2))))
         cols = [MAG.cols("D")[i + 3 * j] for j in range(3)] + [MAG.cols("o")[i]]
         cov[np.ix_(cols, cols)] = cv
-        for j, name in enumerate([f"D.{i}{k}" for k in range(3)] + [f"o.{'xyz'[i]}"]):
-            if np.sqrt(cv[j, j]) > HELD_SHARE * sd:
-                held.append(HeldEntry(name, float(mean[j]), sd, prior.source))
+        names = [f"D.{i}{k}" for k in range(3)] + [f"o.{'xyz'[i]}"]
+        held.extend(HeldEntry(names[j], float(mean[j]), sd, prior.source) for j in hold)
     dip_col = MAG.cols("dip")[0]
     cov[dip_col, dip_col] = WMM_DIP_STD**2
     log = (f"{mag.id}: reference: the vehicle's attitude ({att.id}) and the {ref.model} field at "

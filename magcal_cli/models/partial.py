@@ -55,6 +55,17 @@ DIP_TYPICAL = float(np.deg2rad(60.0))
 #: a vehicle turned through at least this much heading (deg) gets at least its offsets, whatever its prior: the
 #: horizontal field swept half a circle, whose centre the offsets are (issue 25)
 OFFSETS_YAW_DEG = 180.0
+#: a prior source reads FLOWN + DETAIL + where it was found, then PINNED + why the motion cannot determine the entry
+#: (`cap_pins`) when it is pinned: one sentence, no brackets within brackets
+FLOWN = "the calibration the vehicle flew with"
+DETAIL = ": "
+PINNED = "; "
+
+
+def source_parts(source: str) -> tuple[str, str]:
+    """A prior source's short name ('the calibration the vehicle flew with') and why it was pinned ('' if not)."""
+    head, _, why = source.partition(PINNED)
+    return head.split(DETAIL, 1)[0].split(", rescaled", 1)[0], why
 
 
 @dataclass(frozen=True, eq=False)
@@ -179,7 +190,7 @@ def flown_prior(raw: FloatArray, field: FloatArray, to_si: float, slot: str) -> 
     misfit = float(np.sqrt(np.mean((norm / strength - 1.0) ** 2))) if strength > 0 else 1.0
     m_inv = np.linalg.inv(m)
     return MagPrior(strength * m_inv * to_si, -m_inv @ t * to_si,
-                    f"the calibration the vehicle flew with ({slot})", min(max(ONBOARD_REL_STD, 2.0 * misfit), 1.0))
+                    f"{FLOWN}{DETAIL}{slot}", min(max(ONBOARD_REL_STD, 2.0 * misfit), 1.0))
 
 
 def motion_coverage(delta: FloatArray, acc: FloatArray, dip: float | None) -> tuple[FloatArray, float, int]:
@@ -311,7 +322,7 @@ def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, d
         src[sl] = [why] * (sl.stop - sl.start)
     pins, why = cap_pins(prior)
     for c in pins:
-        src[c] = f"{src[c]} ({why})"
+        src[c] = f"{src[c]}{PINNED}{why}"
     o = BASE.slice("o")
     if pins.size and not np.isin(BASE.cols("o"), pins).any():
         # an offsets-only fit: what goes stale in a flown calibration is the offsets (a new payload, wiring), so they
@@ -354,7 +365,8 @@ def _excess(info: FloatArray, prior_std: FloatArray, held: list[int]) -> tuple[F
     return ratio, free, float(np.sum(np.log(np.maximum(ratio, 1.0))))
 
 
-def choose(info: FloatArray, prior_std: FloatArray, already: IntArray | None = None) -> IntArray:
+def choose(info: FloatArray, prior_std: FloatArray, already: IntArray | None = None,
+           rank: IntArray | None = None) -> IntArray:
     """The base columns to hold besides `already`, until every free base entry's std (the held entries' doubt
     included) is below its prior std: holding it then loses nothing the data knew.
 
@@ -362,8 +374,10 @@ def choose(info: FloatArray, prior_std: FloatArray, already: IntArray | None = N
     over the free entries): a rotation of D about the one axis a flat log turns about is fixed by one entry
     that changes to first order (D.10), not by the diagonal one. PREFERENCE breaks ties (a column of D before
     the offset it is confounded with). `info` covers the whole theta (base blocks first, then any effect
-    blocks, which stay free)."""
-    rank = np.concatenate([np.full(b.size, PREFERENCE.get(b.name, 9)) for b in BASE.blocks])
+    blocks, which stay free). Another parameter vector (the attitude method's per-axis coefficients) gives its own
+    `rank` (PREFERENCE's order per entry) and `prior_std` (inf: never held)."""
+    if rank is None:
+        rank = np.concatenate([np.full(b.size, PREFERENCE.get(b.name, 9)) for b in BASE.blocks])
     held = [] if already is None else [int(c) for c in already]
     while True:
         ratio, free, _ = _excess(info, prior_std, held)

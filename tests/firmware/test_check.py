@@ -245,3 +245,32 @@ def test_check_on_real_ardupilot_logs(realdata: Path, name: str) -> None:
     primary = doc["compasses"][0]
     assert primary["details"]["dip_deg"] == pytest.approx(WMM_DIP[name], abs=2.5)
     assert doc["passed"] == (result.exit_code == 0)
+
+
+def test_a_field_strength_far_from_constant_fails_whatever_was_not_measured() -> None:
+    """Issue 30 item 3: a compass flown with offsets 400 mG off over too few headings for its heading error spreads
+    its field strength 16 % RMS, far beyond what a calibration leaves (firmware.check.DEFAULT_MAX_FIELD_NORM_RMS_PCT).
+    check said PASSED with the heading gate not measured; the default field-norm gate now fails it. A --fail-on
+    condition on field_norm_rms_pct replaces the default; inf turns it off."""
+    fl = flight(5, turns=0.3, ofs_miss=(0.0, 400.0, 0.0))
+    report = check_recording(fl.recording, GATE)
+    c = report.compasses[0]
+    assert c.metrics["field_norm_rms_pct"] > 15.0
+    assert c.missing["heading_error_deg"].startswith("the vehicle's headings leave a")
+    assert c.failed == [f"field_norm_rms_pct>10 (measured {c.metrics['field_norm_rms_pct']:.3g})"]
+    assert c.verdict == "fail" and not report.passed
+    text = report.to_text()
+    assert text.splitlines()[1] == "gates: heading_error_deg>5, field_norm_rms_pct>10"
+    assert text.endswith("FAILED\n")
+    own = check_recording(fl.recording, (*GATE, gates.Condition("field_norm_rms_pct", ">", 20.0)))
+    assert own.passed and [str(g) for g in own.conditions] == ["heading_error_deg>5", "field_norm_rms_pct>20"]
+    assert check_recording(fl.recording, GATE, options=CheckOptions(max_field_norm_rms_pct=float("inf"))).passed
+
+
+def test_px4log_fails_the_compass_whose_field_strength_spreads(realdata: Path) -> None:
+    """01_07_59.px4log (issue 30): MAG[1]'s flown field strength spreads 13.6 % RMS and its headings leave a 210 deg
+    gap; check said PASSED (exit 0, "2 gates not measured"). It now fails MAG[1] on the field-norm gate, exit 3."""
+    res = CliRunner().invoke(cli, ["check", str(realdata / "px4" / "01_07_59.px4log"), "--no-refit", "-q"])
+    assert res.exit_code == 3, res.output
+    assert "MAG[1]: field_norm_rms_pct>10 (measured 13.6)" in res.stderr and "MAG[0]" not in res.stderr
+    assert res.stdout.splitlines()[-1] == "FAILED"
