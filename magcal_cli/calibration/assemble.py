@@ -127,10 +127,12 @@ def diagnosis_block(blocks: tuple[dict[str, Any], ...], mags: dict[str, Stream])
     """The document's `diagnosis`: the magnetometer with the strongest mismatch at the top level (the contract's
     single block), every magnetometer's block under `sensors`; SI field values in each one's unit."""
     from magcal_cli.calibration.diagnosis import in_units
+    from magcal_cli.diagnose.summary import fold
 
     per = [in_units(b, mags[b["sensor"]].native_unit) for b in blocks]
     top = min(per, key=lambda b: float(b["ppc"]["global_p"]))
-    return {**top, "summary": " ".join(b["summary"] for b in per), "sensors": per}
+    # the whole log's summary says each explanation once, for all the magnetometers
+    return {**top, "summary": " ".join(fold([b["summary"] for b in per])), "sensors": per}
 
 
 def effect_entries(result: MethodResult, mags: dict[str, Stream]) -> tuple[dict[str, object], ...]:

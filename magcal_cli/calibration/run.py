@@ -32,6 +32,8 @@ class RunResult:
     still: StillResult
     findings: tuple[Finding, ...]
     series: dict[str, MagSeries]
+    #: the names of the files this run writes (`writers.write_outputs` fills it): the report's provenance lists them
+    outputs: tuple[str, ...] = ()
 
 
 def sha256(path: Path) -> str:

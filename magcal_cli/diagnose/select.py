@@ -294,24 +294,10 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         verdicts.update({f.id: replace(f, status="accepted", evidence=verdicts[f.id].evidence)
                          for f in est.effects if f.id in accepted})
     implausible = {**fw.implausible, **failed}
-    significant = {e for sc in fw.screens for e in holm(sc)}
     for s in fw.scores.values():
         if s.id in verdicts:
             continue
-        rivals = [p for pair in fw.ambiguous if s.id in pair for p in pair if p != s.id]
-        if s.id in implausible:
-            note = implausible[s.id]
-        elif s.id in first:
-            others = [p for p in picked if p != s.id]
-            note = (f"the evidence is weak once {', '.join(others)} is modelled" if others else
-                   "the evidence is weak in the refit") + " (Wald test or BIC)"
-        elif s.id in significant and rivals:
-            note = f"explains the same readings as {rivals[0]} ({verdicts[rivals[0]].reason or 'accepted'})" \
-                if rivals[0] in verdicts else f"explains the same readings as {rivals[0]}"
-        elif s.id in significant:
-            note = "not chosen: the effects added before it explained its signal"
-        else:
-            note = f"the score test found no sign of it (p = {s.p_value:.2g})"
+        note = implausible.get(s.id) or _rejected(s, fw, first, picked, verdicts)
         verdicts[s.id] = EffectFit(s.id, _sensor(s.id, mag, problem), "rejected", None, (), s.robust, s.dof,
                                    s.p_value, reason=note, test_kind="score")
     # the score tests found a mismatch that follows rivals this log cannot tell apart: say so. One of each pair stays
@@ -342,6 +328,32 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
                                 estimate=verdicts[eid].estimate if carried else None)
     verdicts.update({u.id: u for u in scr.untestable if u.id not in verdicts})
     return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous))
+
+
+def _rejected(s: Score, fw: Forward, first: Sequence[str], picked: Sequence[str],
+              verdicts: dict[str, EffectFit]) -> str:
+    """Why a candidate the forward selection screened was rejected, in one clause that agrees with its p-value (the
+    report prints the p beside it)."""
+    rivals = [p for pair in fw.ambiguous if s.id in pair for p in pair if p != s.id]
+    significant = {e for sc in fw.screens for e in holm(sc)}
+    if s.id in first:
+        others = [p for p in picked if p != s.id]
+        return ("the Wald test or BIC found its evidence weak " + (
+            f"once {' and '.join(others)} {'is' if len(others) == 1 else 'are'} modelled" if others else "in the refit"))
+    if s.id in significant and rivals:
+        rival = verdicts.get(rivals[0])
+        return f"it explains the same readings as {rivals[0]}" + (
+            "" if rival is None else f", which was rejected: {rival.reason}" if rival.reason else ", which was accepted")
+    if s.id in significant and len(fw.picked) == MAX_EFFECTS and s.id in holm(fw.screens[-1]):
+        return (f"not added: a diagnosis adds at most {MAX_EFFECTS} effects, and {', '.join(fw.picked[:-1])} and "
+                f"{fw.picked[-1]} came first")
+    if s.id in significant:
+        return "the effects added before it explained its signal"
+    if s.p_value > FAMILY_ALPHA:
+        return "the score test found no sign of it"
+    tested = next((len(sc.scores) for sc in reversed(fw.screens) if sc.of(s.id) is not None), 1)
+    return (f"too weak once corrected for testing {tested} effects at once "
+            f"(Holm's method, {100 * FAMILY_ALPHA:.0f} % for all of them together)")
 
 
 def _modelled(accepted: Sequence[str], pairs: Sequence[frozenset[str]], picked: Sequence[str]) -> tuple[str, ...]:

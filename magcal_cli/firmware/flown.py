@@ -79,7 +79,7 @@ def _px4(rec: Recording, mag: Stream, index: int, params: Mapping[str, float]) -
     """
     raw = mag.xyz * units.from_si(px4.UNIT)
     if rec.format == "px4log" or not re.fullmatch(r"sensor_mag\[\d\]", mag.id):
-        return Flown(mag.id, px4.UNIT, mag.t, raw, raw, "as logged (firmware-corrected)", None, None)
+        return Flown(mag.id, px4.UNIT, mag.t, raw, raw, "the firmware's correction", None, None)
     n, dev, _ = px4.slot_of(mag.id, index, params, None)
     typ = int(params.get("CAL_MAG_COMP_TYP", 0))
     signal = signal_at(rec, Kind.THROTTLE if typ == 1 else Kind.BATTERY_CURRENT, mag.t) if typ else None

@@ -460,7 +460,7 @@ def test_real_roboto_battery_and_old_logs_field(realdata: Path) -> None:
 
 @pytest.mark.parametrize(("name", "message"), [
     ("roboto_fmuv5_test.ulg", "sensor_mag[0] has only 8 readings inside the IMU's time span"),
-    ("sample.ulg", "(the field directions moved through an arc of only 8 deg (2.3 deg RMS about their mean); the "
+    ("sample.ulg", "as the field directions moved through an arc of only 8 deg (2.3 deg RMS about their mean); the "
                    "offsets need 20 deg: turn the vehicle through at least that about an axis away from the field"),
     ("sample_appended_multiple.ulg", "sensor_combined: the motion in this log determines no part"),
     ("sample_log_small.ulg", "magnetometer sensor_mag[0] has only 6 samples (5.0 s); a calibration needs a recording"),

@@ -136,14 +136,20 @@ def estimate(problem: Problem, ctx: FitContext, sol: Solution, record: Record, c
     if widen is not None and np.any(widen > 1.0):
         cov = cov * np.outer(widen, widen)
         names = [n for n, c in layout.groups().items() if np.any(widen[c] > 1.0)]
-        findings.append(Finding(
-            Severity.WARNING, "correlated_residuals",
-            f"{where}: the residuals are correlated in time beyond the noise model (quantised readings, "
-            f"unmodelled motion or a disturbance); the uncertainty of {', '.join(names)} was widened up to "
-            f"{float(widen.max()):.1f}x (time-clustered sandwich estimate)", {"max_factor": float(widen.max())}))
+        findings.append(widening_note(where, ep.mag_id, float(widen.max()), names))
     if held is not None:
         check_useful(cov[np.ix_(base, base)], s, held.cols, where,
                      None if widen is None else widen[base], norm_spread(ep, sol.theta, layout))
     return MapEstimate(ep.mag_id, theta, cov, noise_si, states, ep.t, sol.cost, record.iterations, sol.converged,
                        float(np.sqrt(np.mean(resid**2))), record.log, tuple(findings), record.notes, condition,
                        layout, context=ctx, held=held)
+
+
+def widening_note(where: str, mag_id: str, factor: float, names: list[str] | None = None) -> Finding:
+    """The note that a fit's uncertainties were widened for residuals correlated in time: information, not a
+    warning (the stated stds already include it, and the verdict judges them; nothing changes what to do)."""
+    return Finding(Severity.INFO, "correlated_residuals",
+                   f"{where}: the residuals are correlated in time beyond the noise model, so the stated uncertainties "
+                   f"are widened up to {factor:.1f}x by a time-clustered sandwich estimate; the cause is quantised "
+                   "readings, unmodelled motion or a disturbance, and the stds reported include it",
+                   {"max_factor": factor, "sensor": mag_id, "parameters": list(names or [])})

@@ -56,8 +56,11 @@ def rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray,
     except np.linalg.LinAlgError:
         more = held.holding(BASE.cols(*BASE.names), pinned)
     if more.undetermined():
+        # why the offsets could not be pinned down, else what the motion left of D: one clause, not a bracket
+        prior, d_why = partial.source_parts(held.prior_sources[BASE.slice("D").start])
+        _, o_why = partial.source_parts(held.prior_sources[BASE.slice("o").start])
         msg = (f"{where}: the motion in this log determines no part of the magnetometer calibration, not even the "
-               f"offsets with D held at {held.prior_sources[BASE.slice('D').start]} (the field turned through "
-               f"too few directions). To fix: {ROTATE_ADVICE}")
+               f"offsets with D held at {prior}, as {o_why or d_why or 'the field turned through too few directions'}. "
+               f"To fix: {ROTATE_ADVICE}")
         raise InsufficientDataError(msg)
     return more

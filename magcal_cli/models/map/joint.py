@@ -26,7 +26,6 @@ from magcal_cli.align import interpolate
 from magcal_cli.config import Config
 from magcal_cli.detect import MIN_STILL_S
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.findings import Finding, Severity
 from magcal_cli.models import consistency
 from magcal_cli.models.accel import G
 from magcal_cli.models.epochs import MAX_EPOCHS, Epochs, Noise, epochs_for, initial_noise
@@ -34,7 +33,7 @@ from magcal_cli.models.factor import Factor
 from magcal_cli.models.gyro import Preintegrated, preintegrate_log
 from magcal_cli.models.map import init as map_init
 from magcal_cli.models.map.cost import held_out
-from magcal_cli.models.map.estimate import MapEstimate
+from magcal_cli.models.map.estimate import MapEstimate, widening_note
 from magcal_cli.models.map.fit import DIP_BASIN_DEG, REPREINTEGRATE_RAD
 from magcal_cli.models.map.joint_cov import factors, joint_variance_ratios, joint_widening
 from magcal_cli.models.map.joint_solve import (
@@ -304,12 +303,7 @@ def _results(problem: Problem, je: JointEpochs, data: JointData, pre: Preintegra
         where = f"{problem.where}: {ep.mag_id}"
         condition, findings = check_observability(cov[np.ix_(c, c)], ep.scale, ep.acc, where)
         if np.any(widen[c] > 1.0):
-            findings.append(Finding(
-                Severity.WARNING, "correlated_residuals",
-                f"{where}: the residuals are correlated in time beyond the noise model (quantised readings, "
-                f"unmodelled motion or a disturbance); the uncertainty of its joint-fit parameters was widened up "
-                f"to {float(widen[c].max()):.1f}x (time-clustered sandwich estimate)",
-                {"max_factor": float(widen[c].max())}))
+            findings.append(widening_note(where, ep.mag_id, float(widen[c].max())))
         r = resid[i]
         rms = float(np.sqrt(np.mean((r * noise.mag[i] * ep.scale) ** 2)))
         ests.append(MapEstimate(ep.mag_id, theta[c], widened[np.ix_(c, c)],

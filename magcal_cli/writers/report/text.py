@@ -9,9 +9,11 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from magcal_cli import effects as registry
 from magcal_cli import so3, units
 from magcal_cli.atomic import write_text
 from magcal_cli.calibration.types import MagCalibration
+from magcal_cli.diagnose.summary import fold, p_is, unit_suffix
 from magcal_cli.effects.correct import terms
 from magcal_cli.findings import Severity
 from magcal_cli.methods.table import title
@@ -23,6 +25,8 @@ if TYPE_CHECKING:
 #: the unit a report shows a native unit in (tesla is unreadable at Earth-field scale)
 DISPLAY = {"tesla": ("microtesla", "uT"), "millitesla": ("microtesla", "uT"), "microtesla": ("microtesla", "uT"),
            "nanotesla": ("microtesla", "uT"), "gauss": ("milligauss", "mG"), "milligauss": ("milligauss", "mG")}
+#: an effect's test kind -> its name in a sentence
+TESTS = {"wald": "Wald test", "score": "score test"}
 
 
 def vec(v: npt.ArrayLike, fmt: str = "{:+.3f}") -> str:
@@ -68,10 +72,12 @@ def render(result: RunResult) -> str:
              f"Method:  {title(cal.method)}"]
     if src.timing:
         lines.append(f"Timing:  {sentence(src.timing)}")
+    if result.outputs:
+        lines.append(f"Files:   {', '.join(result.outputs)}")
     if cal.diagnosis:
         lines += ["", "What the recording says"]
-        for block in cal.diagnosis.get("sensors", [cal.diagnosis]):
-            lines += textwrap.wrap(str(block.get("summary", "")), 100, initial_indent="  ", subsequent_indent="  ")
+        for text in fold([str(b.get("summary", "")) for b in cal.diagnosis.get("sensors", [cal.diagnosis])]):
+            lines += textwrap.wrap(text, 100, initial_indent="  ", subsequent_indent="  ")
     still = result.still
     still_s = sum(s.end - s.start for s in still.segments)
     imu = cal.imu
@@ -88,7 +94,7 @@ def render(result: RunResult) -> str:
     for mag in cal.magnetometers:
         lines += [""] + _render_mag(mag, result)
     if cal.effects:
-        lines += ["", "Effects beyond the base model"] + [_render_effect(e) for e in cal.effects]
+        lines += ["", "Effects beyond the base model", *render_effects(cal.effects)]
     notes = [f for f in result.findings if f.severity is Severity.WARNING] + \
             [f for f in result.findings if f.severity is Severity.INFO]
     if notes:
@@ -125,6 +131,7 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
                   f"{q.field_norm_rms_pct:.3f} % RMS over {q.samples} readings",
                   f"    model residual     {q.residual_rms * units.to_si(mag.unit) * units.from_si(unit):.4f} {sym} RMS",
                   f"    coverage           {q.coverage_pct:.0f} % of the sphere of field directions",
+                  *([f"    uncertainty        {widening_sentence(factor)}"] if (factor := widening(result, mag.id)) else []),
                   f"    solver             {'converged' if q.converged else 'NOT converged'} "
                   f"after {q.iterations} iterations"]
     carried = tuple(eff.id for _, eff in terms(result.calibration.effects, mag.id))
@@ -132,13 +139,26 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
     return lines
 
 
+def widening(result: RunResult, mag_id: str) -> float | None:
+    """How far the fit widened this magnetometer's uncertainties for residuals correlated in time (None: not)."""
+    factors = [float(f.evidence["max_factor"]) for f in result.findings
+               if f.code == "correlated_residuals" and f.evidence.get("sensor") == mag_id and "max_factor" in f.evidence]
+    return max(factors) if factors else None
+
+
+def widening_sentence(factor: float) -> str:
+    """The widening as the report's finding: its number, why, and that the stds above include it."""
+    return (f"widened up to {factor:.1f}x: the residuals are correlated in time beyond the noise model, and the "
+            "stds above include it")
+
+
 def held_sentence(mag: MagCalibration) -> str:
     """One sentence on a partial calibration: what was held, at what, and why."""
     names = ", ".join(str(h["parameter"]) for h in mag.held)
     sources = "; ".join(sorted({str(h["source"]) for h in mag.held}))
-    return (f"Partial calibration: this log's motion cannot determine {names}, so they are held at {sources} "
-            "(their std is that prior's doubt) and the rest is estimated from the data; a recording with more "
-            "tilt in every direction would determine them too.")
+    return (f"Partial calibration: this log's motion cannot determine {names}, so they are held at their prior, "
+            "with its doubt as their std, and the rest is estimated from the data; a recording with more tilt in "
+            f"every direction would determine them too. Their prior: {sources}.")
 
 
 class TextReport:
@@ -162,15 +182,44 @@ def fmt_param(value: Any, std: Any) -> str:
     return str(value)
 
 
-def _render_effect(e: dict[str, Any]) -> str:
-    """One line per effect: id, sensor, status, parameters with std and units, test, the physics sentence."""
-    params = e.get("params") or {}
-    std = e.get("std") or {}
-    units_of = e.get("units") or {}
-    parts = [f"{k} = {fmt_param(v, std.get(k))} {units_of.get(k, '')}".rstrip() for k, v in params.items()]
+def by_effect(effects: tuple[dict[str, Any], ...]) -> dict[str, list[dict[str, Any]]]:
+    """The document's effects[] grouped by effect id, in the order each id first appears."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for e in effects:
+        out.setdefault(str(e.get("id")), []).append(e)
+    return out
+
+
+def physics(eid: str, entries: list[dict[str, Any]]) -> str:
+    """What an effect is, said once for all its sensors; with the recording that separates it from the rivals a log
+    could not tell it apart from."""
+    known = eid in registry.EFFECTS
+    text = registry.get(eid).physics_left_out if known else str(entries[0].get("physics_left_out", ""))
+    rivals = sorted({r for e in entries if e.get("status") == "ambiguous" for r in e.get("confounded_with") or ()})
+    if rivals and known:
+        text += (f" To tell it apart from {' or '.join(rivals)}, record "
+                 f"{registry.get(eid).separating_experiment}.")
+    return text
+
+
+def effect_line(e: dict[str, Any]) -> str:
+    """One sensor's verdict on an effect: status and test, then the estimates with std and unit, then why."""
     test = e.get("test") or {}
     p = test.get("p_value")
-    kind = {"wald": "Wald", "score": "score test"}.get(str(test.get("kind")), str(test.get("kind")))
-    tail = f"; {kind} p = {p:.2g}" if isinstance(p, float) and np.isfinite(p) else ""
-    what = "; ".join(parts) if parts else e.get("reason", "")
-    return f"  - {e.get('id')} ({e.get('sensor')}): {e.get('status')}{tail}. {what}\n    {e.get('physics_left_out')}"
+    kind = str(test.get("kind"))
+    head = f"{e.get('sensor')}: {str(e.get('status')).replace('_', ' ')}"
+    if isinstance(p, float) and np.isfinite(p):
+        head += f", {TESTS.get(kind, kind)} {p_is(p)}"
+    std, units_of = e.get("std") or {}, e.get("units") or {}
+    parts = [f"{k} = {fmt_param(v, std.get(k))}{unit_suffix(units_of.get(k))}"
+             for k, v in (e.get("params") or {}).items()]
+    return "; ".join([head, *parts, *([str(e["reason"])] if e.get("reason") else [])])
+
+
+def render_effects(effects: tuple[dict[str, Any], ...]) -> list[str]:
+    """Every effect considered: what it is, once, then one line per sensor it was tested on."""
+    lines = []
+    for eid, entries in by_effect(effects).items():
+        lines += textwrap.wrap(f"{eid}: {physics(eid, entries)}", 100, initial_indent="  ", subsequent_indent="    ")
+        lines += [f"    - {effect_line(e)}" for e in entries]
+    return lines

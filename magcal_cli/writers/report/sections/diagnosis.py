@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from html import escape
 
+from magcal_cli.diagnose.summary import p_text
 from magcal_cli.writers.report.sections.base import Context
-from magcal_cli.writers.report.sections.markup import num
 
 
 def render(ctx: Context) -> str:
@@ -21,8 +21,8 @@ def render(ctx: Context) -> str:
         top = ", ".join(f"{t.get('statistic')} (z {t.get('z')})" for t in (b.get("ppc") or {}).get("top", []))
         where = "; ".join(f"{a:g}–{z:g} s" for a, z in loc.get("time_windows_s", [])) or "none"
         band = loc.get("band_hz")
-        rows.append(f"<tr><td>{escape(str(b.get('sensor')))}</td><td>{num(before, '{:.3g}')} &rarr; "
-                    f"{num(after, '{:.3g}')}</td><td>{escape(', '.join(loc.get('axes', [])) or '–')}</td>"
+        rows.append(f"<tr><td>{escape(str(b.get('sensor')))}</td><td>{escape(p_text(before))} &rarr; "
+                    f"{escape(p_text(after))}</td><td>{escape(', '.join(loc.get('axes', [])) or '–')}</td>"
                     f"<td>{escape(where)}</td><td>{escape('–' if not band else f'{band[0]:g}–{band[1]:g} Hz')}</td>"
                     f"<td>{escape(top)}</td></tr>")
     return (f"<section id='{ctx.anchor}'><h2>Diagnosis</h2><p>A simulation check compares the recording with "

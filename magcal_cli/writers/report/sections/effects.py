@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from html import escape
 
+from magcal_cli.diagnose.summary import p_text, unit_suffix
 from magcal_cli.writers.report.data import EffectView
 from magcal_cli.writers.report.imu import imu_effect_views
 from magcal_cli.writers.report.plots import Plot, effect_grid
 from magcal_cli.writers.report.sections.base import Context
-from magcal_cli.writers.report.sections.markup import badge, figures, num
-from magcal_cli.writers.report.text import fmt_param
+from magcal_cli.writers.report.sections.markup import badge, figures
+from magcal_cli.writers.report.text import by_effect, fmt_param, physics
 
 #: effect status -> the badge's CSS class
 STATUS_CLASS = {"accepted": "good", "ambiguous": "check", "rejected": "muted", "not_testable": "muted"}
@@ -33,17 +34,18 @@ def render(ctx: Context) -> str:
     imu = imu_figure(imu_effect_views(ctx.result))
     plots = [imu] if imu is not None else []
     rows = []
-    for e in ctx.result.calibration.effects:
-        params, std, unit_of = e.get("params") or {}, e.get("std") or {}, e.get("units") or {}
-        values = "<br>".join(escape(f"{k} = {fmt_param(v, std.get(k))} {unit_of.get(k, '')}".rstrip())
-                             for k, v in params.items())
-        p = (e.get("test") or {}).get("p_value")
-        status = str(e.get("status"))
-        rows.append(f"<tr><td>{escape(str(e.get('id')))}</td><td>{escape(str(e.get('sensor')))}</td>"
-                    f"<td>{badge(STATUS_CLASS.get(status, 'muted'), status)}</td><td>{values or '&ndash;'}</td>"
-                    f"<td>{num(p if isinstance(p, float) else None, '{:.2g}')}</td>"
-                    f"<td>{escape(str(e.get('reason') or ''))}<br><span class='muted'>"
-                    f"{escape(str(e.get('physics_left_out') or ''))}</span></td></tr>")
+    for eid, entries in by_effect(ctx.result.calibration.effects).items():
+        for i, e in enumerate(entries):      # what the effect is: once, on its first sensor's row
+            params, std, unit_of = e.get("params") or {}, e.get("std") or {}, e.get("units") or {}
+            values = "<br>".join(escape(f"{k} = {fmt_param(v, std.get(k))}{unit_suffix(unit_of.get(k))}")
+                                 for k, v in params.items())
+            p = (e.get("test") or {}).get("p_value")
+            status = str(e.get("status"))
+            about = "" if i else f"<br><span class='muted'>{escape(physics(eid, entries))}</span>"
+            rows.append(f"<tr><td>{escape(eid)}</td><td>{escape(str(e.get('sensor')))}</td>"
+                        f"<td>{badge(STATUS_CLASS.get(status, 'muted'), status.replace('_', ' '))}</td>"
+                        f"<td>{values or '&ndash;'}</td><td>{escape(p_text(p if isinstance(p, float) else None))}"
+                        f"</td><td>{escape(str(e.get('reason') or ''))}{about}</td></tr>")
     if not rows:
         return (f"<section id='{ctx.anchor}'><h2>Effects</h2><p>The base model only: no effect was tested "
                 "(<code>--effects none</code> or a method without effect terms).</p></section>")

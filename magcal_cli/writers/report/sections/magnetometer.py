@@ -36,7 +36,7 @@ from magcal_cli.writers.report.plots import (
 )
 from magcal_cli.writers.report.sections.base import Context
 from magcal_cli.writers.report.sections.markup import badge, figures, matrix, pm, rows
-from magcal_cli.writers.report.text import DISPLAY, held_sentence, vec
+from magcal_cli.writers.report.text import DISPLAY, held_sentence, vec, widening, widening_sentence
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -69,6 +69,7 @@ def render(ctx: Context) -> str | None:
                                                    f"{q.field_norm_rms_pct:.3f} % RMS ({q.samples} readings)")),
                   ("model residual", escape(f"{q.residual_rms * f:.4g} {sym} RMS")),
                   ("coverage", escape(f"{q.coverage_pct:.0f} % of the field directions")),
+                  *([("uncertainty", escape(widening_sentence(factor)))] if (factor := widening(result, mag.id)) else []),
                   ("solver", escape(f"{'converged' if q.converged else 'NOT converged'} after {q.iterations} "
                                     "iterations"))]
     text = [f"<h3>{badge(verdict.level, verdict.label)}</h3>", rows(pairs)]

@@ -18,6 +18,7 @@ def render(ctx: Context) -> str:
              ("time span used", escape(f"{src.start_s:.2f} – {src.end_s:.2f} s")),
              *([("sample timing", escape(sentence(src.timing)))] if src.timing else []),
              ("magcal", escape(f"{cal.magcal_version}, {cal.created_utc}")),
-             ("files", "calibration.json / calibration.yaml (<code>magcal.calibration/1</code>), report.txt")]
+             ("files written", escape(", ".join(ctx.result.outputs) or "report.html")),
+             ("schema", "calibration.json and calibration.yaml: <code>magcal.calibration/1</code>")]
     return (f"<section id='{ctx.anchor}'><h2>Provenance</h2>{rows(pairs)}<details><summary>The text report "
             f"(report.txt)</summary><pre>{escape(render_text(ctx.result))}</pre></details></section>")
