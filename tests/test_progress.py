@@ -1,5 +1,8 @@
 """stderr: the progress line's text, rate and time left (fake clock, fake terminal), its absence with -q or off a
-terminal, and the warnings grouped one line per kind."""
+terminal, and the warnings grouped one line per kind; the whole a stage belongs to ("magnetometer 2 of 3" and the
+whole's time left), threaded items and report figures that move their stage (issue 30 item 5).
+
+Modules it covers (the mirrored test file aside): magcal_cli.diagnose.parallel."""
 
 from __future__ import annotations
 
@@ -260,3 +263,98 @@ def test_the_map_fit_reports_its_noise_rounds(sim60: Simulation, tmp_path: Path)
         fit_map(problem, problem.mags[0])
     rounds = [c for c in calls if "joint MAP, noise round" in c[0]]
     assert rounds and rounds[0][1] == 0 and all(c[2] == rounds[0][2] for c in rounds)
+
+
+def test_parts_name_the_whole_and_its_time_left() -> None:
+    """Issue 30 item 5: inside a part the stage names the whole ("magnetometer 2 of 3"); once a part has ended the
+    whole's time left follows from the parts' mean duration, and the line then carries that one estimate (the
+    stage's own is left out). A whole of one part passes its stages unchanged."""
+    clock = Clock()
+    p, out = live(clock, width=200)
+    parts = progress_mod.Parts(p, "magnetometer", 3, clock=clock)
+    with parts.part(0):
+        current()("MAG[0]: joint MAP", 0, 4)
+        clock.t += 10.0
+    with parts.part(1):
+        clock.t += 2.0
+        current()("MAG[1]: joint MAP", 2, 4)
+        clock.t += 1.5                     # the stage's own rate would give a time left: not shown beside the whole's
+        current()("MAG[1]: joint MAP", 3, 4)
+    assert frames(out) == ["magcal: magnetometer 1 of 3: MAG[0]: joint MAP:   0 %",
+                           "magcal: magnetometer 2 of 3, about 18 s left: MAG[1]: joint MAP:  50 %",
+                           "magcal: magnetometer 2 of 3, about 16 s left: MAG[1]: joint MAP:  75 %"]
+    seen: list[tuple[str, float | None, float | None]] = []
+    one = progress_mod.Parts(lambda s, d=None, t=None: seen.append((s, d, t)), "magnetometer", 1, clock=clock)
+    for _ in one.each(["MAG[0]"]):
+        current()("MAG[0]: joint MAP", 1, 2)
+    assert seen == [("MAG[0]: joint MAP", 1, 2)]
+
+
+def test_a_fit_of_several_magnetometers_names_each(tmp_path: Path) -> None:
+    """Issue 30 item 5: the joint MAP method's stages say which magnetometer of how many they belong to."""
+    from magcal_cli.config import Config
+    from magcal_cli.pipeline import calibrate
+
+    calls: list[str] = []
+    write_log(simulate("handheld", 4, rate=50.0, mag_rate=25.0, duration=40.0, n_mags=2), tmp_path / "two.mcap")
+    with active(lambda stage, done=None, total=None: calls.append(stage)):
+        calibrate(tmp_path / "two.mcap", Config(method="map", robust_loss="huber"))   # fitted one at a time
+    assert any(c.startswith("magnetometer 1 of 2: /imu/mag: joint MAP") for c in calls), calls
+    assert any(c.startswith("magnetometer 2 of 2") and "/imu/mag1: joint MAP" in c for c in calls), calls
+
+
+def test_threaded_items_move_their_stage_while_they_run() -> None:
+    """Issue 30 item 5: the diagnosis' folds are few and long; their own reports move the stage between their ends
+    (up to ITEM_CAP of an item before it ends), the number never goes back and ends at the count."""
+    seen: list[float] = []
+
+    def item(x: int) -> int:
+        for k in range(4):
+            current()(f"fit {x}", k, 4)         # as a fold's fits report through current()
+        return x
+
+    assert pmap(item, [1, 2], jobs=1, done=lambda d, n: seen.append(d)) == [1, 2]
+    assert seen == pytest.approx([0.25, 0.5, 0.75, 0.9, 1.0, 1.25, 1.5, 1.75, 1.9, 2.0])
+    seen.clear()
+    pmap(item, list(range(6)), jobs=2, done=lambda d, n: seen.append(d))
+    assert seen[0] < 1 and seen[-1] == 6 and all(b >= a for a, b in zip(seen, seen[1:], strict=False)), seen
+
+
+def test_report_figures_move_the_progress_line(tmp_path: Path) -> None:
+    """Issue 30 item 5: report.html's figures took seconds without an update (6 s on log171); each figure now moves
+    the "writing report.html" stage, from 0 to 1 and never back."""
+    from magcal_cli.config import Config
+    from magcal_cli.pipeline import calibrate
+    from magcal_cli.writers.report import plots
+    from magcal_cli.writers.report.html import STAGE, render_html
+
+    result = calibrate(SAMPLE, Config(effects=()))
+    drawn: list[int] = []
+    real = plots.png
+
+    def counted(fig: object) -> str:
+        drawn.append(1)
+        return real(fig)  # type: ignore[arg-type]
+
+    calls: list[tuple[str, float | None, float | None]] = []
+    with active(lambda stage, done=None, total=None: calls.append((stage, done, total))):
+        import magcal_cli.writers.report.sections.magnetometer as mag_section
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(plots, "png", counted)
+            mp.setattr(mag_section, "png", counted)
+            render_html(result)
+    mine = [d / t for s, d, t in calls if s == STAGE and d is not None and t]
+    assert len(drawn) >= 3 and len(set(mine)) > len(drawn), (len(drawn), mine)
+    assert mine[0] == 0.0 and mine[-1] == 1.0 and all(b >= a for a, b in zip(mine, mine[1:], strict=False))
+
+
+def test_fit_shows_its_writing_on_the_terminal(runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                               ) -> None:
+    """Issue 30 item 5: fit's live line stays up while the outputs are written (report.html's figures), instead of
+    freezing on the last fitting stage."""
+    _as_terminal(monkeypatch)
+    monkeypatch.setattr(progress_mod, "RATE_HZ", 1e9)
+    result = runner.invoke(cli, ["fit", str(SAMPLE), "-o", str(tmp_path / "out"), "--effects", "none"])
+    assert result.exit_code == 0, result.output
+    assert "magcal: writing report.html: 100 %" in result.stderr
+    assert (tmp_path / "out" / "report.html").is_file()

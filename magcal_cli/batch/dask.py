@@ -8,11 +8,16 @@ absolute paths, so they need the same file system (a shared or network drive) an
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import time
+import uuid
 from collections import deque
+from dataclasses import replace
 from typing import Any
 
 from magcal_cli.batch.plan import Job, LogReport
-from magcal_cli.batch.run import Done, died, run_one
+from magcal_cli.batch.run import STOP_GRACE_S, STOP_POLL_S, Done, Interrupted, died, run_one, stopped
 from magcal_cli.errors import MissingDependencyError
 
 INSTALL_HINT = "pip install 'magcal-cli[fleet]'"
@@ -55,11 +60,13 @@ def _workers(client: Any) -> list[str]:
 
 
 def run_dask(jobs: list[Job], address: str, done: Done) -> tuple[list[LogReport], int]:
-    """Fit `jobs` on the cluster at `address`, one log per worker at a time; (reports, workers seen)."""
+    """Fit `jobs` on the cluster at `address`, one log per worker at a time; (reports, workers seen). Ctrl-C
+    raises Interrupted after `_stop`."""
     distributed = require_distributed()
     client = _connect(distributed, address)
     reports: list[LogReport] = []
-    pending = deque(jobs)
+    stop = distributed.Event(f"magcal-batch-stop-{uuid.uuid4().hex}", client=client)
+    pending = deque(replace(j, stop=stop.name) for j in jobs)
     busy: dict[Any, tuple[Job, str]] = {}
     seen = set(_workers(client))
     free = deque(sorted(seen))
@@ -93,8 +100,34 @@ def run_dask(jobs: list[Job], address: str, done: Done) -> tuple[list[LogReport]
             for new in submit():
                 running.add(new)
     except KeyboardInterrupt:
-        client.cancel(list(busy))                   # a running fit finishes and renames its outputs whole
-        raise
+        reports += _stop(client, stop, busy)
+        raise Interrupted(reports) from None
     finally:
         client.close()
     return reports, len(seen)
+
+
+def _stop(client: Any, stop: Any, busy: dict[Any, tuple[Job, str]]) -> list[LogReport]:
+    """Ctrl-C: the queued jobs are never sent; the running fits see `stop` set at their next progress report
+    (`run._stopped_by`: no signal reaches a worker's thread) and end without renaming anything into place. Their
+    reports are those that came back within STOP_GRACE_S (the others are reported stopped, and their tasks
+    released: they end on their own, leaving nothing)."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not abandon the stop
+    try:
+        with contextlib.suppress(Exception):   # a scheduler that cannot be told: the fits end unaware, as before
+            stop.set()
+        deadline = time.monotonic() + STOP_GRACE_S
+        while any(not f.done() for f in busy) and time.monotonic() < deadline:
+            time.sleep(STOP_POLL_S / 4)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    finished, late = [f for f in busy if f.done()], [f for f in busy if not f.done()]
+    reports = [stopped(busy[f][0]) for f in late]
+    for fut in finished:
+        try:
+            reports.append(fut.result())
+        except Exception:  # noqa: BLE001 - the task failed under the stop: nothing of it was renamed into place
+            reports.append(stopped(busy[fut][0]))
+    with contextlib.suppress(Exception):
+        client.cancel(list(late))
+    return reports

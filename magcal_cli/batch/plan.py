@@ -26,7 +26,7 @@ STATUS_FILE = "batch.json"
 FORMAT_VERSION = 1
 #: what --effects auto parses to (as in cli.common.AUTO): the diagnosis chooses the effects
 AUTO_EFFECTS = ("auto",)
-DEFAULT_OUTPUTS = ("json", "yaml", "report", "plots")
+DEFAULT_OUTPUTS = ("json", "yaml", "report", "html")
 GLOB_CHARS = frozenset("*?[")
 #: statuses whose outputs are complete (a gate verdict does not change on a rerun with the same options)
 COMPLETE = ("ok", "gate_failed")
@@ -48,13 +48,16 @@ class FitOptions:
     strict: bool = False
     imu_timing: Sampling | None = None              # None: the log format's own (timing.py)
     mag_timing: Sampling | None = None
+    start_s: float | None = None                    # --start/--end: the part of every log to fit
+    end_s: float | None = None
 
     def fingerprint(self) -> dict[str, Any]:
         """What batch.json records: outputs fitted with other options (or another magcal) are not up to date."""
         return {"magcal_version": __version__, "method": self.method, "effects": list(self.effects),
                 "outputs": None if self.outputs is None else list(self.outputs), "mags": list(self.mags),
                 "fail_on": [str(c) for c in self.fail_on], "strict": self.strict,
-                **{k: getattr(self, k).value for k in ("imu_timing", "mag_timing") if getattr(self, k) is not None}}
+                **{k: getattr(self, k).value for k in ("imu_timing", "mag_timing") if getattr(self, k) is not None},
+                **{k: getattr(self, k) for k in ("start_s", "end_s") if getattr(self, k) is not None}}
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,7 @@ class Job:
     names: tuple[str, ...]                          # outputs to write
     auto: str | None                                # the firmware output added when the log's format takes it
     options: FitOptions
+    stop: str | None = None                         # on a Dask cluster: the Event whose setting stops the fit
 
 
 @dataclass

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from magcal_cli import __version__
+from magcal_cli import __version__, progress
 from magcal_cli.batch.plan import LogReport, exit_code
 
 STATUS_TEXT = {"ok": "ok", "skipped": "skipped (up to date)", "failed": "failed", "gate_failed": "gate failed",
@@ -92,7 +94,38 @@ def document(reports: list[LogReport], wall_s: float, runner: Runner, outdir: Pa
     return json.dumps(doc, indent=2, default=float) + "\n"
 
 
-def progress_line(r: LogReport, done: int, total: int) -> str:
-    """'[3/100] log7: ok in 4.2 s' (stderr), with the error of a failed log."""
+def progress_line(r: LogReport, done: int, total: int, left: float | None = None) -> str:
+    """'[3/100] log7: ok in 4.2 s' (stderr), with the error of a failed log and, when known, the time left of the
+    batch: '[3/100, about 6 min left] ...'."""
     tail = f": {STATUS_TEXT.get(r.status, r.status)}" + ("" if r.status == "skipped" else f" in {r.seconds:.1f} s")
-    return f"[{done}/{total}] {r.name}{tail}" + (f" (exit {r.exit_code}): Error: {r.error}" if r.error else "")
+    head = f"{done}/{total}" + (f", about {progress.duration(left)} left" if left is not None else "")
+    return f"[{head}] {r.name}{tail}" + (f" (exit {r.exit_code}): Error: {r.error}" if r.error else "")
+
+
+class Tally:
+    """The batch's progress lines, one per log that ends, with the batch's time left once a log was fitted: the
+    logs left at the rate logs were fitted so far (on all workers together; skipped logs aside)."""
+
+    def __init__(self, total: int, clock: Callable[[], float] = time.monotonic) -> None:
+        """`total` logs, skipped ones included; `clock` is injectable for tests."""
+        self.total, self.clock, self.start = total, clock, clock()
+        self.ended = self.fitted = 0
+
+    def line(self, r: LogReport) -> str:
+        """The progress line of the next log that ended."""
+        self.ended += 1
+        self.fitted += r.status != "skipped"
+        rest = self.total - self.ended
+        left = (self.clock() - self.start) / self.fitted * rest if self.fitted and rest else None
+        return progress_line(r, self.ended, self.total, left if left is None or left >= 1.0 else None)
+
+
+def interrupted_line(reports: list[LogReport], total: int) -> str:
+    """Ctrl-C's line: the logs done, stopped (nothing of theirs written) and not started, and how to go on."""
+    stopped = sum(r.status == "interrupted" for r in reports)
+    done = len(reports) - stopped
+    skip = "the one done is skipped" if done == 1 else f"the {done} done are skipped"
+    rest = f"; run the same command again to fit the other {total - done} ({skip})" if done else \
+        "; run the same command again to fit them"
+    return (f"interrupted: {done} of {total} logs done, {stopped} stopped with nothing of theirs written, "
+            f"{total - done - stopped} not started{rest}")

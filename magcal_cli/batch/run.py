@@ -5,8 +5,10 @@ memory goes back to the system."""
 from __future__ import annotations
 
 import contextlib
+import importlib
 import multiprocessing
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -14,7 +16,7 @@ import time
 import traceback
 import warnings
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed, wait
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from types import FrameType
@@ -22,6 +24,7 @@ from typing import Any
 
 from magcal_cli.batch.plan import AUTO_EFFECTS, Job, LogReport, write_status
 from magcal_cli.errors import MagcalError
+from magcal_cli.progress import Hook, active, noop
 from magcal_cli.writers.fitrun import USER_ERRNOS
 
 #: logs a local worker fits before it is replaced (its memory returned); forked from a preloaded server, a new
@@ -37,7 +40,19 @@ WORKER_DIED = ("the worker process fitting this log died (killed, e.g. out of me
                "with magcal fit to see why")
 #: how often a Ctrl-C'd batch interrupts its workers again until they have stopped (s)
 STOP_POLL_S = 0.2
+#: how long a Ctrl-C'd batch waits for its running fits to stop and clean up before it kills their workers (s): a
+#: fit deep in a long computation, or waiting for its threads, answers only when that ends (once 14 s)
+STOP_GRACE_S = 0.3
 Done = Callable[[LogReport], None]
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C stopped the batch: `reports` holds the logs that ended, complete or stopped ("interrupted")."""
+
+    def __init__(self, reports: list[LogReport]) -> None:
+        """The reports gathered up to the stop."""
+        super().__init__()
+        self.reports = reports
 
 
 def _interrupt_once(_: int, __: FrameType | None) -> None:
@@ -96,7 +111,7 @@ def _fit(job: Job, report: LogReport, start: float) -> None:
     auto = o.effects == AUTO_EFFECTS
     cfg = Config(method=o.method, mag=",".join(o.mags) or "all", allow_truncated=not o.strict,
                  effects=() if auto else o.effects, diagnose=auto, imu_timing=o.imu_timing,
-                 mag_timing=o.mag_timing)
+                 mag_timing=o.mag_timing, start_s=o.start_s, end_s=o.end_s)
     result = calibrate(job.log, cfg)
     report.format, report.method = result.recording.format, result.calibration.method
     names = list(job.names)
@@ -121,12 +136,38 @@ def _fit(job: Job, report: LogReport, start: float) -> None:
     write_fit_outputs(result, job.outdir, names, job.auto, report.warnings.append, complete)
 
 
+def _stopped_by(name: str | None) -> Hook:
+    """A Dask task's progress hook: KeyboardInterrupt, as Ctrl-C in a process, once the batch has set the Dask
+    Event `name` (checked at most every STOP_POLL_S; a scheduler that cannot be asked stops nothing). A task
+    runs in a worker's thread, which no signal reaches: the fit stops at its next progress report, a figure or a
+    step of an estimator, and renames nothing into place."""
+    if name is None:
+        return noop
+    distributed = importlib.import_module("distributed")        # untyped: as batch.dask has it
+
+    event, last, lock = distributed.Event(name), [-float("inf")], threading.Lock()
+
+    def check(stage: str, done: float | None = None, total: float | None = None) -> None:
+        with lock:
+            now = time.monotonic()
+            if now - last[0] < STOP_POLL_S:
+                return
+            last[0] = now
+        try:
+            stop = event.is_set()
+        except Exception:  # noqa: BLE001 - the scheduler gone or busy: the fit goes on
+            return
+        if stop:
+            raise KeyboardInterrupt
+    return check
+
+
 def run_one(job: Job) -> LogReport:
     """Fit one log; every outcome but Ctrl-C is a report with the exit code `magcal fit` would have given."""
     report = LogReport(str(job.log), job.name, str(job.outdir), "ok", 0)
     start = time.perf_counter()
     try:
-        with _interruptible():
+        with _interruptible(), active(_stopped_by(job.stop)):
             _fit(job, report, start)
     except KeyboardInterrupt:
         if not report.outputs:
@@ -163,6 +204,11 @@ def _internal(report: LogReport, exc: BaseException) -> None:
 def died(job: Job, why: str = WORKER_DIED) -> LogReport:
     """The report of a log whose worker process died under it."""
     return LogReport(str(job.log), job.name, str(job.outdir), "failed", 123, error=f"{job.log}: {why}")
+
+
+def stopped(job: Job) -> LogReport:
+    """The report of a log whose fit Ctrl-C stopped before it answered (nothing of it is left)."""
+    return LogReport(str(job.log), job.name, str(job.outdir), "interrupted", 130, error="interrupted")
 
 
 def _context() -> Any:
@@ -216,40 +262,97 @@ def _pool(workers: int) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_worker_init, **extra)
 
 
-def _stop(pool: ProcessPoolExecutor) -> None:
-    """Ctrl-C: interrupt the running fits (they clean up), drop the queued ones and wait for the workers."""
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not abandon the workers
+def _signal_workers(pool: ProcessPoolExecutor, sig: int) -> None:
+    """Send `sig` to every worker process of `pool` now."""
+    for pid in list(getattr(pool, "_processes", None) or {}):
+        with contextlib.suppress(OSError):
+            os.kill(pid, sig)
+
+
+def _stop(pool: ProcessPoolExecutor, futures: dict[Future[LogReport], Job], since: float, existed: set[Path]
+          ) -> list[LogReport]:
+    """Ctrl-C: drop the queued fits and interrupt the running ones, which clean up and report; a worker that has not
+    reported within STOP_GRACE_S is killed, and what its fit left in its folder is removed (`_discard`). Returns the
+    reports of the logs that were running: interrupted, or complete when the Ctrl-C came during their last renames."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C must not abandon the clean-up
     try:
-        closing = threading.Thread(target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True})
-        closing.start()
-        while closing.is_alive():
+        for fut in futures:
+            fut.cancel()                    # the queued ones
+        pending = {f for f in futures if not f.done()}
+        deadline = time.monotonic() + STOP_GRACE_S
+        while pending and (now := time.monotonic()) < deadline:
             # again and again: a log already queued to a fresh worker starts after the first signal, and
             # `kill -INT` on magcal alone must reach the workers too (a worker takes only the first)
-            for pid in list(getattr(pool, "_processes", None) or {}):
-                with contextlib.suppress(OSError):
-                    os.kill(pid, signal.SIGINT)
-            closing.join(STOP_POLL_S)
+            _signal_workers(pool, signal.SIGINT)
+            pending = wait(pending, timeout=min(STOP_POLL_S, deadline - now)).not_done
+        if pending:
+            _signal_workers(pool, signal.SIGKILL)
+        pool.shutdown(wait=True, cancel_futures=True)       # at once: every worker has ended or been killed
     finally:
         signal.signal(signal.SIGINT, previous)
+    reports = []
+    for fut, job in futures.items():
+        if fut.cancelled():
+            continue
+        try:
+            reports.append(fut.result())
+        except Exception:  # noqa: BLE001 - killed (BrokenProcessPool): its fit may have left files behind
+            _discard(job, since, job.outdir not in existed)
+            reports.append(stopped(job))
+    return reports
+
+
+def _discard(job: Job, since: float, created: bool) -> None:
+    """What a killed worker's fit left in the log's folder: its staging folder and temporary files, and outputs it
+    had renamed into place without the batch.json that marks them complete (all newer than `since`, the batch's
+    start: nothing older is touched); then the folder itself when the batch `created` it and it is empty."""
+    from magcal_cli.batch.plan import STATUS_FILE
+    from magcal_cli.writers import get_writer
+
+    folder = job.outdir
+    if not folder.is_dir():
+        return
+
+    def ours(p: Path) -> bool:
+        with contextlib.suppress(OSError):
+            return p.stat().st_mtime >= since
+        return False
+
+    for p in (p for p in folder.glob(".*.part") if ours(p)):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    if not ours(folder / STATUS_FILE):          # an unfinished set of renames: not complete, not kept
+        names = (*job.names, *([job.auto] if job.auto else []))
+        for f in (folder / f for n in names for f in get_writer(n).files):
+            if ours(f):
+                f.unlink(missing_ok=True)
+    if created:
+        with contextlib.suppress(OSError):
+            folder.rmdir()                      # only when empty
 
 
 def run_local(jobs: list[Job], workers: int, done: Done) -> list[LogReport]:
     """Fit `jobs` in `workers` local processes, calling `done` as each finishes; a log whose worker dies
-    (killed out of memory, a crash) is reported failed and the others go on. KeyboardInterrupt propagates after
-    the workers stopped."""
+    (killed out of memory, a crash) is reported failed and the others go on. Ctrl-C raises Interrupted once the
+    workers have stopped, within about STOP_GRACE_S, leaving no fit's files half-written."""
     _single_threaded_blas()
     reports: list[LogReport] = []
     order = {id(j): i for i, j in enumerate(jobs)}
-    broken = _run_pool(jobs, workers, done, reports)
-    while broken:
-        # a dying worker breaks the whole pool and fails every unfinished log with it, the queued ones too.
-        # The earliest submitted was running, so the likeliest culprit: it is retried alone (and reported
-        # if its worker dies again), the rest go back to a full pool
-        suspect, *rest = sorted(broken, key=lambda j: order[id(j)])
-        if _run_pool([suspect], 1, done, reports):
-            reports.append(died(suspect))
-            done(reports[-1])
-        broken = _run_pool(rest, workers, done, reports)
+    try:
+        broken = _run_pool(jobs, workers, done, reports)
+        while broken:
+            # a dying worker breaks the whole pool and fails every unfinished log with it, the queued ones too.
+            # The earliest submitted was running, so the likeliest culprit: it is retried alone (and reported
+            # if its worker dies again), the rest go back to a full pool
+            suspect, *rest = sorted(broken, key=lambda j: order[id(j)])
+            if _run_pool([suspect], 1, done, reports):
+                reports.append(died(suspect))
+                done(reports[-1])
+            broken = _run_pool(rest, workers, done, reports)
+    except KeyboardInterrupt:
+        raise Interrupted(reports) from None
     return reports
 
 
@@ -258,9 +361,12 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
     if not jobs:
         return []
     broken: list[Job] = []
+    since = time.time()                   # what a killed fit leaves is newer than this (_discard)
+    existed = {j.outdir for j in jobs if j.outdir.exists()}
     pool = _pool(max(1, min(workers, len(jobs))))
+    futures: dict[Future[LogReport], Job] = {}
+    seen: set[Future[LogReport]] = set()      # the futures whose outcome is in `reports` or `broken`
     try:
-        futures: dict[Future[LogReport], Job] = {}
         for i, j in enumerate(jobs):
             try:
                 futures[pool.submit(run_one, j)] = j
@@ -268,6 +374,7 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
                 broken.extend(jobs[i:])
                 break
         for fut in as_completed(futures):
+            seen.add(fut)
             try:
                 report = fut.result()
             except BrokenProcessPool:
@@ -278,7 +385,7 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
             reports.append(report)
             done(report)
     except KeyboardInterrupt:
-        _stop(pool)
+        reports += _stop(pool, {f: j for f, j in futures.items() if f not in seen}, since, existed)
         raise
     pool.shutdown(wait=True)
     return broken

@@ -7,17 +7,13 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from magcal_cli.cli import options
+from magcal_cli.cli import guards, options
 from magcal_cli.cli.common import (
     CONTEXT,
-    effects_option,
-    gates_option,
     handle_errors,
-    parse_outputs,
     say,
     verbosity,
 )
-from magcal_cli.methods.table import CHOICES
 
 if TYPE_CHECKING:
     from magcal_cli.streams import Sampling
@@ -31,25 +27,24 @@ BATCH_EXIT = ("Exit codes: 0 every log fitted (or up to date); 1 a log could not
 
 @click.command("batch", context_settings=CONTEXT, epilog=BATCH_EXIT)
 @click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
-@click.option("-o", "--outdir", type=click.Path(path_type=Path), required=True,
-              help="Output directory: each log's outputs go to DIR/<log stem>/ (a longer unique name when stems "
-                   "collide), with the batch.json status that makes a rerun skip it.")
+@options.option("outdir", required=True,
+                help="Output folder: each log's outputs go to DIR/<log stem>/ (a longer unique name when stems "
+                     "collide), with the batch.json status that makes a rerun skip it.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=None,
               help="Local worker processes, one log at a time each [default: the number of cores].")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Fit on the Dask cluster at this scheduler (e.g. tcp://10.0.0.5:8786) instead of local processes; "
                    "the workers need the same paths and magcal with: pip install 'magcal-cli[fleet]'.")
 @options.mag("calibrate in every log")
-@click.option("--method", type=click.Choice(CHOICES), default="auto", show_default=True,
-              help="Calibration method, as in magcal fit.")
-@click.option("--effects", "effects", default="auto", show_default=True, metavar="auto|none|ID[,ID...]",
-              callback=effects_option, help="Physics beyond the base model, as in magcal fit.")
-@click.option("--outputs", default=None,
-              help="Comma-separated outputs per log, as in magcal fit [default: json,yaml,report,plots and the "
-                   "firmware file of ArduPilot and PX4 logs].")
-@click.option("--fail-on", "fail_on", default=None, metavar="EXPR", callback=lambda c, p, v: gates_option(v, "fit"),
-              help="A log whose magnetometer meets a condition is 'gate failed' (its exit 3), as in magcal fit.")
-@click.option("--strict", is_flag=True, help="Refuse cut logs instead of reading them up to their last record.")
+@options.option("method", ", as in magcal fit")
+@options.option("effects", help="Physics beyond the base model, as in magcal fit (repeatable, comma-separated) "
+                                 "[default: auto].")
+@options.option("outputs", " of each log", default_text="as in magcal fit: json,yaml,report,html and the firmware "
+                                                        "file of ArduPilot and PX4 logs")
+@options.window("each log")
+@options.option("fail-on", callback=options.fail_on("fit"),
+                help="A log whose magnetometer meets a condition is 'gate failed' (its exit 3), as in magcal fit.")
+@options.option("strict", help="Refuse cut logs instead of reading them up to their last record.")
 @options.as_json("Print one JSON document with one entry per log.")
 @options.force("Overwrite outputs that are not up to date (up-to-date logs are "
                "still skipped; remove DIR/<log>/batch.json to refit one).")
@@ -58,9 +53,9 @@ BATCH_EXIT = ("Exit codes: 0 every log fitted (or up to date); 1 a log could not
 @click.pass_context
 @handle_errors
 def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: int | None, scheduler: str | None,
-              mags: tuple[str, ...], method: str, effects: tuple[str, ...], outputs: str | None,
-              fail_on: tuple[Any, ...], strict: bool, as_json: bool, force: bool, imu_timing: Sampling | None,
-              mag_timing: Sampling | None) -> None:
+              mags: tuple[str, ...], method: str, effects: tuple[str, ...], outputs: tuple[str, ...] | None,
+              start_s: float | None, end_s: float | None, fail_on: tuple[Any, ...], strict: bool, as_json: bool,
+              force: bool, imu_timing: Sampling | None, mag_timing: Sampling | None) -> None:
     """Fit many logs (files, folders searched recursively, globs) in parallel, locally or on a Dask cluster.
 
     Each log is fitted as 'magcal fit LOG -o DIR/<name>/' would; logs whose outputs are complete and newer than
@@ -70,7 +65,8 @@ def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: i
     import time
 
     from magcal_cli.batch.plan import BatchUsageError, FitOptions, discover, exit_code, plan
-    from magcal_cli.batch.report import Runner, document, progress_line, table
+    from magcal_cli.batch.report import Runner, Tally, document, interrupted_line, table
+    from magcal_cli.batch.run import Interrupted
 
     if jobs is not None and scheduler is not None:
         msg = "--jobs sets local processes; with --scheduler the cluster's workers fit the logs. Give one of them"
@@ -79,8 +75,9 @@ def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: i
         from magcal_cli.batch.dask import require_distributed
 
         require_distributed()                       # before any work: one line naming the extra to install
-    names = None if outputs is None else tuple(parse_outputs(outputs))
-    opts = FitOptions(method, effects, names, mags, fail_on, strict, imu_timing, mag_timing)
+    guards.time_window(start_s, end_s)
+    guards.method_effects(method, effects)
+    opts = FitOptions(method, effects, outputs, mags, fail_on, strict, imu_timing, mag_timing, start_s, end_s)
     try:
         work = plan(discover(list(inputs), outdir), outdir, opts, force)
     except BatchUsageError as exc:
@@ -88,26 +85,29 @@ def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: i
     workers = jobs or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
     where = f"the Dask cluster at {scheduler}" if scheduler else f"{workers} local worker{'s' * (workers != 1)}"
     say(ctx, f"{len(work.order)} logs: {len(work.jobs)} to fit, {len(work.skipped)} up to date; fitting on {where}")
-    count = [0]
+    tally = Tally(len(work.order))
 
     def done(r: Any) -> None:
-        count[0] += 1
-        say(ctx, progress_line(r, count[0], len(work.order)))
+        say(ctx, tally.line(r))
         if r.traceback and ctx.obj.get("verbose"):
             click.echo(r.traceback, err=True, nl=False)
 
     for r in work.skipped:
         done(r)
     start = time.perf_counter()
-    if scheduler is not None:
-        from magcal_cli.batch.dask import run_dask
+    try:                                            # Ctrl-C: the workers stopped within a second, nothing half-written
+        if scheduler is not None:
+            from magcal_cli.batch.dask import run_dask
 
-        reports, seen = run_dask(work.jobs, scheduler, done)
-        runner = Runner("dask", seen, scheduler)
-    else:
-        from magcal_cli.batch.run import run_local
+            reports, seen = run_dask(work.jobs, scheduler, done)
+            runner = Runner("dask", seen, scheduler)
+        else:
+            from magcal_cli.batch.run import run_local
 
-        reports, runner = run_local(work.jobs, workers, done), Runner("local", workers)
+            reports, runner = run_local(work.jobs, workers, done), Runner("local", workers)
+    except Interrupted as stop:
+        click.echo(f"Error: {interrupted_line([*work.skipped, *stop.reports], len(work.order))}", err=True)
+        ctx.exit(130)
     wall = time.perf_counter() - start
     by_log = {r.log: r for r in (*work.skipped, *reports)}
     ordered = [by_log[log] for log in work.order if log in by_log]

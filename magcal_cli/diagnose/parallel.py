@@ -7,9 +7,11 @@ threads share the problem's arrays without copying or pickling them.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
+
+from magcal_cli.progress import Shares
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -19,20 +21,14 @@ JOBS = int(os.environ.get("MAGCAL_JOBS", "0")) or min(2, os.cpu_count() or 1)
 
 
 def pmap(fn: Callable[[T], R], items: Sequence[T], jobs: int = JOBS,
-         done: Callable[[int, int], None] | None = None) -> list[R]:
-    """[fn(x) for x in items], in order, on up to `jobs` threads; `done(i, n)` after each of the first i results,
-    called in the caller's thread (where the progress hook lives)."""
+         done: Callable[[float, int], None] | None = None) -> list[R]:
+    """[fn(x) for x in items], in order, on up to `jobs` threads; `done(d, n)` as they progress: d counts the items
+    ended and the running items' share of their own progress reports (progress.Shares: a stage of few long items
+    moves while they run), called from the items' threads in the caller's context (its progress hook)."""
+    if done is not None:
+        shares = Shares(len(items), done)
+        return pmap(lambda ix: shares.run(ix[0], fn, ix[1]), list(enumerate(items)), jobs)
     if jobs <= 1 or len(items) <= 1:
-        return _collect((fn(x) for x in items), len(items), done)
+        return [fn(x) for x in items]
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        return _collect(pool.map(fn, items), len(items), done)
-
-
-def _collect(results: Iterator[R], n: int, done: Callable[[int, int], None] | None) -> list[R]:
-    """The results as a list, reporting each arrival."""
-    out: list[R] = []
-    for r in results:
-        out.append(r)
-        if done is not None:
-            done(len(out), n)
-    return out
+        return list(pool.map(fn, items))

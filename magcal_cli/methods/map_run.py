@@ -23,6 +23,7 @@ from magcal_cli.models.map.shared import is_shared, shared
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import HeldEntry, ImuFit, MagFit, MethodResult
 from magcal_cli.params import BASE, MAG
+from magcal_cli.progress import Parts, current
 from magcal_cli.streams import Stream
 
 
@@ -120,7 +121,8 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     diagnoses: list[dict[str, Any]] = []
     joint, joint_note = fit_joint_or_note(problem, cfg, loss, dip_prior)
     done = {} if joint is None else {e.mag_id: e for e in joint.estimates}
-    for m in (m for m in problem.mags if m.id not in done):   # later ones start from the first's IMU levels
+    todo = [m for m in problem.mags if m.id not in done]
+    for m in Parts(current(), "magnetometer", len(todo)).each(todo):   # later ones start from the first's IMU levels
         start = ests[0].noise if ests else None
         est, mine = with_known_physics(problem, m, loss, dip_prior, start, cache, cfg.effects, declination)
         if cfg.diagnose:

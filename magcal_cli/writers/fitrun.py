@@ -35,8 +35,10 @@ def write_fit_outputs(result: RunResult, outdir: Path, names: list[str], auto: s
     """write_outputs; the firmware file fit adds on its own is skipped with a warning when the calibration
     cannot be written as parameters (asked for with --outputs, it stays an error)."""
     from magcal_cli.firmware import FirmwareError
+    from magcal_cli.progress import current
     from magcal_cli.writers import write_outputs
 
+    current()("writing the outputs", 0)      # a stage of its own; a stopped batch task stops here (batch.run)
     try:
         return write_outputs(result, outdir, names, then)
     except FirmwareError as exc:

@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -180,28 +181,119 @@ def test_worker_death_fails_that_log_only(logs: Path, tmp_path: Path) -> None:
     assert "worker process fitting this log died" in next(r.error for r in reports if r.name == "killer")
 
 
+#: how soon after Ctrl-C a batch must have exited (issue 30: "within 1 s"; the margin is a loaded test machine's)
+CTRL_C_S = 1.5
+
+
+def _exit_after_sigint(proc: subprocess.Popen[str]) -> tuple[float, str]:
+    """SIGINT to the process group (as a terminal sends it); the seconds until the batch itself exited, and its
+    output (stderr, then stdout). Its pipes are read on threads: the forkserver, tearing down after magcal, holds
+    them a little longer."""
+    err: list[str] = []
+    readers = [threading.Thread(target=lambda f=f: err.append(f.read())) for f in (proc.stderr, proc.stdout) if f]
+    for r in readers:
+        r.start()
+    sent = time.monotonic()
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    took = time.monotonic() - sent
+    for r in readers:
+        r.join(timeout=20)
+    return took, "".join(err)
+
+
+def _nothing_half_written(out: Path) -> None:
+    """No staging or temporary file anywhere; every log folder complete (its batch.json is written last)."""
+    assert not [p for p in out.rglob("*") if p.name.startswith(".")], "staging files left behind"
+    for folder in (p for p in out.iterdir() if p.is_dir()) if out.exists() else ():
+        assert (folder / "batch.json").is_file(), f"{folder.name}: outputs without their status file"
+
+
 @pytest.mark.parametrize("when", ["starting", "fitting"])
 def test_ctrl_c_exits_130_and_leaves_nothing_half_written(logs: Path, tmp_path: Path, when: str) -> None:
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) while the workers start or while logs are
-    being fitted: exit 130 with one line; every log folder left is complete (its batch.json written last), and
-    no staging file remains."""
+    being fitted: exit 130 within CTRL_C_S with one line; every log folder left is complete (its batch.json
+    written last), and no staging file remains."""
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "magcal_cli", "batch", str(logs), "-o", str(out), "--jobs", "2",
-                             "--effects", "none", "--outputs", "json,report,plots"], stdout=subprocess.PIPE,
+                             "--effects", "none", "--outputs", "json,report,html"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True)
     assert proc.stderr is not None
     assert "fitting on" in proc.stderr.readline()             # the workers are starting
     if when == "fitting":
-        assert proc.stderr.readline().startswith("magcal: [1/4]")   # one log done; plots keep the next busy
+        assert proc.stderr.readline().startswith("magcal: [1/4")    # one log done; plots keep the next busy
     else:
         time.sleep(0.5)
-    os.killpg(proc.pid, signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+    took, err = _exit_after_sigint(proc)
     assert proc.returncode == 130, err
     assert "Error: interrupted" in err and "Traceback" not in err
-    assert not [p for p in out.rglob("*") if p.name.startswith(".")], "staging files left behind"
-    for folder in (p for p in out.iterdir() if p.is_dir()) if out.exists() else ():
-        assert (folder / "batch.json").is_file(), f"{folder.name}: outputs without their status file"
+    assert took < CTRL_C_S, f"exited {took:.1f} s after Ctrl-C"
+    _nothing_half_written(out)
+
+
+#: a sitecustomize for the batch's processes (the forkserver imports it too): the fit of a log named "deaf" writes
+#: half its report.html into its staging folder, then stops answering Ctrl-C (as deep inside a long computation:
+#: SIGINT blocked) for a minute, and tells the test so through the file $MAGCAL_TEST_DEAF
+DEAF_FIT = """
+import os, signal, time
+MARK = os.environ.get("MAGCAL_TEST_DEAF")
+if MARK:
+    from magcal_cli.writers.report import html
+    real = html.HtmlReport.write
+    def write(self, result, outdir):
+        if outdir.parent.name == "deaf":
+            (outdir / "report.html").write_text("<!doctype html><p>half a report")
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            with open(MARK, "w") as f:
+                f.write(str(os.getpid()))
+            time.sleep(60)
+        return real(self, result, outdir)
+    html.HtmlReport.write = write
+"""
+
+
+def _gone(pid: int) -> bool:
+    """The process has ended (absent, or a zombie not yet reaped)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc to see that the deaf worker was stopped")
+def test_ctrl_c_stops_a_fit_that_does_not_answer(logs: Path, tmp_path: Path) -> None:
+    """Issue 30: Ctrl-C once took 14 s, and a fit already running completed after it. A batch of several logs whose
+    one fit does not answer Ctrl-C (SIGINT blocked, half of its report.html staged) still exits 130 within
+    CTRL_C_S; that worker is stopped, its staged half-report and the folder the batch made for it are gone, and
+    every other folder is complete. (Before: the batch waited for that fit, here a minute.)"""
+    hooks, mark, out = tmp_path / "hooks", tmp_path / "deaf.pid", tmp_path / "out"
+    hooks.mkdir()
+    (hooks / "sitecustomize.py").write_text(DEAF_FIT)
+    deaf = tmp_path / "deaf.bin"
+    deaf.write_bytes((logs / "alpha.bin").read_bytes())
+    env = {**os.environ, "MAGCAL_TEST_DEAF": str(mark),
+           "PYTHONPATH": os.pathsep.join([str(hooks), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    proc = subprocess.Popen([sys.executable, "-m", "magcal_cli", "batch", str(deaf), str(logs / "alpha.bin"),
+                             str(logs / "charlie.csv"), "-o", str(out), "--jobs", "2", "--effects", "none"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
+    deadline = time.monotonic() + 120
+    while not mark.is_file() or not mark.read_text():
+        assert proc.poll() is None and time.monotonic() < deadline, "the deaf fit never started"
+        time.sleep(0.05)
+    took, err = _exit_after_sigint(proc)
+    assert proc.returncode == 130, err
+    assert took < CTRL_C_S, f"exited {took:.1f} s after Ctrl-C"
+    assert "Error: interrupted" in err and "Traceback" not in err
+    assert "stopped with nothing of theirs written" in err
+    pid = int(mark.read_text())
+    assert _gone(pid), "the worker that did not answer Ctrl-C still runs"
+    assert not (out / "deaf").exists(), sorted(p.name for p in (out / "deaf").rglob("*"))
+    _nothing_half_written(out)
 
 
 def test_dask_cluster_on_loopback(runner, logs: Path, tmp_path: Path) -> None:
@@ -220,3 +312,54 @@ def test_dask_cluster_on_loopback(runner, logs: Path, tmp_path: Path) -> None:
     assert (entries["alpha"]["status"], entries["bravo"]["status"]) == ("ok", "ok")
     assert entries["corrupt"]["exit_code"] == 1 and CORRUPT_MESSAGE in entries["corrupt"]["error"]
     assert (tmp_path / "out" / "bravo" / "calibration.json").is_file()
+
+
+#: a sitecustomize for the Dask workers: the fit of a log named "slow" draws its report for 4 s, reporting its
+#: progress (as the report's figures do), after telling the test through the file $MAGCAL_TEST_SLOW
+SLOW_FIT = """
+import os, time
+MARK = os.environ.get("MAGCAL_TEST_SLOW")
+if MARK:
+    from magcal_cli.progress import current
+    from magcal_cli.writers.report import html
+    real = html.HtmlReport.write
+    def write(self, result, outdir):
+        if outdir.parent.name == "slow":
+            open(MARK, "w").close()
+            for i in range(40):
+                time.sleep(0.1)
+                current()("drawing", i, 40)
+        return real(self, result, outdir)
+    html.HtmlReport.write = write
+"""
+
+
+def test_dask_ctrl_c_stops_the_running_fits(logs: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 30: on a Dask cluster a fit already running completed after Ctrl-C (cancelling a running task does
+    not stop it). Now the batch exits 130 within CTRL_C_S and the running fit stops at its next progress report:
+    long after the batch exited, its log's folder never appeared."""
+    distributed = pytest.importorskip("distributed", reason="magcal batch --scheduler needs the fleet extra: "
+                                                            "pip install 'magcal-cli[fleet]'")
+    hooks, mark, out = tmp_path / "hooks", tmp_path / "slow.started", tmp_path / "out"
+    hooks.mkdir()
+    (hooks / "sitecustomize.py").write_text(SLOW_FIT)
+    slow = tmp_path / "slow.bin"
+    slow.write_bytes((logs / "alpha.bin").read_bytes())
+    monkeypatch.setenv("MAGCAL_TEST_SLOW", str(mark))          # the cluster's worker processes inherit both
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(hooks), *filter(None, [os.environ.get("PYTHONPATH")])]))
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        proc = subprocess.Popen([sys.executable, "-m", "magcal_cli", "batch", str(slow), "-o", str(out),
+                                 "--scheduler", cluster.scheduler_address, "--effects", "none"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        deadline = time.monotonic() + 120
+        while not mark.is_file():
+            assert proc.poll() is None and time.monotonic() < deadline, "the slow fit never started"
+            time.sleep(0.05)
+        took, err = _exit_after_sigint(proc)
+        assert proc.returncode == 130, err
+        assert took < CTRL_C_S, f"exited {took:.1f} s after Ctrl-C"
+        assert "Error: interrupted" in err and "Traceback" not in err
+        time.sleep(6.0)                    # the slow fit, had it gone on, would have renamed its outputs by now
+    assert not (out / "slow").exists(), sorted(p.name for p in (out / "slow").rglob("*"))
+    _nothing_half_written(out)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from html import escape
+from itertools import accumulate
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from magcal_cli.atomic import write_text
+from magcal_cli.progress import active, current, steps
 from magcal_cli.writers.report.sections import (
     diagnosis,
     effects,
@@ -71,6 +73,10 @@ details summary{cursor:pointer;color:#1f5fa8;margin:10px 0}
 """
 
 
+#: the progress line's stage while the page is rendered (its figures take seconds)
+STAGE = "writing report.html"
+
+
 #: the page's sections in order: its navigation links and its body both come from here, so a new section is its
 #: module under sections/ and one line
 SECTIONS: tuple[Section, ...] = (
@@ -88,7 +94,16 @@ def render_html(result: RunResult) -> str:
     """The whole page: a link per section, then the sections, in the order of SECTIONS."""
     cal = result.calibration
     page = Context(result, verdicts(result), groups(result.findings, [m.id for m in cal.magnetometers]))
-    shown = [(c, body) for s in SECTIONS for c in s.contexts(page) if (body := s.render(c)) is not None]
+    todo = [(s, c) for s in SECTIONS for c in s.contexts(page)]
+    # the progress line's share of each section: a magnetometer's draws four figures, the others one at most
+    share = list(accumulate((1.0 if s.per_magnetometer else 0.25 for s, _ in todo), initial=0.0))
+    hook, shown = current(), []
+    for k, (s, c) in enumerate(todo):          # each figure drawn moves the progress line (plots.png)
+        with active(steps(hook, STAGE, share[k] / share[-1], share[k + 1] / share[-1])):
+            body = s.render(c)
+        if body is not None:
+            shown.append((c, body))
+    hook(STAGE, 1.0, 1.0)
     nav = "".join(f"<a href='#{escape(c.anchor)}'>{escape(c.title)}</a>" for c, _ in shown)
     name = Path(cal.source.path).name
     return ("<!doctype html>\n<html lang='en'><head><meta charset='utf-8'>"
@@ -102,7 +117,7 @@ def render_html(result: RunResult) -> str:
 class HtmlReport:
     """report.html: the report with its plots in one self-contained file."""
 
-    name: ClassVar[str] = "plots"
+    name: ClassVar[str] = "html"
     files: ClassVar[tuple[str, ...]] = ("report.html",)
 
     def write(self, result: RunResult, outdir: Path) -> list[Path]:

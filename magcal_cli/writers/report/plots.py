@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from magcal_cli.progress import current
 from magcal_cli.streams import FloatArray
 from magcal_cli.writers.report.data import EffectView, thin
 
@@ -55,6 +56,7 @@ def png(fig: Figure) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI)
     plt.close(fig)
+    current()("drawing the report's figures", 0)      # one step of the report's progress per figure (html.py)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
