@@ -39,7 +39,7 @@ def commands(real: Path) -> list[tuple[str, list[str]]]:
         ("export", ["magcal export out/log171/calibration.json --ardupilot out/log171.param",
                     "magcal export out/sample/calibration.json --px4 -"]),
         ("apply", ["magcal apply out/sample/calibration.json sample_logs/handheld.bin -o - | head -3"]),
-        ("simulate", ["magcal simulate -o out/sim.ulg --scenario multirotor --seed 1 --duration 60",
+        ("simulate", ["magcal simulate -o out/sim.ulg --scenario multirotor --seed 1 --duration 120",
                       "magcal simulate -o out/sim.bin --effects current_interference --seed 2"]),
         ("batch", [f"magcal batch sample_logs/handheld.ulg {ulg} -o out/batch --effects none"]),
         ("Mistakes", ["magcal fit sample_logs/handheld.bin -o README.md", "magcal fit sample_logs/handheld.bin "
