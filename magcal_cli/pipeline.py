@@ -50,9 +50,11 @@ AUX_KINDS = frozenset({Kind.BATTERY_CURRENT, Kind.BATTERY_VOLTAGE, Kind.THROTTLE
 
 def _known_physics(cfg: Config, aux: tuple[Stream, ...]) -> tuple[str, ...]:
     """Effects `--effects auto` models in every fit: a flight's acceleration where its position measured it."""
-    from magcal_cli.effects.nongravity import flying
+    if not cfg.diagnose:
+        return ()
+    from magcal_cli.effects.nongravity import flying  # on use: scipy.signal brings scipy.stats (issue 27)
 
-    return ("nongravity_acceleration",) if cfg.diagnose and flying(aux) else ()
+    return ("nongravity_acceleration",) if flying(aux) else ()
 
 
 def select_problem(rec: Recording, cfg: Config) -> Problem:

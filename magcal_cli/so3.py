@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
-from scipy.spatial.transform import Rotation
 
 from magcal_cli.streams import FloatArray
 
@@ -75,6 +74,8 @@ def log(rot: npt.ArrayLike) -> FloatArray:
 
     Goes through the quaternion (Shepperd's method in scipy), which stays accurate near 0 and near pi.
     """
+    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
+
     rot = np.asarray(rot, dtype=np.float64)
     flat = rot.reshape(-1, 3, 3)
     out = Rotation.from_matrix(flat).as_rotvec()
@@ -115,6 +116,8 @@ def left_jacobian(phi: npt.ArrayLike) -> FloatArray:
 
 def from_quat(q: npt.ArrayLike) -> FloatArray:
     """Rotation matrices from (..., 4) quaternions (w, x, y, z); they need not be normalised."""
+    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
+
     q = np.asarray(q, dtype=np.float64)
     flat = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix()
     result: FloatArray = flat.reshape(q.shape[:-1] + (3, 3))
@@ -123,6 +126,8 @@ def from_quat(q: npt.ArrayLike) -> FloatArray:
 
 def as_quat(rot: npt.ArrayLike) -> FloatArray:
     """(..., 4) quaternions (w, x, y, z) with w >= 0 of rotation matrices."""
+    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
+
     rot = np.asarray(rot, dtype=np.float64)
     flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat(canonical=True, scalar_first=True)
     result: FloatArray = flat.reshape(rot.shape[:-2] + (4,))
@@ -131,6 +136,8 @@ def as_quat(rot: npt.ArrayLike) -> FloatArray:
 
 def from_rpy(rpy: npt.ArrayLike) -> FloatArray:
     """Rz(yaw) Ry(pitch) Rx(roll) from (..., 3) roll, pitch, yaw in radians (roll applied first)."""
+    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
+
     rpy = np.asarray(rpy, dtype=np.float64)
     flat = Rotation.from_euler("ZYX", rpy.reshape(-1, 3)[:, ::-1]).as_matrix()
     result: FloatArray = flat.reshape(rpy.shape[:-1] + (3, 3))
@@ -139,6 +146,8 @@ def from_rpy(rpy: npt.ArrayLike) -> FloatArray:
 
 def as_rpy(rot: npt.ArrayLike) -> FloatArray:
     """(..., 3) roll, pitch, yaw in radians with rot = Rz(yaw) Ry(pitch) Rx(roll)."""
+    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
+
     rot = np.asarray(rot, dtype=np.float64)
     flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_euler("ZYX")[:, ::-1]
     result: FloatArray = flat.reshape(rot.shape[:-2] + (3,))

@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
 from magcal_cli import so3
 from magcal_cli.align import columns
@@ -189,6 +188,8 @@ def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generat
 def check(problem: Problem, mag: Stream, est: MapEstimate, replicates: int = REPLICATES, seed: int = 0,
           progress: Hook | None = None, stage: str = "replicates") -> Check:
     """Compare the recording with `replicates` simulations from the fit `est`."""
+    from scipy import stats  # on use: its import costs 0.3-1.2 s (issue 27)
+
     hook = progress or current()
     ctx = est.context
     assert ctx is not None

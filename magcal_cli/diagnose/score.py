@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
 from magcal_cli import effects as registry
 from magcal_cli.models.gyro import Preintegrated, preintegrate_log
@@ -137,6 +136,8 @@ def _lags(clusters: int) -> int:
 def screen(problem: Problem, mag: Stream, est: MapEstimate, ids: Sequence[str],
            declination: float = 0.0) -> Screen:
     """Score-test each candidate effect against the fitted base model `est` (which must carry its context)."""
+    from scipy import stats  # on use: its import costs 0.3-1.2 s (issue 27)
+
     ctx = est.context
     assert ctx is not None
     bias = ctx.pre.bias + ctx.layout.get(ctx.theta, "gyroscope_bias")

@@ -15,7 +15,6 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 from scipy.interpolate import CubicSpline
-from scipy.signal import savgol_filter
 
 from magcal_cli import so3
 from magcal_cli.effects.base import (
@@ -69,6 +68,8 @@ def acceleration_grid(pos: Stream) -> tuple[FloatArray, FloatArray]:
     if grid.size <= window:
         msg = f"the position ({pos.id}) is too short to differentiate"
         raise NotTestable(msg)
+    from scipy.signal import savgol_filter  # on use: scipy.signal brings scipy.stats (issue 27)
+
     acc = savgol_filter(ned, window, POLY_ORDER, deriv=2, delta=1.0 / GRID_HZ, axis=0)
     # a degree-7 fit extrapolates wildly at the ends and across gaps between fixes (17 m/s^2 at the first fix of
     # a real log): no acceleration is known there, so none is claimed (and `known` keeps those rows out)

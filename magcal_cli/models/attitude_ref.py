@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
 from magcal_cli import align, so3
 from magcal_cli.config import Config
@@ -151,6 +150,8 @@ def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField
                  prior: MagPrior | None) -> tuple[MagFit, EffectFit | None]:
     """D and o of one magnetometer against the vehicle's attitude and the WMM field (SI), with the current
     interference c (y += c I) where the log's current varies."""
+    from scipy import stats  # on use: its import costs 0.3-1.2 s (issue 27)
+
     where = f"{problem.where}: {mag.id}"
     ok, q = align.onto(att, mag.t)                    # slerped, inside the attitude's span, no gap bridged
     rot = np.full((mag.t.size, 3, 3), np.nan)

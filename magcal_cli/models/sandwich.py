@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from magcal_cli.detect import chi2_ppf
 from magcal_cli.models.factor import Factor, run_start
 from magcal_cli.models.solve import Solution
 from magcal_cli.streams import FloatArray
@@ -137,10 +138,8 @@ def std_factors(model: FloatArray, robust: FloatArray, clusters: int, lags: int,
                 ) -> FloatArray:
     """sqrt(robust / model) variances where that ratio exceeds its 1 - false_alarm quantile under a correct
     noise model (chi2(nu)/nu, nu from `bartlett_dof`), else 1."""
-    from scipy import stats
-
     nu = bartlett_dof(clusters, lags)
-    threshold = stats.chi2.ppf(1.0 - false_alarm, nu) / nu
+    threshold = chi2_ppf(1.0 - false_alarm, nu) / nu
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.where(model > 0, robust / model, 1.0)
     out: FloatArray = np.where(ratio > threshold, np.sqrt(ratio), 1.0)

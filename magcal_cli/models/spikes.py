@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from magcal_cli.streams import FloatArray
 
@@ -15,6 +14,8 @@ def despike(y: FloatArray, width: int = 5, k: float = 6.0, share: float = 0.05) 
     standard deviations (1.4826 MAD) of those deviations and by more than `share` of the typical field
     magnitude: only spikes large enough to distort the algebraic ellipsoid fit. Returns readings and count.
     """
+    from scipy import ndimage  # on use: not at `import magcal_cli.pipeline` (issue 27)
+
     med = ndimage.median_filter(y, size=(width, 1), mode="nearest")
     dev = np.linalg.norm(y - med, axis=1)
     mad = 1.4826 * float(np.median(np.abs(dev - np.median(dev))))

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
+from magcal_cli.detect import chi2_ppf
 from magcal_cli.models.factor import Factor, scale_rows
 from magcal_cli.models.mag import mag_factor
 from magcal_cli.models.map.joint_solve import JointData, JointSolution, imu_factors
@@ -118,7 +118,7 @@ def joint_widening(sol: JointSolution, fs: list[Factor], t: FloatArray, lags: in
     sand = s_inv @ newey_west(scores, lags) @ s_inv
     model = np.diag(s_inv)
     nu = bartlett_dof(count, lags)
-    threshold = stats.chi2.ppf(1.0 - false_alarm, nu) / nu
+    threshold = chi2_ppf(1.0 - false_alarm, nu) / nu
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.where(model > 0, np.diag(sand) / model, 1.0)
     return np.asarray(np.where(ratio > threshold, np.sqrt(ratio), 1.0), dtype=np.float64)

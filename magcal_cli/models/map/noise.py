@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from magcal_cli.models.epochs import Noise
 from magcal_cli.models.factor import Factor
@@ -42,7 +42,8 @@ def group_ratio(f: Factor, leverage: FloatArray, loss: str = "l2", c: float = 3.
     if loss != "l2":
         s2 = np.minimum(np.sum(f.r**2, axis=1), c * c)
         # E[min(X, c^2)] for X ~ chi2_m: m F_(m+2)(c^2) + c^2 (1 - F_m(c^2))
-        kappa = (m * stats.chi2.cdf(c * c, m + 2) + c * c * stats.chi2.sf(c * c, m)) / m
+        # chdtr/chdtrc are what scipy.stats.chi2.cdf/sf compute for x >= 0, without importing scipy.stats (issue 27)
+        kappa = (m * special.chdtr(m + 2, c * c) + c * c * special.chdtrc(m, c * c)) / m
         width = 1 if f.name == "gyro" else m
         ss = np.full(width, s2.sum() / kappa / m)
         dof = np.full(width, (rows * m - leverage.sum()) / m)

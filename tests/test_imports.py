@@ -1,0 +1,48 @@
+"""What importing the package and reading a log import: no heavy module a run does not need (issue 27).
+
+scipy.stats costs 0.3-1.2 s to import, matplotlib 0.3 s, scipy.spatial 0.2 s; the format libraries are each
+imported by their own reader only. Each case runs in a fresh interpreter, so the modules it finds are the ones
+that code path imported.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "sample_logs"
+#: imported only by the code that needs them
+HEAVY = ("scipy.stats", "scipy.spatial", "scipy.signal", "matplotlib", "mcap", "rosbags", "pymavlink", "pyulog")
+FORMATS = ("mcap", "rosbags", "pymavlink", "pyulog")
+
+
+def _imported(code: str) -> set[str]:
+    """The modules of HEAVY (and numpy) in sys.modules after running `code` in a fresh interpreter."""
+    probe = (f"{code}\nimport json, sys\n"
+             f"print(json.dumps([m for m in {(*HEAVY, 'numpy')!r} if m in sys.modules]))")
+    out = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, check=True,
+                         timeout=120)
+    return set(json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def test_cli_imports_no_numpy() -> None:
+    """`magcal --help` and every command's --help need neither numpy nor anything heavier."""
+    assert _imported("import magcal_cli.cli.main") == set()
+
+
+def test_pipeline_imports_nothing_heavy() -> None:
+    """Importing the pipeline (what `fit` does first) brings none of the heavy modules."""
+    assert _imported("import magcal_cli.pipeline") & set(HEAVY) == set()
+
+
+@pytest.mark.parametrize(("log", "own"), [("handheld.bin", set()), ("handheld.mcap", {"mcap", "rosbags"}),
+                                          ("handheld.ulg", {"pyulog"}), ("handheld.bag", {"rosbags"})])
+def test_reader_imports_only_its_format_library(log: str, own: set[str]) -> None:
+    """Reading a log imports its own format library and no other one (and neither scipy.stats nor matplotlib)."""
+    found = _imported(f"from magcal_cli.readers import open_recording\nopen_recording({str(SAMPLES / log)!r})")
+    assert found & {*FORMATS, "scipy.stats", "matplotlib"} <= own
