@@ -330,7 +330,7 @@ def test_report_figures_move_the_progress_line(tmp_path: Path) -> None:
 
     result = calibrate(SAMPLE, Config(effects=()))
     drawn: list[int] = []
-    real = plots.png
+    real = plots.embed
 
     def counted(fig: object) -> str:
         drawn.append(1)
@@ -340,8 +340,8 @@ def test_report_figures_move_the_progress_line(tmp_path: Path) -> None:
     with active(lambda stage, done=None, total=None: calls.append((stage, done, total))):
         import magcal_cli.writers.report.sections.magnetometer as mag_section
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(plots, "png", counted)
-            mp.setattr(mag_section, "png", counted)
+            mp.setattr(plots, "embed", counted)
+            mp.setattr(mag_section, "embed", counted)
             render_html(result)
     mine = [d / t for s, d, t in calls if s == STAGE and d is not None and t]
     assert len(drawn) >= 3 and len(set(mine)) > len(drawn), (len(drawn), mine)

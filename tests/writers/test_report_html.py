@@ -11,9 +11,11 @@ magcal_cli.writers.report.text, magcal_cli.writers.report.verdict.
 
 from __future__ import annotations
 
+import base64
 import re
 from dataclasses import replace
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -78,10 +80,16 @@ def test_a_section_is_one_line(result: RunResult, monkeypatch: pytest.MonkeyPatc
 
 
 def test_page_is_self_contained_and_wraps(page: str) -> None:
-    """No script, no external resource; every image an embedded PNG; long lines wrap (issue 13 item 1)."""
+    """No script, no external resource; every image an embedded SVG (issue 27: drawn without matplotlib) with no
+    script or link of its own; long lines wrap (issue 13 item 1)."""
     assert "<script" not in page and "<link" not in page and not re.search(r"(src|href)=['\"](https?:|//)", page)
     images = re.findall(r"<img src='([^']*)'", page)
-    assert len(images) >= 3 and all(i.startswith("data:image/png;base64,") for i in images)
+    assert len(images) >= 3 and all(i.startswith("data:image/svg+xml;base64,") for i in images)
+    for uri in images:
+        svg = base64.b64decode(uri.split(",", 1)[1]).decode("utf-8")
+        root = ElementTree.fromstring(svg)            # well-formed
+        assert root.tag == "{http://www.w3.org/2000/svg}svg"
+        assert "<script" not in svg and "href" not in svg
     assert "overflow-wrap:anywhere" in page and "white-space:pre-wrap" in page
 
 
@@ -91,7 +99,7 @@ def test_plots_sit_beside_their_magnetometer(page: str, result: RunResult) -> No
         start = page.index(f"<h2>Magnetometer {mag.id}")
         section = page[start:page.index("</section>", start)]
         assert "class='pair'" in section and "hard iron b" in section
-        assert section.count("<img ") >= 3 and "Field on the sphere" in section
+        assert section.count("<img ") == 3 and "Field on the sphere" in section      # no modelled effect: 3
 
 
 def test_writer_writes_report_html(result: RunResult, tmp_path: Path) -> None:

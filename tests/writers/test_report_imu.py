@@ -10,6 +10,7 @@ import base64
 import re
 from dataclasses import replace
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -31,7 +32,7 @@ from magcal_cli.writers.report.imu import IMU_VIEWS, imu_effect_views
 
 IMU_EFFECTS = ("gyro_scale", "accel_scale", "lever_arm")
 #: the figure's <img> in the effects section, as render_html writes it
-FIGURE = re.compile(r"<img src='data:image/png;base64,([A-Za-z0-9+/=]+)' alt='IMU: Modelled IMU effects'>")
+FIGURE = re.compile(r"<img src='data:image/svg\+xml;base64,([A-Za-z0-9+/=]+)' alt='IMU: Modelled IMU effects'>")
 
 
 @pytest.fixture(scope="module")
@@ -69,12 +70,15 @@ def test_each_axis_follows_the_effect_before_and_flattens_after(result: RunResul
 
 
 def test_the_figure_is_in_the_effects_section(result: RunResult) -> None:
-    """One figure (three rows of three panels) after the effects table, a PNG that decodes; none without IMU effects,
+    """One figure (three rows of three panels) after the effects table, an SVG that parses with a panel per axis;
+    none without IMU effects,
     and a view whose data the log lacks (too few still poses for gyro_scale) is left out, not an error."""
     page = render_html(result)
     section = page[page.index("<section id='effects'>"):page.index("<section id='diagnosis'>")]
-    (png,) = FIGURE.findall(section)
-    assert base64.b64decode(png).startswith(b"\x89PNG\r\n\x1a\n")
+    (uri,) = FIGURE.findall(section)
+    svg = base64.b64decode(uri).decode("utf-8")
+    assert ElementTree.fromstring(svg).tag == "{http://www.w3.org/2000/svg}svg"
+    assert len(re.findall(r">(accel_scale|lever_arm|gyro_scale), [xyz] axis \(", svg)) == 9
     assert imu_effect_views(replace(result, calibration=replace(result.calibration, effects=()))) == []
     few = replace(result, still=replace(result.still, segments=result.still.segments[:2]))
     assert {v.effect_id for v in imu_effect_views(few)} == {"accel_scale", "lever_arm"}

@@ -22,25 +22,25 @@ from magcal_cli.writers.report.data import (
 from magcal_cli.writers.report.plots import (
     CAL,
     DIP,
+    EXCLUDED,
     RAW,
     REF,
-    WIDTH_IN,
+    STILL,
     WINDOW,
     Plot,
     effect_grid,
+    embed,
+    figure,
     legend_above,
     margins,
-    png,
-    pyplot,
     robust_ylim,
 )
 from magcal_cli.writers.report.sections.base import Context
 from magcal_cli.writers.report.sections.markup import badge, figures, matrix, pm, rows
+from magcal_cli.writers.report.svg import Axes, Handle
 from magcal_cli.writers.report.text import DISPLAY, held_sentence, vec, widening, widening_sentence
 
 if TYPE_CHECKING:
-    from matplotlib.axes import Axes
-
     from magcal_cli.calibration.run import RunResult
     from magcal_cli.calibration.types import MagCalibration
 
@@ -105,78 +105,76 @@ def mag_figures(result: RunResult, mag: MagCalibration) -> list[Plot]:
 def _shade(ax: Axes, still: tuple[tuple[float, float], ...], windows: tuple[tuple[float, float], ...]) -> None:
     """Still segments in grey, the diagnosis' windows in orange."""
     for a, b in still:
-        ax.axvspan(a, b, color="0.9", lw=0, zorder=0)
+        ax.vspan(a, b, STILL)
     for a, b in windows:
-        ax.axvspan(a, b, color=WINDOW, alpha=0.25, lw=0, zorder=0)
+        ax.vspan(a, b, WINDOW, alpha=0.25)
 
 
 def sphere(v: MagView) -> Plot:
     """Raw and calibrated field on the unit sphere, three projections (Kok et al. 2012, Fig. 1)."""
-    plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(WIDTH_IN, 3.1), gridspec_kw=margins(3.1, wspace=0.4, left_in=0.5, top_in=0.6))
+    fig = figure(3.1)
+    (axes,) = fig.grid(1, 3, margins(3.1, wspace=0.4, left_in=0.5, top_in=0.6))
     s = thin(len(v.t), 2500)
     circle = np.linspace(0, 2 * np.pi, 181)
     for ax, (i, j) in zip(axes, [(0, 1), (0, 2), (1, 2)], strict=True):
-        ax.plot(v.raw[s, i], v.raw[s, j], ".", ms=1.2, color=RAW, alpha=0.5, label="raw / field strength")
-        ax.plot(v.cal[s, i], v.cal[s, j], ".", ms=1.2, color=CAL, alpha=0.5, label="calibrated")
-        ax.plot(np.cos(circle), np.sin(circle), "-", color=REF, lw=0.8, label="unit circle")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.set_xlabel("xyz"[i])
-        ax.set_ylabel("xyz"[j])
-        ax.set_title(f"{'xyz'[i]}{'xyz'[j]} projection")
-    fig.legend(*axes[0].get_legend_handles_labels(), loc="upper center", ncols=3, markerscale=6, frameon=False)
+        ax.dots(v.raw[s, i], v.raw[s, j], RAW, 1.6, 0.5)
+        ax.dots(v.cal[s, i], v.cal[s, j], CAL, 1.6, 0.5)
+        ax.line(np.cos(circle), np.sin(circle), REF, width=1.07)
+        ax.equal = True
+        ax.xlabel, ax.ylabel, ax.title = "xyz"[i], "xyz"[j], f"{'xyz'[i]}{'xyz'[j]} projection"
+    fig.legend([Handle("dot", RAW, "raw / field strength"), Handle("dot", CAL, "calibrated"),
+                Handle("line", REF, "unit circle")], 3, markerscale=2.0)
     return Plot("Field on the sphere", "Raw readings (red, scaled by the field strength) form an offset, tilted "
                 "ellipsoid; calibrated readings (blue) should lie on the unit circle in every projection.",
-                png(fig))
+                embed(fig))
 
 
 def over_time(v: MagView) -> Plot:
     """Field strength, dip and the residuals over time, with still segments and the diagnosis' windows."""
-    plt = pyplot()
     n_rows = 3 if v.dip_cal is not None else 2
     height = 1.75 * n_rows + 0.4
-    fig, axes = plt.subplots(n_rows, 1, figsize=(WIDTH_IN, height), sharex=True,
-                             gridspec_kw=margins(height, hspace=0.3, right_in=0.6))
-    s = thin(len(v.t))
-    t = v.t[s]
+    fig = figure(height)
+    axes = [row[0] for row in fig.grid(n_rows, 1, margins(height, hspace=0.3, right_in=0.6))]
+    t = v.t
+    span = (float(t[0]), float(t[-1])) if t.size else (0.0, 1.0)
     ax = axes[0]
     _shade(ax, v.still, v.windows)
-    ax.plot(t, v.norm_raw_pct[s], color=RAW, label="raw |y| relative to its mean")
-    ax.plot(t, v.norm_cal_pct[s], color=CAL, label="calibrated |m|")
-    ax.set_ylabel("field strength\nerror [%]")
+    ax.line(t, v.norm_raw_pct, RAW, label="raw |y| relative to its mean")
+    ax.line(t, v.norm_cal_pct, CAL, label="calibrated |m|")
+    ax.ylabel = "field strength\nerror [%]"
     robust_ylim(ax, v.norm_raw_pct, v.norm_cal_pct)
     legend_above(ax, 2)
     if v.dip_raw is not None and v.dip_cal is not None:
         ax = axes[1]
         _shade(ax, v.still, v.windows)
-        ax.plot(t, v.dip_raw[s], color=RAW, alpha=0.8, label="raw")
-        ax.plot(t, v.dip_cal[s], color=CAL, alpha=0.8, label="calibrated")
-        ax.axhline(v.dip_deg, color=REF, ls="--", lw=0.8, label=f"fitted dip {v.dip_deg:.1f} deg")
-        ax.set_ylabel("dip [deg]")
+        ax.line(t, v.dip_raw, RAW, alpha=0.8, label="raw")
+        ax.line(t, v.dip_cal, CAL, alpha=0.8, label="calibrated")
+        ax.hline(v.dip_deg, REF, width=1.07, dash="4 2", label=f"fitted dip {v.dip_deg:.1f} deg")
+        ax.ylabel = "dip [deg]"
         robust_ylim(ax, v.dip_raw, v.dip_cal)
         legend_above(ax, 3)
     ax = axes[-1]
     _shade(ax, v.still, v.windows)
     for a, b in v.excluded:
-        ax.axvspan(a, b, color="0.6", alpha=0.4, lw=0, zorder=0)
-    ax.plot(t, v.norm_cal_pct[s], color=CAL, label="field strength [%]")
-    ax.axhline(0.0, color=REF, lw=0.6)
-    ax.set_ylabel("field strength\nresidual [%]", color=CAL)
-    robust_ylim(ax, v.norm_cal_pct)
-    ax.set_xlabel("time [s]")
+        ax.vspan(a, b, EXCLUDED, alpha=0.4)
     if v.dip_cal is not None:           # a second scale: degrees of dip and % of field strength do not compare
-        ax2 = ax.twinx()
-        ax2.plot(t, (v.dip_cal - v.dip_deg)[s], color=DIP, alpha=0.55, lw=0.6)
-        ax2.set_ylabel("dip residual [deg]", color=DIP)
+        ax2 = ax.twin()
+        ax2.line(t, v.dip_cal - v.dip_deg, DIP, width=0.8, alpha=0.55)
+        ax2.ylabel, ax2.ylabel_color = "dip residual [deg]", DIP
         robust_ylim(ax2, v.dip_cal - v.dip_deg)
-        ax2.grid(False)
-        ax2.spines["right"].set_visible(True)
-        ax.set_zorder(ax2.get_zorder() + 1)
-        ax.patch.set_visible(False)
+    ax.hline(0.0, REF, width=0.8)
+    ax.line(t, v.norm_cal_pct, CAL, label="field strength [%]")
+    ax.ylabel, ax.ylabel_color = "field strength\nresidual [%]", CAL
+    robust_ylim(ax, v.norm_cal_pct)
+    ax.xlabel = "time [s]"
+    for panel in axes:                  # one time axis for every panel; its numbers under the last one only
+        panel.xlim = span
+        panel.xticklabels = panel is axes[-1]
     where = " Orange bands: windows where the diagnosis located a mismatch." if v.windows else ""
     return Plot("Over time", "Top: the field strength, flat at 0 when calibrated. Middle: the field's dip below "
                 "the accelerometer's horizontal (noisy while the vehicle accelerates). Bottom: what the calibration "
-                f"leaves: field strength (blue, left scale) and dip (green, right scale). Grey: still segments.{where}", png(fig))
+                f"leaves: field strength (blue, left scale) and dip (green, right scale). Grey: still segments.{where}",
+                embed(fig))
 
 
 def _unwrapped(err: FloatArray) -> FloatArray:
@@ -190,59 +188,58 @@ def _hist(ax: Axes, x: FloatArray, label: str, color: str) -> None:
     """A histogram of the finite values of x, with its RMS and 95 % range in the title."""
     x = x[np.isfinite(x)]
     if x.size == 0:
-        ax.set_axis_off()
+        ax.off = True
         return
     lo, hi = np.percentile(x, [0.5, 99.5])
     counts, edges = np.histogram(x, bins=60, range=(lo, hi + 1e-12))
-    ax.stairs(counts, edges, fill=True, color=color, alpha=0.85)      # one patch, not 60 (ax.hist)
+    ax.stairs(counts.astype(np.float64), edges, color, alpha=0.85)
+    ax.ylim = (0.0, 1.05 * float(counts.max()))
     q = np.percentile(x, [2.5, 97.5])
-    ax.set_title(f"RMS {np.sqrt(np.mean(x ** 2)):.3g}; 95 % in [{q[0]:.2g}, {q[1]:.2g}]")
-    ax.set_xlabel(label)
-    ax.set_ylabel("readings")
+    ax.title = f"RMS {np.sqrt(np.mean(x ** 2)):.3g}; 95 % in [{q[0]:.2g}, {q[1]:.2g}]"
+    ax.xlabel, ax.ylabel = label, "readings"
 
 
 def quality(v: MagView, h: HeadingView) -> Plot:
     """Residual histograms, orientation coverage and heading error against heading."""
-    plt = pyplot()
-    fig = plt.figure(figsize=(WIDTH_IN, 5.4))
-    top, bottom = fig.add_gridspec(2, 2, **margins(5.4, hspace=0.55)), fig.add_gridspec(2, 3, **margins(5.4, 0.55, 0.55))
-    axes = np.array([[fig.add_subplot(top[0, 0]), fig.add_subplot(top[0, 1]), None],
-                     [fig.add_subplot(bottom[1, 0]), fig.add_subplot(bottom[1, 1]), fig.add_subplot(bottom[1, 2])]])
-    _hist(axes[0, 0], v.norm_cal_pct, "field strength error [%]", CAL)
+    fig = figure(5.4)
+    top = fig.grid(2, 2, margins(5.4, hspace=0.55))
+    bottom = fig.grid(2, 3, margins(5.4, 0.55, 0.55))
+    for ax in [*top[1], *bottom[0]]:     # the grids' unused halves
+        fig.axes.remove(ax)
+    _hist(top[0][0], v.norm_cal_pct, "field strength error [%]", CAL)
     if v.dip_cal is not None:
-        _hist(axes[0, 1], v.dip_cal - v.dip_deg, "dip error [deg]", DIP)
+        _hist(top[0][1], v.dip_cal - v.dip_deg, "dip error [deg]", DIP)
     else:
-        axes[0, 1].set_axis_off()
-    ax = axes[1, 0]
+        top[0][1].off = True
+    ax = bottom[1][0]
     u = v.cal[thin(len(v.t), 3000)]
     u = u[np.all(np.isfinite(u), axis=1)]
     u = u / np.linalg.norm(u, axis=1)[:, None]
-    ax.plot(np.degrees(np.arctan2(u[:, 1], u[:, 0])), np.degrees(np.arcsin(np.clip(u[:, 2], -1, 1))), ".",
-            ms=1.5, color=CAL, alpha=0.4)
-    ax.set(xlim=(-180, 180), ylim=(-90, 90), xticks=range(-180, 181, 90), yticks=range(-90, 91, 45),
-           xlabel="azimuth in the sensor frame [deg]", ylabel="elevation [deg]", title="orientation coverage")
-    ax = axes[1, 1]
-    ax.plot(h.headings, _unwrapped(h.raw), color=RAW, label="raw readings")
+    ax.dots(np.degrees(np.arctan2(u[:, 1], u[:, 0])), np.degrees(np.arcsin(np.clip(u[:, 2], -1, 1))), CAL, 2.0, 0.4)
+    ax.xlim, ax.ylim, ax.xticks, ax.yticks = (-180, 180), (-90, 90), range(-180, 181, 90), range(-90, 91, 45)
+    ax.xlabel, ax.ylabel, ax.title = "azimuth in the sensor frame [deg]", "elevation [deg]", "orientation coverage"
+    ax = bottom[1][1]
+    ax.line(h.headings, _unwrapped(h.raw), RAW, label="raw readings")
     if h.firmware is not None:
-        ax.plot(h.headings, _unwrapped(h.firmware), color="#9467bd", label=f"{h.firmware_name} parameters")
-    ax.axhline(0.0, color=REF, lw=0.6)
-    ax.set(xlim=(0, 360), xticks=range(0, 361, 90), xlabel="heading [deg]", ylabel="heading error [deg]",
-           title="level heading error")
-    ax.legend(loc="best", frameon=False)
-    ax = axes[1, 2]
+        ax.line(h.headings, _unwrapped(h.firmware), "#9467bd", label=f"{h.firmware_name} parameters")
+    ax.hline(0.0, REF, width=0.8)
+    ax.xlim, ax.xticks = (0, 360), range(0, 361, 90)
+    ax.xlabel, ax.ylabel, ax.title = "heading [deg]", "heading error [deg]", "level heading error"
+    ax.legend("best")
+    ax = bottom[1][2]
     if h.std is not None:               # its own axis: the band is often 100 times narrower than the raw error
-        ax.fill_between(h.headings, -2 * h.std, 2 * h.std, color=CAL, alpha=0.2, lw=0, label="2 sigma")
-        ax.fill_between(h.headings, -h.std, h.std, color=CAL, alpha=0.45, lw=0, label="1 sigma")
-        ax.set(xlim=(0, 360), xticks=range(0, 361, 90), xlabel="heading [deg]", ylabel="uncertainty [deg]",
-               title="calibrated heading, uncertainty")
-        ax.legend(loc="upper right", frameon=False)
+        ax.band(h.headings, -2 * h.std, 2 * h.std, CAL, 0.2, label="2 sigma")
+        ax.band(h.headings, -h.std, h.std, CAL, 0.45, label="1 sigma")
+        ax.xlim, ax.xticks = (0, 360), range(0, 361, 90)
+        ax.xlabel, ax.ylabel, ax.title = "heading [deg]", "uncertainty [deg]", "calibrated heading, uncertainty"
+        ax.legend("upper right")
     else:
-        ax.set_axis_off()
+        ax.off = True
     return Plot("Residuals, coverage and heading", "Top: the spread of what the calibration leaves, in field "
                 "strength and in dip. Bottom left: the field directions the log visited in the sensor frame "
                 "(empty areas are orientations never seen). Bottom middle: the heading error of a level vehicle "
                 "using the raw readings (and what the firmware parameters leave, for a flight log). Bottom right: "
-                "the calibrated heading's uncertainty band, 1 and 2 sigma, on its own scale.", png(fig))
+                "the calibrated heading's uncertainty band, 1 and 2 sigma, on its own scale.", embed(fig))
 
 
 def effects_figure(views: list[EffectView]) -> Plot | None:
