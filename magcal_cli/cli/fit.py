@@ -76,7 +76,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
                  effects=() if effects == options.AUTO else effects, diagnose=effects == options.AUTO,
                  imu_timing=imu_timing,
                  mag_timing=mag_timing)
-    with progress_line(ctx) as progress:        # the writing too: report.html's figures take seconds
+    with progress_line(ctx) as progress:        # the writing too: its files are part of the run's time
         result = calibrate(log, cfg, fmt, progress)
         if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
             names.append(auto)

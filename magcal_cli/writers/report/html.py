@@ -73,7 +73,7 @@ details summary{cursor:pointer;color:#1f5fa8;margin:10px 0}
 """
 
 
-#: the progress line's stage while the page is rendered (its figures take seconds)
+#: the progress line's stage while the page is rendered (one step per figure)
 STAGE = "writing report.html"
 
 
