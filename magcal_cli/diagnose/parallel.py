@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
+from magcal_cli.models.normal import one_blas_thread
 from magcal_cli.progress import Shares
 
 T = TypeVar("T")
@@ -28,7 +29,11 @@ def pmap(fn: Callable[[T], R], items: Sequence[T], jobs: int = JOBS,
     if done is not None:
         shares = Shares(len(items), done)
         return pmap(lambda ix: shares.run(ix[0], fn, ix[1]), list(enumerate(items)), jobs)
-    if jobs <= 1 or len(items) <= 1:
-        return [fn(x) for x in items]
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
-        return list(pool.map(fn, items))
+    # one BLAS thread for the whole section, whatever `jobs` is: the limit is process-wide, so a section that set
+    # it only around its solves ran the rest with one or two BLAS threads depending on the other thread's timing,
+    # and its results differed in their last digits from run to run and from MAGCAL_JOBS=1
+    with one_blas_thread():
+        if jobs <= 1 or len(items) <= 1:
+            return [fn(x) for x in items]
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            return list(pool.map(fn, items))

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from contextlib import AbstractContextManager
+import threading
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,15 +18,34 @@ from magcal_cli.models.factor import Factor, IntArray, Linearize, run_start
 from magcal_cli.streams import FloatArray
 
 _BLAS: list[ThreadpoolController] = []
+#: how many blocks (on any thread) are inside one_blas_thread, and the limiter the first of them set
+_ONE_THREAD: dict[str, Any] = {"depth": 0, "limiter": None}
+_ONE_THREAD_LOCK = threading.Lock()
 
 
-def one_blas_thread() -> AbstractContextManager[Any]:
+@contextmanager
+def one_blas_thread() -> Iterator[None]:
     """BLAS limited to one thread inside the block. The library scan is done once (threadpoolctl's
-    `threadpool_limits` repeats it on every call, 3 ms: 6 % of a diagnosis that solves a few hundred times)."""
-    if not _BLAS:
-        _BLAS.append(ThreadpoolController())
-    limiter: AbstractContextManager[Any] = _BLAS[0].limit(limits=1, user_api="blas")
-    return limiter
+    `threadpool_limits` repeats it on every call, 3 ms: 6 % of a diagnosis that solves a few hundred times).
+
+    The limit is process-wide, so it is counted: the first block in sets it and the last one out restores it.
+    Each block setting and restoring it on its own let one diagnosis thread restore two BLAS threads while another
+    was mid-solve, which made the held-out evidence differ in its last digits from run to run under load.
+    """
+    with _ONE_THREAD_LOCK:
+        if not _BLAS:
+            _BLAS.append(ThreadpoolController())
+        if _ONE_THREAD["depth"] == 0:
+            _ONE_THREAD["limiter"] = _BLAS[0].limit(limits=1, user_api="blas")
+        _ONE_THREAD["depth"] += 1
+    try:
+        yield
+    finally:
+        with _ONE_THREAD_LOCK:
+            _ONE_THREAD["depth"] -= 1
+            if _ONE_THREAD["depth"] == 0:
+                _ONE_THREAD["limiter"].restore_original_limits()
+                _ONE_THREAD["limiter"] = None
 
 
 @dataclass
