@@ -24,20 +24,12 @@ from magcal_cli.synth.simulate import simulate
 from magcal_cli.writers.report.html import render_html
 from magcal_cli.writers.report.text import render
 from tests.models.mapsim import record
+from tests.wording import depth
 
 PACKAGE = Path(__file__).resolve().parents[2] / "magcal_cli"
 #: words that say what to do (or that there is nothing to do)
 ACTION = re.compile(r"to fix|record again|rotate|turn the vehicle|log the raw|check the|find the|do not use|"
                     r"nothing to do|-v prints|calibrate from")
-
-
-def depth(text: str) -> int:
-    """How deep the round brackets of `text` nest."""
-    level = deepest = 0
-    for c in text:
-        level += (c == "(") - (c == ")")
-        deepest = max(deepest, level)
-    return deepest
 
 
 def _drifted() -> Recording:

@@ -11,17 +11,9 @@ from magcal_cli.diagnose import summary
 from magcal_cli.diagnose.ppc import Check
 from magcal_cli.diagnose.select import Selection
 from magcal_cli.models.result import EffectFit
+from tests.wording import depth
 
 MAGS = ("MAG[0]", "MAG[1]", "MAG[2]")
-
-
-def depth(text: str) -> int:
-    """How deep the round brackets of `text` nest."""
-    level = deepest = 0
-    for c in text:
-        level += (c == "(") - (c == ")")
-        deepest = max(deepest, level)
-    return deepest
 
 
 def _paragraph(sensor: str) -> str:
