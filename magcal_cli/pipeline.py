@@ -40,9 +40,6 @@ from magcal_cli.streams import Kind, Recording, Sampling, Stream
 from magcal_cli.units import G
 from magcal_cli.wmm import reference_for
 
-Progress = Hook
-
-
 #: the channels effect plug-ins may use, handed to the estimators beside the IMU and magnetometers
 AUX_KINDS = frozenset({Kind.BATTERY_CURRENT, Kind.BATTERY_VOLTAGE, Kind.THROTTLE, Kind.TEMPERATURE,
                        Kind.POSITION, Kind.ATTITUDE})
@@ -187,7 +184,7 @@ def not_diagnosed(result: RunResult) -> str | None:
     return next((f.message for f in result.findings if f.code == "diagnosis_skipped"), None)
 
 
-def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progress | None = None) -> RunResult:
+def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Hook | None = None) -> RunResult:
     """Calibrate every selected magnetometer of one log against its IMU (progress: default the current hook)."""
     path = Path(path)
     progress = progress or current()
@@ -197,7 +194,7 @@ def calibrate(path: Path, cfg: Config, fmt: str | None = None, progress: Progres
     return calibrate_recording(rec, cfg, progress)
 
 
-def calibrate_recording(rec: Recording, cfg: Config, progress: Progress | None = None) -> RunResult:
+def calibrate_recording(rec: Recording, cfg: Config, progress: Hook | None = None) -> RunResult:
     """Calibrate every selected magnetometer of a recording already read (or built in code) against its IMU."""
     path = rec.path
     progress = progress or current()
