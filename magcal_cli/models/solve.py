@@ -21,6 +21,9 @@ from magcal_cli.models import normal
 from magcal_cli.models.factor import Factor, Linearize
 from magcal_cli.streams import FloatArray
 
+#: the smallest damping: where a solve that starts at a neighbouring optimum begins (`Options.lambda0`)
+LAMBDA_FLOOR = 1e-12
+
 #: the system a Levenberg-Marquardt step solves (`iterate`)
 S = TypeVar("S")
 
@@ -194,7 +197,7 @@ def iterate(evaluate: Callable[[FloatArray, FloatArray], tuple[float, S]],
             drop = cost - new_cost
             rel = drop / max(cost, 1e-300)
             states, theta, cost, system = new_states, new_theta, new_cost, trial
-            lam = max(lam / 3.0, 1e-12)
+            lam = max(lam / 3.0, LAMBDA_FLOOR)
             log.append(f"iter {it}: cost {cost:.6g}, step {size:.2e}, lambda {lam:.1e}")
             if size < opts.step_tol or rel < opts.cost_tol or drop < opts.abs_cost_tol:
                 converged = True
