@@ -43,6 +43,9 @@ from contextlib import contextmanager, redirect_stdout, suppress
 from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from same_outputs import shifts  # noqa: E402
+
 ROOT = Path(__file__).resolve().parent.parent
 HERE = Path(__file__).resolve()
 TIMEOUT = 1800.0
@@ -268,7 +271,9 @@ def same_result(a: Path, b: Path) -> str:
             keys.add(k)
     parts = ([f"max rel diff {worst:.1e} ({where})"] if worst else []) + ([f"{len(keys)} fields differ "
                                                                             f"({sorted(keys)[0]}...)"] if keys else [])
-    return "differs: " + "; ".join(parts)
+    cal, eff, verdicts = shifts(a, b)
+    return "differs: " + "; ".join(parts) + (f"; D/o/dip moved <= {cal:.3f} std, effect parameters <= {eff:.3f} "
+                                             f"std, verdicts {'the same' if verdicts else 'DIFFERENT'}")
 
 
 def median(xs: Sequence[float]) -> float:

@@ -2,7 +2,10 @@
 
 Runs `magcal fit LOG` (default options, every output but the report's prose and plots) on every sample log and
 every real log that `flight_logs.py` runs, once with each package, and compares `calibration.json` (its
-timestamps and run time aside) and the firmware parameter files byte for byte.
+timestamps and run time aside) and the firmware parameter files byte for byte. Where they differ (issue 27: a
+solver that converges in fewer steps reaches the same optimum within its tolerance), it says how far each
+magnetometer's D, o and dip moved in their own reported std, how far the effects' parameters moved in theirs,
+and whether every effect's verdict is the same.
 
     git worktree add /tmp/before REV
     python benchmarks/same_outputs.py --before /tmp/before [--after .] [--realdata ../shared/realdata]
@@ -23,6 +26,8 @@ import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from flight_logs import LOG_GLOBS  # noqa: E402
@@ -71,15 +76,51 @@ def key(log: Path) -> str:
     return log.parent.name + "__" + log.name
 
 
+def shifts(before: Path, after: Path) -> tuple[float, float, bool]:
+    """For two calibration.json files: the largest change of any magnetometer's D, o or dip in its own reported
+    std, the largest change of an effect's parameter in its own std (95 % interval / 3.92), and whether every
+    effect's verdict (id, sensor, status) is the same."""
+    a, b = (json.loads(p.read_text()) for p in (before, after))
+    cal = 0.0
+    for ma, mb in zip(a.get("magnetometers", []), b.get("magnetometers", []), strict=False):
+        for k in ("D", "o", "dip_deg"):
+            std = np.asarray(ma["std"][k], float)
+            d = np.abs(np.asarray(ma[k], float) - np.asarray(mb[k], float))
+            cal = max(cal, float(np.max(np.where(std > 0, d / np.where(std > 0, std, 1.0), 0.0))))
+    eb = {(e["id"], e["sensor"]): e for e in b.get("effects", [])}
+    eff = 0.0
+    for e in a.get("effects", []):
+        f = eb.get((e["id"], e["sensor"]))
+        if f is None:
+            continue
+        for name, ci in (e.get("ci95") or {}).items():
+            v, w = e["params"].get(name), f.get("params", {}).get(name)
+            if v is None or w is None or isinstance(v, str):
+                continue
+            half = np.diff(np.asarray(ci, float).reshape(-1, 2), axis=1)[:, 0] / 3.92
+            d = np.abs(np.atleast_1d(np.asarray(v, float)) - np.atleast_1d(np.asarray(w, float)))
+            eff = max(eff, float(np.max(np.where(half > 0, d / np.where(half > 0, half, 1.0), 0.0))))
+    same = sorted((e["id"], e["sensor"], e["status"]) for e in a.get("effects", [])) == \
+        sorted((e["id"], e["sensor"], e["status"]) for e in b.get("effects", []))
+    return cal, eff, same
+
+
 def compare(save: Path, names: list[str]) -> int:
-    """Print one row per log and return the number that differ."""
+    """Print one row per log and return the number that differ (for those, how far the calibration moved in its
+    own std, and whether the effects' verdicts are the same)."""
     bad = 0
     for name in names:
         a, b = digest(save / "before" / name), digest(save / "after" / name)
         same = a == b
         bad += not same
         diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
-        print(f"{'same' if same else 'DIFF':4}  {name:60} {len(a)} files" + ("" if same else f"  differ: {diff}"))
+        how = ""
+        cal_a, cal_b = save / "before" / name / "calibration.json", save / "after" / name / "calibration.json"
+        if not same and cal_a.exists() and cal_b.exists():
+            cal, eff, verdicts = shifts(cal_a, cal_b)
+            how = (f"; D/o/dip moved <= {cal:.3f} std, effect parameters <= {eff:.3f} std, verdicts "
+                   f"{'the same' if verdicts else 'DIFFERENT'}")
+        print(f"{'same' if same else 'DIFF':4}  {name:60} {len(a)} files" + ("" if same else f"  differ: {diff}{how}"))
     return bad
 
 
