@@ -128,6 +128,11 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
             fitted.append(with_known_physics(problem, m, loss, dip_prior, fitted[0][0].noise if fitted else None,
                                              cache, cfg.effects, declination))
 
+    # the magnetometers' diagnoses are independent: side by side, they keep both cores busy through each one's
+    # serial stages (log171: 3 magnetometers). Each is a named part (with two at once, its time left is an upper
+    # bound)
+    checked = Parts(current(), "magnetometer", len(todo))
+
     def diagnosed(i: int) -> tuple[MapEstimate, dict[str, Any] | None]:
         """Magnetometer i's estimate after its diagnosis, and the diagnosis block (None when it could not run)."""
         from magcal_cli.diagnose.engine import diagnose
@@ -148,9 +153,6 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     if cfg.diagnose:
         from magcal_cli.diagnose.parallel import pmap
 
-        # the magnetometers' diagnoses are independent: side by side, they keep both cores busy through each
-        # one's serial stages (log171: 3 magnetometers). Each part is named; the time left counts them in turn
-        checked = Parts(current(), "magnetometer", len(todo))
         found = pmap(diagnosed, range(len(todo)))
         ests = [e for e, _ in found]
         diagnoses.extend(b for _, b in found if b is not None)
