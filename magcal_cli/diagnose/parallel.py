@@ -21,11 +21,12 @@ R = TypeVar("R")
 JOBS = int(os.environ.get("MAGCAL_JOBS", "0")) or min(2, os.cpu_count() or 1)
 
 
-def pmap(fn: Callable[[T], R], items: Sequence[T], jobs: int = JOBS,
+def pmap(fn: Callable[[T], R], items: Sequence[T], jobs: int | None = None,
          done: Callable[[float, int], None] | None = None) -> list[R]:
     """[fn(x) for x in items], in order, on up to `jobs` threads; `done(d, n)` as they progress: d counts the items
     ended and the running items' share of their own progress reports (progress.Shares: a stage of few long items
     moves while they run), called from the items' threads in the caller's context (its progress hook)."""
+    jobs = JOBS if jobs is None else jobs              # read on each call: tests compare job counts
     if done is not None:
         shares = Shares(len(items), done)
         return pmap(lambda ix: shares.run(ix[0], fn, ix[1]), list(enumerate(items)), jobs)
