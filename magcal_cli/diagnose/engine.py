@@ -8,25 +8,20 @@ found in plain words (summary.py).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any, TypeVar, cast
+from typing import Any
 
 import numpy as np
 
 from magcal_cli import effects as registry
 from magcal_cli.diagnose import ppc
-from magcal_cli.diagnose.parallel import pmap
-from magcal_cli.diagnose.select import select
+from magcal_cli.diagnose.select import Selection, select
 from magcal_cli.diagnose.summary import paragraph
 from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.problem import Problem
 from magcal_cli.progress import Hook, current
 from magcal_cli.streams import Stream
-
-A = TypeVar("A")
-B = TypeVar("B")
 
 #: magnetometer readings beyond which the diagnosis runs on every k-th one
 DIAGNOSIS_EPOCHS = 12_000
@@ -57,31 +52,19 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
     if step > 1:
         hook(f"{mag.id} diagnosis: fitting every {step}th reading", 0)
     start = base if step <= 1 else fit_map(problem, thin, loss, dip_prior, declination=declination)
+    before = ppc.check(problem, thin, start, replicates, progress=hook, stage="replicates of the base model")
     candidates = tuple(e for e in registry.EFFECTS if e not in problem.base_effects)
-    # the replicates of the base model need nothing the selection finds: the two run side by side (the selection's
-    # screens and refits are one chain; the replicates fill the other core)
-    before, sel = _both(lambda: ppc.check(problem, thin, start, replicates, progress=hook,
-                                          stage="replicates of the base model"),
-                        lambda: select(problem, thin, start, candidates, declination, loss, dip_prior, hook))
+    sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior, hook)
     modelled = tuple(v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None)
-    if step > 1 and modelled:
-        hook(f"{mag.id} diagnosis: fitting {', '.join(modelled)} on every reading", 0)
-
-    def replicated() -> ppc.Check:
-        return ppc.check(problem, thin, sel.estimate, replicates, progress=hook,
-                         stage=f"replicates with {', '.join(modelled)}") if modelled else before
-
-    def on_every_reading() -> MapEstimate:
-        if step <= 1:
-            return sel.estimate
-        return fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
-                       warm=base.context) if modelled else base
-
-    # likewise the replicates with the chosen effects and their fit on every reading
-    after, full = _both(replicated, on_every_reading)
-    est = replace(sel.estimate, effects=sel.verdicts)
+    after = ppc.check(problem, thin, sel.estimate, replicates, progress=hook,
+                      stage=f"replicates with {', '.join(modelled)}") if modelled else before
+    est, full = replace(sel.estimate, effects=sel.verdicts), sel.estimate
     if step > 1:
         note = f"{mag.id}: diagnosed on every {step}th of {base.epochs.size} readings; effects fitted on all"
+        if modelled:
+            hook(f"{mag.id} diagnosis: fitting {', '.join(modelled)} on every reading", 0)
+        full = fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
+                       warm=base.context) if modelled else base
         fitted = {f.id: f for f in full.effects}
         verdicts = tuple(replace(v, estimate=fitted[v.id].estimate, statistic=fitted[v.id].statistic,
                                  p_value=fitted[v.id].p_value) if v.id in fitted else v for v in sel.verdicts)
@@ -99,9 +82,3 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
     block["ppc_after"] = after.document()
     block["summary"] = paragraph(mag.id, sel, before, after, mag.native_unit)
     return Diagnosis(est, block)
-
-
-def _both(first: Callable[[], A], second: Callable[[], B]) -> tuple[A, B]:
-    """first() and second(), side by side on the diagnosis' threads (each is deterministic on its own)."""
-    out: list[object] = pmap(lambda f: f(), [first, second])
-    return cast(A, out[0]), cast(B, out[1])

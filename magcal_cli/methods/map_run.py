@@ -115,49 +115,32 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
     ref = reference_for(cfg)
     dip_prior = None if ref is None else ref.dip
     loss = getattr(cfg, "robust_loss", "l2")
+    ests: list[MapEstimate] = []
     cache: dict[bytes, Preintegrated] = {}
     declination = 0.0 if ref is None else ref.declination
     diagnoses: list[dict[str, Any]] = []
     joint, joint_note = fit_joint_or_note(problem, cfg, loss, dip_prior)
     done = {} if joint is None else {e.mag_id: e for e in joint.estimates}
     todo = [m for m in problem.mags if m.id not in done]
-    parts = Parts(current(), "magnetometer", len(todo))
-    fitted: list[tuple[MapEstimate, Problem]] = []
-    for i, m in enumerate(todo):          # later ones start from the first's IMU noise levels
-        with parts.part(i):
-            fitted.append(with_known_physics(problem, m, loss, dip_prior, fitted[0][0].noise if fitted else None,
-                                             cache, cfg.effects, declination))
+    for m in Parts(current(), "magnetometer", len(todo)).each(todo):   # later ones start from the first's IMU levels
+        start = ests[0].noise if ests else None
+        est, mine = with_known_physics(problem, m, loss, dip_prior, start, cache, cfg.effects, declination)
+        if cfg.diagnose:
+            from magcal_cli.diagnose.engine import diagnose
 
-    # the magnetometers' diagnoses are independent: side by side, they keep both cores busy through each one's
-    # serial stages (log171: 3 magnetometers). Each is a named part (with two at once, its time left is an upper
-    # bound)
-    checked = Parts(current(), "magnetometer", len(todo))
-
-    def diagnosed(i: int) -> tuple[MapEstimate, dict[str, Any] | None]:
-        """Magnetometer i's estimate after its diagnosis, and the diagnosis block (None when it could not run)."""
-        from magcal_cli.diagnose.engine import diagnose
-
-        (est, mine), m = fitted[i], todo[i]
-        with checked.part(i):
             try:
                 found = diagnose(mine, m, est, declination, loss, dip_prior)
             except (InsufficientDataError, np.linalg.LinAlgError) as exc:
                 # a refit the diagnosis needs (a fold, an extended model) failed on a weakly determined log: the
                 # calibration itself stands, without the diagnosis
-                return replace(est, findings=(*est.findings, Finding(
+                est = replace(est, findings=(*est.findings, Finding(
                     Severity.WARNING, "diagnosis_failed",
                     f"{problem.where}: {m.id}: the mismatch diagnosis could not run ({exc}); the base calibration "
-                    "is reported without it", {"sensor": m.id}))), None
-            return found.estimate, found.block
-
-    if cfg.diagnose:
-        from magcal_cli.diagnose.parallel import pmap
-
-        found = pmap(diagnosed, range(len(todo)))
-        ests = [e for e, _ in found]
-        diagnoses.extend(b for _, b in found if b is not None)
-    else:
-        ests = [e for e, _ in fitted]
+                    "is reported without it", {"sensor": m.id})))
+            else:
+                est = found.estimate
+                diagnoses.append(found.block)
+        ests.append(est)
     rest = iter(ests)
     ests = [done[m.id] if m.id in done else next(rest) for m in problem.mags]
 

@@ -1,5 +1,5 @@
-"""The diagnosis on threads: the same digits whatever the number of threads (issue 27 runs the magnetometers'
-diagnoses side by side, and inside each the replicates beside the selection)."""
+"""The diagnosis on threads: the same digits whatever the number of threads (its folds and replicates run side by
+side)."""
 
 from __future__ import annotations
 
