@@ -30,6 +30,7 @@ from magcal_cli.firmware.common import (
     soft_range,
 )
 from magcal_cli.firmware.effects import carried
+from magcal_cli.firmware.extras import ardupilot_notes
 from magcal_cli.firmware.split import choose_rotation, split_rotation_first
 from magcal_cli.readers.dataflash.compass import correct_field, effective_scale, iron_matrix, param_suffix
 from magcal_cli.streams import FloatArray
@@ -262,6 +263,7 @@ def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Opt
     else:
         acc.notes.append("no accepted current or throttle interference in the document: COMPASS_MOT* and "
                          "COMPASS_MOTCT are left as the vehicle has them")
+    acc.notes += ardupilot_notes(cal, [cal.magnetometer(m.mag_id) for m in acc.mags])
     if not params:
         acc.notes.append("no vehicle parameters: slots from the magnetometer ids, COMPASS_SCALE written as 1, "
                          "no custom rotations (pass --params with the vehicle's parameter file or its log)")

@@ -189,3 +189,13 @@ def test_a_lever_arm_is_not_testable_in_a_flight_measured_by_its_fixes() -> None
     t = mag.t[(mag.t > gyr.t[1]) & (mag.t < gyr.t[-2])]
     got, untestable = bind(problem, mag, t, sim.truth.gyro_bias, ("lever_arm",))
     assert not got and "turn the vehicle quickly in place" in untestable[0].reason
+
+
+def test_temperature_records_the_range_it_saw(bound: dict[str, tuple[Effect, Inputs, object]]) -> None:
+    """issue 28: T_min/T_max (the temperatures at the epochs) travel with T0, so an export can bound the slope to
+    them (PX4 TC_Mn_TMIN/TMAX)."""
+    _, inp, _ = bound["temperature_drift"]
+    temp = inp.channels["temperature"] + inp.constants["T0"]
+    assert inp.constants["T_min"] == pytest.approx(float(temp.min()))
+    assert inp.constants["T_max"] == pytest.approx(float(temp.max()))
+    assert inp.constants["T_min"] < inp.constants["T0"] < inp.constants["T_max"]

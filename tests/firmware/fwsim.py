@@ -1,4 +1,6 @@
-"""The two firmwares' compass corrections, re-implemented from ../shared/design/firmware-export.md only.
+"""The two firmwares' compass corrections, re-implemented from ../shared/design/firmware-export.md only (and, for
+the EKF's magnetometer delay and PX4's thermal compensation, from the sources [S32]-[S35] docs/firmware-export.md
+quotes).
 
 Nothing here imports magcal's exporter: parameter files are read with a few lines of string handling, rotation
 enums are built from the angle tables with elementary matrices (roll applied first: Rz(yaw) Ry(pitch) Rx(roll)),
@@ -96,9 +98,36 @@ def ardupilot_field(sensor: np.ndarray, p: dict[str, float], suffix: str = "", b
     return mag
 
 
+def px4_thermal_offset(temperature: np.ndarray, p: dict[str, float], device_id: int) -> np.ndarray:
+    """TemperatureCompensation::calc_thermal_offsets_3D [S34]: with TC_M_ENABLE = 1 and the slot j whose TC_Mj_ID is
+    the device, X0 + X1 dT + X2 dT^2 + X3 dT^3 per axis, dT = T clipped to [TMIN, TMAX] minus TREF (N, 3) gauss."""
+    out = np.zeros((len(temperature), 3))
+    if int(p.get("TC_M_ENABLE", 0)) != 1:
+        return out
+    for j in range(4):
+        if int(p.get(f"TC_M{j}_ID", 0)) != device_id or not device_id:
+            continue
+        q = f"TC_M{j}_"
+        t = np.where(temperature > p[f"{q}TMAX"], p[f"{q}TMAX"],
+                     np.where(temperature < p[f"{q}TMIN"], p[f"{q}TMIN"], temperature))
+        d = t - p[f"{q}TREF"]
+        for i in range(3):
+            out[:, i] = (p[f"{q}X0_{i}"] + p[f"{q}X1_{i}"] * d + p[f"{q}X2_{i}"] * d**2 + p[f"{q}X3_{i}"] * d**3)
+        return out
+    return out
+
+
+def ekf_mag_time(stamp_s: np.ndarray, p: dict[str, float]) -> np.ndarray:
+    """The time PX4's EKF fuses a magnetometer sample stamped `stamp_s` at: time_us - EKF2_MAG_DELAY * 1000
+    (EstimatorInterface::setMagData [S33]; the half EKF period it also subtracts is the same for every sensor)."""
+    return stamp_s - p.get("EKF2_MAG_DELAY", 0.0) / 1000.0
+
+
 def px4_field(raw: np.ndarray, p: dict[str, float], n: int = 0, current_a: np.ndarray | None = None,
-              throttle: np.ndarray | None = None) -> np.ndarray:
-    """m_body = R S ((raw + P COMP) - OFF), gauss [S16]; R = Dcm(Euler(SENS_BOARD_*_OFF)) rot(ROT or board)."""
+              throttle: np.ndarray | None = None, temperature: np.ndarray | None = None,
+              device_id: int = 0) -> np.ndarray:
+    """m_body = R S ((raw + P COMP) - OFF - thermal offset), gauss [S16][S34]; R = Dcm(Euler(SENS_BOARD_*_OFF))
+    rot(ROT or board)."""
     q = f"CAL_MAG{n}_"
     d = [p[f"{q}{a}SCALE"] for a in AXES]
     o = [p[f"{q}{a}ODIAG"] for a in AXES]
@@ -119,4 +148,5 @@ def px4_field(raw: np.ndarray, p: dict[str, float], n: int = 0, current_a: np.nd
         P = current_a / 1000.0                                                          # kA
     comp = np.array([p.get(f"{q}{a}COMP", 0.0) for a in AXES])
     off = np.array([p[f"{q}{a}OFF"] for a in AXES])
-    return ((raw + P[:, None] * comp) - off) @ S.T @ R.T
+    thermal = 0.0 if temperature is None else px4_thermal_offset(temperature, p, device_id)
+    return ((raw + P[:, None] * comp) - off - thermal) @ S.T @ R.T
