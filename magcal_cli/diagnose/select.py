@@ -195,7 +195,8 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         if not sig:
             break
         best = sig[0]
-        rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE]
+        rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE
+                  and not _beyond(problem, mag, est, (*picked, e), best, loss, dip_prior, declination, holdout)]
         pairs += [frozenset((best, r)) for r in rivals]
         hook(f"{mag.id} diagnosis: fitting with {best}", 0)
         try:
@@ -216,6 +217,21 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         left = [e for e in left if e != best and e not in rivals]
         est = trial
     return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs), implausible)
+
+
+def _beyond(problem: Problem, mag: Stream, est: MapEstimate, given: tuple[str, ...], best: str, loss: str,
+            dip_prior: float | None, declination: float, holdout: tuple[tuple[float, float], ...]) -> bool:
+    """Whether `best`, whose term nests the last of `given` (Effect.nests: per-motor fields contain the throttle's as
+    the case where the motors move together), still explains significantly more with that one fitted: then the
+    two are not rivals (the canonical correlation of nested terms is always near 1). False for other pairs."""
+    if given[-1] not in registry.get(best).nests:
+        return False
+    try:
+        fitted = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=given, declination=declination,
+                         holdout=holdout, warm=est.context)
+    except REFIT_ERRORS:
+        return False
+    return bool(holm(screen(problem, mag, fitted, [best], declination)))
 
 
 def beyond_limits(est: MapEstimate, eid: str) -> str:

@@ -30,7 +30,7 @@ from magcal_cli.firmware.common import (
     soft_range,
 )
 from magcal_cli.firmware.effects import carried
-from magcal_cli.firmware.extras import ardupilot_notes
+from magcal_cli.firmware.extras import ardupilot_notes, pmot
 from magcal_cli.firmware.split import choose_rotation, split_rotation_first
 from magcal_cli.readers.dataflash.compass import correct_field, effective_scale, iron_matrix, param_suffix
 from magcal_cli.streams import FloatArray
@@ -214,6 +214,10 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
         mot = -sp.held @ (inter.c * k)
         out |= {f"COMPASS_MOT{suffix}_{a}": float(mot[i]) for i, a in enumerate(AXES)}
         kind = inter.kind
+    per_motor, per_motor_ints, per_motor_notes = pmot(cal, mag, suffix, sp.held, k, params)
+    out |= per_motor
+    integers |= per_motor_ints
+    notes += per_motor_notes
     offs_max = params.get("COMPASS_OFFS_MAX", OFFS_MAX_DEFAULT)
     check_limits(f"export {mag.id} (ArduPilot)", _limits(mag.id, suffix, out, offs_max))
     exp = MagExport(mag.id, f"COMPASS_*{suffix}", out, sp, mag.dip_deg, external, tuple(notes),

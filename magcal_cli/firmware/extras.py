@@ -178,6 +178,33 @@ def ardupilot_notes(cal: Calibration, mags: Sequence[MagCalibration]) -> list[st
     return notes
 
 
+def pmot(cal: Calibration, mag: MagCalibration, suffix: str, held: FloatArray, k: float,
+         params: Mapping[str, float]) -> tuple[dict[str, float], set[str], list[str]]:
+    """COMPASS_PMOT_EN/EXP/PMOTn_X.. of a carried `motor_interference`: the firmware adds
+    sum_n PMOTn (u_n V)^EXP after the iron matrix, to the first compass only (AP_Compass_Backend correct_field,
+    Compass_PerMotor::compensate [S3][S7]), so PMOTn = -A_fw c_n in mGauss (A_fw = `held`, c_n in the document's unit
+    times `k`), the sign and frame of COMPASS_MOT."""
+    entry = carried(cal, mag.id, "motor_interference")
+    if entry is None:
+        return {}, set(), []
+    if suffix != "":
+        return {}, set(), [f"{mag.id}: its per-motor interference is not exported: ArduPilot's per-motor "
+                           "compensation applies to the first compass (COMPASS_*, slot 1) only"]
+    if params and "COMPASS_PMOT_EN" not in params:
+        return {}, set(), [f"{mag.id}: its per-motor interference is not exported: this firmware has no per-motor "
+                           "compass compensation (no COMPASS_PMOT_EN in its parameters; added in ArduCopter 3.6)"]
+    p = entry["params"]
+    out = {"COMPASS_PMOT_EN": 1.0, "COMPASS_PMOT_EXP": float(p.get("expo", 0.65))}
+    for n in range(1, 5):
+        v = -held @ (np.asarray(p[f"c{n}"], dtype=np.float64) * k)
+        out |= {f"COMPASS_PMOT{n}_{a}": float(v[i]) for i, a in enumerate(AXES)}
+    notes = [f"{mag.id}: per-motor interference -> COMPASS_PMOT1..4 (COMPASS_PMOT_EN=1; the firmware then uses them "
+             "instead of COMPASS_MOT for this compass); they assume its outputs scale as (PWM fraction x battery "
+             "voltage)^COMPASS_PMOT_EXP (Compass_PerMotor.cpp of 3.6-4.x); newer variants read scale motor thrust by "
+             "battery current: check the firmware's Compass_PerMotor before flying"]
+    return out, {"COMPASS_PMOT_EN"}, notes
+
+
 def extras(cal: Calibration, slots: Sequence[tuple[MagCalibration, int]], params: Mapping[str, float]) -> Extras:
     """Both: the delay and the thermal terms."""
     d, t = delay(cal, slots, params), thermal(cal, slots, params)

@@ -2,7 +2,7 @@
 
 Modules it covers (the mirrored test file aside): magcal_cli.effects.accel_scale, magcal_cli.effects.base,
 magcal_cli.effects.current, magcal_cli.effects.gyro_scale, magcal_cli.effects.lever_arm,
-magcal_cli.effects.nongravity, magcal_cli.effects.temperature, magcal_cli.effects.throttle,
+magcal_cli.effects.motor, magcal_cli.effects.nongravity, magcal_cli.effects.temperature, magcal_cli.effects.throttle,
 magcal_cli.effects.time_offset, magcal_cli.effects.transient.
 """
 
@@ -30,7 +30,7 @@ RTOL = 1e-5
 def bound() -> dict[str, tuple[Effect, Inputs, object]]:
     """Every effect bound to a short handheld log that carries all channels, with the preintegration."""
     specs = (EffectSpec("current_interference"), EffectSpec("throttle_interference"),
-             EffectSpec("temperature_drift"), EffectSpec("nongravity_acceleration"))
+             EffectSpec("temperature_drift"), EffectSpec("nongravity_acceleration"), EffectSpec("motor_interference"))
     sim = simulate("handheld", 3, rate=50.0, mag_rate=25.0, duration=60.0, effects=specs)
     rec = sim.recording
     acc, gyr, mag = (rec.select(k) for k in (Kind.ACCELEROMETER, Kind.GYROSCOPE, Kind.MAGNETOMETER))
@@ -199,3 +199,13 @@ def test_temperature_records_the_range_it_saw(bound: dict[str, tuple[Effect, Inp
     assert inp.constants["T_min"] == pytest.approx(float(temp.min()))
     assert inp.constants["T_max"] == pytest.approx(float(temp.max()))
     assert inp.constants["T_min"] < inp.constants["T0"] < inp.constants["T_max"]
+
+
+def test_the_per_motor_term_keeps_the_additive_contract(bound: dict[str, tuple[Effect, Inputs, object]]) -> None:
+    """issue 28: motor_interference is additive (the EKFs carry it): its term reads no model quantity."""
+    from magcal_cli.effects.base import Point
+
+    eff, inp, _ = bound["motor_interference"]
+    term = eff.term(inp, eff.start() + 1e-7, Point.unknown(inp.t.size))
+    assert eff.additive and term.d_state is None and not term.d_base
+    assert np.all(np.isfinite(term.value)) and np.all(np.isfinite(term.d_beta))

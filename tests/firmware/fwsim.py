@@ -1,6 +1,6 @@
 """The two firmwares' compass corrections, re-implemented from ../shared/design/firmware-export.md only (and, for
-the EKF's magnetometer delay and PX4's thermal compensation, from the sources [S32]-[S35] docs/firmware-export.md
-quotes).
+the EKF's magnetometer delay, PX4's thermal compensation and ArduPilot's per-motor compensation, from the sources
+[S7] and [S32]-[S35] docs/firmware-export.md quotes).
 
 Nothing here imports magcal's exporter: parameter files are read with a few lines of string handling, rotation
 enums are built from the angle tables with elementary matrices (roll applied first: Rz(yaw) Ry(pitch) Rx(roll)),
@@ -77,9 +77,27 @@ def ardupilot_rotation(p: dict[str, float], suffix: str, board: np.ndarray) -> n
     return enum(orient)
 
 
+def ardupilot_per_motor(p: dict[str, float], pwm: np.ndarray, volts: np.ndarray) -> np.ndarray:
+    """Compass_PerMotor::compensate [S7]: sum over motors 1-4 of COMPASS_PMOTn times
+    ((scale_esc_to_unity(pwm) + 1) / 2 * voltage)^COMPASS_PMOT_EXP, 0 where the output is <= 0 (N, 3) mGauss;
+    pwm (N, 4) us over MOT_PWM_MIN..MAX."""
+    lo, hi = p.get("MOT_PWM_MIN", 1000.0), p.get("MOT_PWM_MAX", 2000.0)
+    out = np.zeros((len(pwm), 3))
+    for n in range(4):
+        unity = 2.0 * (pwm[:, n] - lo) / (hi - lo) - 1.0                   # scale_esc_to_unity
+        output = (unity + 1.0) * 0.5
+        scaled = np.zeros(len(pwm))
+        on = output > 0
+        scaled[on] = (output[on] * volts[on]) ** p.get("COMPASS_PMOT_EXP", 0.65)
+        out += scaled[:, None] * np.array([p.get(f"COMPASS_PMOT{n + 1}_{a}", 0.0) for a in AXES])
+    return out
+
+
 def ardupilot_field(sensor: np.ndarray, p: dict[str, float], suffix: str = "", board: np.ndarray | None = None,
-                    signal: np.ndarray | None = None) -> np.ndarray:
-    """Body field (N, 3) mGauss of sensor-frame readings (N, 3) mGauss: rotate_field, then correct_field [S3]."""
+                    signal: np.ndarray | None = None, pwm: np.ndarray | None = None,
+                    volts: np.ndarray | None = None) -> np.ndarray:
+    """Body field (N, 3) mGauss of sensor-frame readings (N, 3) mGauss: rotate_field, then correct_field [S3]; the
+    first compass takes the per-motor offsets instead of MOT when COMPASS_PMOT_EN (pwm (N, 4), volts (N,))."""
     r = ardupilot_rotation(p, suffix, np.eye(3) if board is None else board)
     mag = sensor @ r.T
     dia = np.array([p.get(f"COMPASS_DIA{suffix}_{a}", 0.0) for a in AXES])
@@ -93,7 +111,10 @@ def ardupilot_field(sensor: np.ndarray, p: dict[str, float], suffix: str = "", b
     M = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
     mag = mag @ M.T
     motct = int(p.get("COMPASS_MOTCT", 0))
-    if motct in (1, 2) and signal is not None:                                          # after the matrix
+    if p.get("COMPASS_PMOT_EN", 0) and suffix == "":                                    # first compass only
+        if pwm is not None and volts is not None:
+            mag = mag + ardupilot_per_motor(p, pwm, volts)
+    elif motct in (1, 2) and signal is not None:                                        # after the matrix
         mag = mag + signal[:, None] * np.array([p.get(f"COMPASS_MOT{suffix}_{a}", 0.0) for a in AXES])
     return mag
 

@@ -158,3 +158,52 @@ def test_ardupilot_says_what_it_cannot_hold() -> None:
     assert not any(k.startswith(("EKF", "TC_")) for k in exp.params)
     assert any("40.0 ms lag is not exported" in n for n in exp.notes)
     assert any("temperature drift is not exported" in n for n in exp.notes)
+
+
+# --- per-motor compensation (ArduPilot COMPASS_PMOT*) ------------------------------------------------------
+
+C_MOTORS = np.array([[9.0, -4.5, 6.0], [-7.5, 6.0, 3.0], [3.0, 9.0, -6.0], [-6.0, -7.5, 7.5]])   # mG per unit
+
+
+def motor_entry(sensor: str = "MAG[0]") -> dict[str, Any]:
+    """A carried motor_interference entry (mG per unit of (u V)^0.65)."""
+    return {"id": "motor_interference", "sensor": sensor, "status": "ambiguous",
+            "params": {f"c{n + 1}": list(C_MOTORS[n]) for n in range(4)} | {"expo": 0.65},
+            "units": {f"c{n + 1}": "milligauss" for n in range(4)}}
+
+
+def test_per_motor_round_trip_through_compass_per_motor() -> None:
+    """y = D m + o + sum c_n (u_n V)^0.65: PMOTn = -A_fw c_n and the firmware's compensate() cancel it."""
+    rng = np.random.default_rng(13)
+    D, o = 500.0 * soft_iron(rng), np.array([40.0, -20.0, 10.0])
+    n = 2000
+    pwm = np.round(rng.uniform(1000.0, 1900.0, size=(n, 4)))
+    pwm[:100] = 1000.0                                                       # motors off: no offset
+    volts = rng.uniform(14.0, 16.8, n)
+    s = np.where(pwm > 1000, ((pwm - 1000.0) / 1000.0 * volts[:, None]) ** 0.65, 0.0)
+    m = DIRECTIONS[:n]
+    y = m @ D.T + o + s @ C_MOTORS
+    vehicle = {"COMPASS_EXTERNAL": 1.0, "COMPASS_PMOT_EN": 0.0, "MOT_PWM_MIN": 1000.0, "MOT_PWM_MAX": 2000.0}
+    exp = export(document(D, o, effects=(motor_entry(),)), "ardupilot", vehicle)
+    p = written(exp, "mission-planner")
+    assert p["COMPASS_PMOT_EN"] == 1 and p["COMPASS_PMOT_EXP"] == pytest.approx(0.65)
+    b_fw = fwsim.ardupilot_field(y, vehicle | p, pwm=pwm, volts=volts)
+    assert rel_error(b_fw, 500.0 * m) < 1e-3
+    off = fwsim.ardupilot_field(y, vehicle | p | {"COMPASS_PMOT_EN": 0.0}, pwm=pwm, volts=volts)
+    assert rel_error(off, 500.0 * m) > 0.05                                 # the term mattered
+    assert "COMPASS_MOTCT" not in p                                          # the throttle rival is not carried
+
+
+def test_per_motor_only_for_the_first_compass_and_firmware_that_has_it() -> None:
+    """PMOT applies to compass 1 only; a firmware without COMPASS_PMOT_EN (3.3) cannot hold it: said, not written."""
+    mags = tuple(MagCalibration(i, "milligauss", 500.0 * np.eye(3), np.zeros(3), 60.0, np.zeros((13, 13)), 500.0)
+                 for i in ("MAG[0]", "MAG[1]"))
+    cal = Calibration(Source("s.bin", "dataflash", "", 0, 1), "map", ImuCalibration("IMU[0]"), mags, "0", "t",
+                      effects=(motor_entry("MAG[1]"),))
+    exp = export(cal, "ardupilot", {"COMPASS_EXTERNAL": 1, "COMPASS_EXTERN2": 0, "COMPASS_PMOT_EN": 0.0})
+    assert not any(k.startswith("COMPASS_PMOT") for k in exp.params)
+    assert any("first compass (COMPASS_*, slot 1) only" in n for n in exp.notes)
+    exp = export(document(500.0 * np.eye(3), np.zeros(3), effects=(motor_entry(),)), "ardupilot",
+                 {"COMPASS_EXTERNAL": 1})
+    assert not any(k.startswith("COMPASS_PMOT") for k in exp.params)
+    assert any("no per-motor compass compensation" in n for n in exp.notes)
