@@ -35,7 +35,7 @@ from magcal_cli.effects.correct import remove  # noqa: E402
 from magcal_cli.readers import open_recording  # noqa: E402
 from magcal_cli.streams import Kind  # noqa: E402
 from magcal_cli.synth.effects import parse_effect  # noqa: E402
-from magcal_cli.synth.logs import write_log  # noqa: E402
+from magcal_cli.synth.logs import imu_sampling, write_log  # noqa: E402
 from magcal_cli.synth.simulate import Simulation, simulate  # noqa: E402
 from tests.firmware import fwsim  # noqa: E402
 
@@ -83,8 +83,9 @@ def full_calibration(doc_path: Path, rec: Any, mag_id: str) -> tuple[np.ndarray,
 
 def px4_case(work: Path, seed: int) -> dict[str, Any]:
     """A simulated PX4 flight with a 40 ms lag and a temperature drift: EKF2_MAG_DELAY and TC_M0_* through fwsim."""
-    sim = simulate("multirotor", seed, effects=tuple(parse_effect(e) for e in _split(PX4_EFFECTS)))
     log = work / f"px4-{seed}.ulg"
+    sim = simulate("multirotor", seed, effects=tuple(parse_effect(e) for e in _split(PX4_EFFECTS)),
+                   imu_sampling=imu_sampling(log))
     write_log(sim, log)
     doc, secs = fit(log, work / f"px4-{seed}", "json,px4")
     params = fwsim.read_param_file((work / f"px4-{seed}" / "px4.params").read_text())
@@ -112,8 +113,8 @@ def px4_case(work: Path, seed: int) -> dict[str, Any]:
 
 def ardupilot_case(work: Path, seed: int) -> dict[str, Any]:
     """A simulated ArduPilot quad with four per-motor fields: COMPASS_PMOT* through fwsim's Compass_PerMotor."""
-    sim = simulate("multirotor", seed, effects=(parse_effect(AP_EFFECTS),))
     log = work / f"ap-{seed}.bin"
+    sim = simulate("multirotor", seed, effects=(parse_effect(AP_EFFECTS),), imu_sampling=imu_sampling(log))
     write_log(sim, log)
     doc, secs = fit(log, work / f"ap-{seed}", "json,ardupilot")
     params = fwsim.read_param_file((work / f"ap-{seed}" / "ardupilot.param").read_text())
@@ -156,6 +157,9 @@ def _verdict(entry: dict[str, Any] | None) -> dict[str, Any]:
     ev = entry.get("evidence") or {}
     return {"status": entry["status"], "params": entry.get("params"), "std": entry.get("std"),
             "p_value": (entry.get("test") or {}).get("p_value"), "heldout_gain_ci95": ev.get("heldout_gain_ci95"),
+            "score_p_value": ev.get("score_p_value"), "folds_chose": ev.get("folds_chose"),
+            "heldout_rms": [ev.get("heldout_rms_before"), ev.get("heldout_rms_after")],
+            "heading_max_deg": ev.get("heading_max_deg"),
             "confounded_with": entry.get("confounded_with"), "reason": entry.get("reason")}
 
 
@@ -185,6 +189,78 @@ def real_logs(work: Path, realdata: Path) -> dict[str, Any]:
     return out
 
 
+def _row(name: str, c: dict[str, Any]) -> str:
+    """One table row: the three heading errors."""
+    f, w, n = c["full"], c["firmware"], c["firmware_without"]
+    return (f"| {name} | {f['rms_deg']:.3f} / {f['p99_deg']:.2f} | {w['rms_deg']:.3f} / {w['p99_deg']:.2f} | "
+            f"{abs(w['rms_deg'] - f['rms_deg']):.4f} | {n['rms_deg']:.3f} / {n['p99_deg']:.2f} |")
+
+
+def render(r: dict[str, Any], command: str) -> str:
+    """The markdown page."""
+    out = ["# What the firmware can hold (issue 28): measured", "",
+           f"`{command}` (`benchmarks/firmware_extras.py`; its docstring says how each number is made). Heading "
+           "errors against the truth, level (levelled with the true roll and pitch), RMS / 99th percentile of |error| "
+           "in degrees.", "",
+           "## Simulated logs: the firmware's formula with the exported parameters vs the full calibration", "",
+           "| log | full calibration | firmware (exported file through fwsim) | difference of RMS | firmware without "
+           "the issue-28 parameters |", "|---|---|---|---|---|"]
+    for c in r["px4"]:
+        out.append(_row(f"PX4 {c['log']}", c))
+    for c in r["ardupilot"]:
+        out.append(_row(f"ArduPilot {c['log']}", c))
+    out += ["", "What the fits found and what was exported:", ""]
+    for c in r["px4"]:
+        lag, drift = c["time_offset"], c["temperature_drift"]
+        out.append(f"- PX4 ({c['log'].split(',')[0]}): time_offset {lag['status']}, tau = "
+                   f"{lag['params']['tau_s'] * 1e3:.2f} ± {lag['std']['tau_s'] * 1e3:.2f} ms (truth 40 ms), held-out "
+                   f"gain CI {_ci(lag)}; temperature_drift {drift['status']}, k = "
+                   f"{', '.join(f'{v * 1e3:.3f}' for v in drift['params']['k'])} mG/degC (truth 0.8, -0.6, 1.0), "
+                   f"T0 {drift['params']['T0']:.2f}, range {drift['params']['T_min']:.2f}..{drift['params']['T_max']:.2f}"
+                   f" degC. Exported: {', '.join(f'{k}={v:.6g}' for k, v in sorted(c['exported'].items()))}.")
+    for c in r["ardupilot"]:
+        m = c["motor_interference"]
+        out.append(f"- ArduPilot ({c['log'].split(',')[0]}): motor_interference {m['status']} (screen p "
+                   f"{m['p_value']:.2g}, held-out gain CI {_ci(m)}), c1..c4 = "
+                   + "; ".join(", ".join(f"{v:.2f}" for v in m["params"][f"c{i}"]) for i in range(1, 5))
+                   + f" mG (truth 9/-4.5/6; -7.5/6/3; 3/9/-6; -6/-7.5/7.5); throttle_interference "
+                   f"{c['throttle_interference']['status']} ({c['throttle_interference'].get('reason')}). Exported: "
+                   f"{', '.join(f'{k}={v:.5g}' for k, v in sorted(c['exported'].items()))}.")
+    real = r["real"]
+    if "log171" in real:
+        lg = real["log171"]
+        out += ["", "## log171 (ArduCopter V3.3, 3 compasses, RCOU Ch1..Ch4)", "",
+                f"`magcal fit log171.bin` (default, `--effects auto`): {lg['fit_s']:.1f} s.", "",
+                "| compass | motor_interference | score p | held-out gain CI (folds that chose it; held-out RMS mG "
+                "before → after, the chosen model) | largest heading change | reason | throttle | current |",
+                "|---|---|---|---|---|---|---|---|"]
+        for mid, m in lg["motor"].items():
+            rms = m.get("heldout_rms") or [None, None]
+            held = (f"{_ci(m)} ({m['folds_chose']:.0%}; {rms[0]:.1f} → {rms[1]:.1f})" if m.get("folds_chose") is not None
+                    else _ci(m))
+            head = f"{m['heading_max_deg']:.1f}°" if m.get("heading_max_deg") is not None else "-"
+            out.append(f"| {mid} | {m['status']} | {m['p_value']:.2g} | {held} | {head} | {m.get('reason') or ''} | "
+                       f"{lg['throttle'].get(mid)} | {lg['current'].get(mid)} |")
+        out += ["", "Per-motor vectors (mG per unit of (u V)^0.65): " + "; ".join(
+            f"{mid}: " + " / ".join(", ".join(f"{v:.1f}" for v in m["params"][f"c{i}"]) for i in range(1, 5))
+            for mid, m in lg["motor"].items() if m.get("params"))]
+        out += ["", "The parameter file it produces (`ardupilot.param`):", "", "```", lg["file"].rstrip(), "```"]
+    if "broad06" in real:
+        b = real["broad06"]
+        lag = b["time_offset"]
+        out += ["", "## BROAD 06 (06_undisturbed_fast_rotation_A.mat)", "",
+                f"time_offset {lag['status']}: tau = {lag['params']['tau_s'] * 1e3:.2f} ± {lag['std']['tau_s'] * 1e3:.2f}"
+                f" ms, held-out gain CI {_ci(lag)}; exported to PX4 as `EKF2_MAG_DELAY = {b['EKF2_MAG_DELAY']:.2f}` "
+                "(ms). `magcal export --px4` says:", "", "```", *b["stderr"], "```"]
+    return "\n".join(out) + "\n"
+
+
+def _ci(entry: dict[str, Any]) -> str:
+    """The held-out gain interval as text."""
+    ci = entry.get("heldout_gain_ci95")
+    return "-" if not ci else f"[{ci[0]:.2f}, {ci[1]:.2f}]"
+
+
 def main() -> None:
     """Run every case and write the JSON and the markdown page."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -198,7 +274,10 @@ def main() -> None:
                   "ardupilot": [ardupilot_case(work, s) for s in args.seeds],
                   "real": real_logs(work, args.realdata)}
     args.out.with_suffix(".json").write_text(json.dumps(result, indent=1, default=float) + "\n")
-    print(json.dumps(result, indent=1, default=float))
+    command = "python benchmarks/firmware_extras.py" + (f" --seeds {' '.join(map(str, args.seeds))}"
+                                                         if args.seeds != [3, 4] else "")
+    args.out.write_text(render(result, command))
+    print(args.out.read_text())
 
 
 if __name__ == "__main__":

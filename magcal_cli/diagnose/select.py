@@ -196,7 +196,8 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
             break
         best = sig[0]
         rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE
-                  and not _beyond(problem, mag, est, (*picked, e), best, loss, dip_prior, declination, holdout)]
+                  and not _beyond(problem, mag, est, (*picked, e), best, loss, dip_prior, declination, holdout)
+                  and not _beyond(problem, mag, est, (*picked, best), e, loss, dip_prior, declination, holdout)]
         pairs += [frozenset((best, r)) for r in rivals]
         hook(f"{mag.id} diagnosis: fitting with {best}", 0)
         try:
@@ -223,7 +224,8 @@ def _beyond(problem: Problem, mag: Stream, est: MapEstimate, given: tuple[str, .
             dip_prior: float | None, declination: float, holdout: tuple[tuple[float, float], ...]) -> bool:
     """Whether `best`, whose term nests the last of `given` (Effect.nests: per-motor fields contain the throttle's as
     the case where the motors move together), still explains significantly more with that one fitted: then the
-    two are not rivals (the canonical correlation of nested terms is always near 1). False for other pairs."""
+    two are not rivals (the canonical correlation of nested terms is always near 1), whichever was added first.
+    False for other pairs."""
     if given[-1] not in registry.get(best).nests:
         return False
     try:

@@ -73,8 +73,8 @@ class Motor(Effect):
                                                        "(first compass only)"}
 
     def applies(self, aux: tuple[Stream, ...]) -> bool:
-        """Only a log with per-motor outputs is screened for it (the others' documents stay as they were)."""
-        return bool(motor_streams(aux))
+        """Only a log with the outputs of motors 1-4 is screened for it (the others' documents stay as they were)."""
+        return len(motor_streams(aux)) >= MOTORS
 
     def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
                declination: float = 0.0) -> Inputs:

@@ -209,3 +209,26 @@ def test_the_per_motor_term_keeps_the_additive_contract(bound: dict[str, tuple[E
     term = eff.term(inp, eff.start() + 1e-7, Point.unknown(inp.t.size))
     assert eff.additive and term.d_state is None and not term.d_base
     assert np.all(np.isfinite(term.value)) and np.all(np.isfinite(term.d_beta))
+
+
+def test_motors_that_move_together_are_not_testable() -> None:
+    """issue 28: four identical outputs make four vectors one (a singular block): not testable, said why; fewer than
+    four motors or none: not testable either; `applies` only with motor streams (other logs' documents unchanged)."""
+    from magcal_cli.effects.base import Kinematics, NotTestable
+    from magcal_cli.effects.motor import EFFECT as MOTOR
+    from magcal_cli.streams import Stream
+
+    t = np.linspace(0.0, 60.0, 601)
+    u = 0.4 + 0.1 * np.sin(t)
+    volts = Stream(Kind.BATTERY_VOLTAGE, "BAT[0]", t, np.full(t.size, 15.0), "v", "V")
+    same = tuple(Stream(Kind.MOTOR_OUTPUT, f"motor[{i}]", t, u, "m", "1") for i in range(1, 5))
+    kin = Kinematics(t, np.zeros((t.size, 3)), np.zeros((t.size, 3)), t, np.zeros((t.size, 3)))
+    mag = Stream(Kind.MAGNETOMETER, "MAG[0]", t, np.ones((t.size, 3)), "m", "milligauss")
+    with pytest.raises(NotTestable, match="move together"):
+        MOTOR.inputs((*same, volts), mag, kin)
+    with pytest.raises(NotTestable, match="3 per-motor output channels"):
+        MOTOR.inputs((*same[:3], volts), mag, kin)
+    apart = tuple(Stream(Kind.MOTOR_OUTPUT, f"motor[{i}]", t, u + 0.05 * np.sin((i + 1) * t), "m", "1")
+                  for i in range(1, 5))
+    assert MOTOR.inputs((*apart, volts), mag, kin).channels["s"].shape == (t.size, 4)
+    assert MOTOR.applies(apart) and not MOTOR.applies((volts,))
