@@ -164,9 +164,12 @@ def thermal(cal: Calibration, slots: Sequence[tuple[MagCalibration, int]], param
 AP_MAG_DELAY_MS = 60.0
 
 
-def ardupilot_notes(cal: Calibration, mags: Sequence[MagCalibration]) -> list[str]:
-    """What an ArduPilot export leaves out: a lag (EKF3's delay is a constant) and a temperature drift (no compass
-    thermal compensation parameters)."""
+def not_held(cal: Calibration, mags: Sequence[MagCalibration], firmware: str) -> list[str]:
+    """What an export leaves out for want of a parameter: on ArduPilot a lag (EKF3's delay is a constant) and a
+    temperature drift (no compass thermal compensation); on PX4 per-motor fields (no per-motor compensation)."""
+    if firmware == "px4":
+        return [f"{m.id}: its per-motor interference is not exported: PX4 has no per-motor compass compensation"
+                for m in mags if carried(cal, m.id, "motor_interference") is not None]
     notes = []
     for mag in mags:
         if (e := carried(cal, mag.id, "time_offset")) is not None:
@@ -179,20 +182,21 @@ def ardupilot_notes(cal: Calibration, mags: Sequence[MagCalibration]) -> list[st
 
 
 def pmot(cal: Calibration, mag: MagCalibration, suffix: str, held: FloatArray, k: float,
-         params: Mapping[str, float]) -> tuple[dict[str, float], set[str], list[str]]:
+         params: Mapping[str, float]) -> tuple[dict[str, float], set[str], list[str], list[str]]:
     """COMPASS_PMOT_EN/EXP/PMOTn_X.. of a carried `motor_interference`: the firmware adds
     sum_n PMOTn (u_n V)^EXP after the iron matrix, to the first compass only (AP_Compass_Backend correct_field,
     Compass_PerMotor::compensate [S3][S7]), so PMOTn = -A_fw c_n in mGauss (A_fw = `held`, c_n in the document's unit
-    times `k`), the sign and frame of COMPASS_MOT."""
+    times `k`), the sign and frame of COMPASS_MOT. Returns (parameters, integer names, notes, what is not held)."""
     entry = carried(cal, mag.id, "motor_interference")
     if entry is None:
-        return {}, set(), []
+        return {}, set(), [], []
     if suffix != "":
-        return {}, set(), [f"{mag.id}: its per-motor interference is not exported: ArduPilot's per-motor "
-                           "compensation applies to the first compass (COMPASS_*, slot 1) only"]
+        return {}, set(), [], [f"{mag.id}: its per-motor interference is not exported: ArduPilot's per-motor "
+                               "compensation applies to the first compass (COMPASS_*, slot 1) only"]
     if params and "COMPASS_PMOT_EN" not in params:
-        return {}, set(), [f"{mag.id}: its per-motor interference is not exported: this firmware has no per-motor "
-                           "compass compensation (no COMPASS_PMOT_EN in its parameters; added in ArduCopter 3.6)"]
+        return {}, set(), [], [f"{mag.id}: its per-motor interference is not exported: this firmware has no "
+                               "per-motor compass compensation (no COMPASS_PMOT_EN in its parameters; added in "
+                               "ArduCopter 3.6)"]
     p = entry["params"]
     out = {"COMPASS_PMOT_EN": 1.0, "COMPASS_PMOT_EXP": float(p.get("expo", 0.65))}
     for n in range(1, 5):
@@ -202,7 +206,7 @@ def pmot(cal: Calibration, mag: MagCalibration, suffix: str, held: FloatArray, k
              "instead of COMPASS_MOT for this compass); they assume its outputs scale as (PWM fraction x battery "
              "voltage)^COMPASS_PMOT_EXP (Compass_PerMotor.cpp of 3.6-4.x); newer variants read scale motor thrust by "
              "battery current: check the firmware's Compass_PerMotor before flying"]
-    return out, {"COMPASS_PMOT_EN"}, notes
+    return out, {"COMPASS_PMOT_EN"}, notes, []
 
 
 def extras(cal: Calibration, slots: Sequence[tuple[MagCalibration, int]], params: Mapping[str, float]) -> Extras:

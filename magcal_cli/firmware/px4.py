@@ -30,7 +30,7 @@ from magcal_cli.firmware.common import (
     soft_range,
 )
 from magcal_cli.firmware.effects import carried
-from magcal_cli.firmware.extras import extras
+from magcal_cli.firmware.extras import extras, not_held
 from magcal_cli.firmware.split import choose_rotation, split_symmetric_first
 from magcal_cli.streams import FloatArray
 
@@ -219,11 +219,12 @@ def export_px4(cal: Calibration, params: Mapping[str, float], options: Options |
     acc.integers |= more.integers
     acc.notes += more.notes
     acc.warnings += more.warnings
+    acc.not_held += not_held(cal, [cal.magnetometer(m.mag_id) for m in acc.mags], "px4")
     if any(k.startswith("SENS_MAG0_") for k in params):
         acc.notes.append("this PX4 keeps rotations in SENS_MAGn_* configuration parameters; magcal writes the "
                          "CAL_MAGn_* layout, so set the rotation there by hand")
     return Export("px4", tuple(acc.mags), acc.params, frozenset(acc.integers), tuple(acc.notes),
-                  tuple(acc.warnings), cal.source.path)
+                  tuple(acc.warnings), cal.source.path, tuple(acc.not_held))
 
 
 def correct(raw: FloatArray, params: Mapping[str, float], n: int, signal: FloatArray | None) -> FloatArray:

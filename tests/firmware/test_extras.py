@@ -156,8 +156,9 @@ def test_ardupilot_says_what_it_cannot_hold() -> None:
                {**drift_entry([1.0, 0, 0], 30.0, 20.0, 40.0, unit="milligauss/degC"), "sensor": "MAG[0]"})
     exp = export(document(500.0 * np.eye(3), np.zeros(3), effects=effects), "ardupilot", {"COMPASS_EXTERNAL": 1})
     assert not any(k.startswith(("EKF", "TC_")) for k in exp.params)
-    assert any("40.0 ms lag is not exported" in n for n in exp.notes)
-    assert any("temperature drift is not exported" in n for n in exp.notes)
+    assert any("40.0 ms lag is not exported" in n for n in exp.not_held)
+    assert any("temperature drift is not exported" in n for n in exp.not_held)
+    assert any(h.startswith("not held: MAG[0]: its 40.0 ms lag") for h in exp.header())
 
 
 # --- per-motor compensation (ArduPilot COMPASS_PMOT*) ------------------------------------------------------
@@ -202,8 +203,8 @@ def test_per_motor_only_for_the_first_compass_and_firmware_that_has_it() -> None
                       effects=(motor_entry("MAG[1]"),))
     exp = export(cal, "ardupilot", {"COMPASS_EXTERNAL": 1, "COMPASS_EXTERN2": 0, "COMPASS_PMOT_EN": 0.0})
     assert not any(k.startswith("COMPASS_PMOT") for k in exp.params)
-    assert any("first compass (COMPASS_*, slot 1) only" in n for n in exp.notes)
+    assert any("first compass (COMPASS_*, slot 1) only" in n for n in exp.not_held)
     exp = export(document(500.0 * np.eye(3), np.zeros(3), effects=(motor_entry(),)), "ardupilot",
                  {"COMPASS_EXTERNAL": 1})
     assert not any(k.startswith("COMPASS_PMOT") for k in exp.params)
-    assert any("no per-motor compass compensation" in n for n in exp.notes)
+    assert any("no per-motor compass compensation" in n for n in exp.not_held)
