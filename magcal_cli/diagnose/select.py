@@ -194,8 +194,8 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         sig = holm(scr)
         if not sig:
             break
-        best = sig[0]
-        rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE]
+        best, rivals = _nested_choice(problem, mag, est, tuple(picked), sig, scr, loss, dip_prior, declination,
+                                      holdout)
         pairs += [frozenset((best, r)) for r in rivals]
         hook(f"{mag.id} diagnosis: fitting with {best}", 0)
         try:
@@ -216,6 +216,54 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         left = [e for e in left if e != best and e not in rivals]
         est = trial
     return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs), implausible)
+
+
+def _nested_choice(problem: Problem, mag: Stream, est: MapEstimate, picked: tuple[str, ...], sig: list[str],
+                   scr: Screen, loss: str, dip_prior: float | None, declination: float,
+                   holdout: tuple[tuple[float, float], ...]) -> tuple[str, list[str]]:
+    """The candidate to add and its rivals. Without nesting effects (Effect.nests) this is the old rule: the
+    strongest, rivals above SEPARABLE. A nested term that explains the same readings with fewer parameters is added
+    instead (throttle rather than per-motor fields when the motors move together) and the nesting one becomes its
+    rival; a nesting pair whose bigger term explains more than the smaller one is not a pair of rivals."""
+    beyond: dict[tuple[str, str], bool] = {}
+
+    def goes_beyond(big: str, small: str) -> bool:
+        if (big, small) not in beyond:
+            beyond[big, small] = _beyond(problem, mag, est, (*picked, small), big, loss, dip_prior, declination,
+                                         holdout)
+        return beyond[big, small]
+
+    def close(a: str, b: str) -> bool:
+        return scr.correlation.get(frozenset((a, b)), 0.0) > SEPARABLE
+
+    best = sig[0]
+    best = next((e for e in sig[1:] if e in registry.get(best).nests and close(best, e) and not goes_beyond(best, e)),
+                best)
+    rivals = [e for e in sig if e != best and close(best, e)
+              and not (e in registry.get(best).nests and goes_beyond(best, e))
+              and not (best in registry.get(e).nests and goes_beyond(e, best))]
+    return best, rivals
+
+
+def _beyond(problem: Problem, mag: Stream, est: MapEstimate, given: tuple[str, ...], best: str, loss: str,
+            dip_prior: float | None, declination: float, holdout: tuple[tuple[float, float], ...]) -> bool:
+    """Whether `best`, whose term nests the last of `given` (Effect.nests: per-motor fields contain the throttle's as
+    the case where the motors move together), still explains significantly more with that one fitted: then the
+    two are not rivals (the canonical correlation of nested terms is always near 1), whichever was added first.
+    False for other pairs."""
+    if given[-1] not in registry.get(best).nests:
+        return False
+    try:
+        fitted = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=given, declination=declination,
+                         holdout=holdout, warm=est.context)
+    except REFIT_ERRORS:
+        return False
+    scr = screen(problem, mag, fitted, [best], declination)
+    if not holm(scr):
+        return False
+    # the backward step's evidence bar too: the extra parameters must pay for themselves (2 ln BF > BIC_MIN)
+    s = scr.scores[0]
+    return bool(s.classical - s.dof * float(np.log(n_eff(fitted))) > BIC_MIN)
 
 
 def beyond_limits(est: MapEstimate, eid: str) -> str:
