@@ -313,10 +313,11 @@ SHARED: dict[str, Shared] = {
                      "the physics beyond the base model to simulate; repeatable and comma-separated", ("simulate",),
                      "{what}", multiple=True, settings={"callback": injected_effects}),
     "force": Shared(("--force",), "force", None, "flag", "overwrite existing outputs (refused without it, exit 2)",
-                    ("fit", "diagnose", "batch", "simulate", "export", "apply"), "Overwrite existing outputs{what}.",
+                    ("fit", "diagnose", "batch", "simulate", "export", "apply", "fleet"),
+                    "Overwrite existing outputs{what}.",
                     settings={"is_flag": True}),
     "json": Shared(("--json",), "as_json", None, "flag", "print one JSON document on stdout instead of text",
-                   ("fit", "diagnose", "check", "batch", "inspect"), "{what}", settings={"is_flag": True}),
+                   ("fit", "diagnose", "check", "batch", "inspect", "fleet"), "{what}", settings={"is_flag": True}),
     "strict": Shared(("--strict",), "strict", None, "flag",
                      "refuse a cut log instead of reading it up to its last complete record", ("fit", "batch"),
                      "Refuse a cut log (one that ends inside a record) instead of reading it up to its last complete "
@@ -333,7 +334,16 @@ SHARED: dict[str, Shared] = {
                       settings={"callback": outputs_option}),
     "fail-on": Shared(("--fail-on",), "fail_on", "EXPR", "conditions",
                       "exit 3 when a magnetometer meets a condition (METRIC OP NUMBER, comma-separated)",
-                      ("fit", "check", "batch"), "{what}"),
+                      ("fit", "check", "batch", "fleet"), "{what}"),
+    "history": Shared(("--history",), "history", "DB", "SQLite file",
+                      "record every result in this history store (created if absent; magcal fleet reads it)",
+                      ("fit", "batch"), "Record every magnetometer's result in the history store DB (SQLite, "
+                      "created if absent){what}; a log already recorded (same content) changes nothing. magcal "
+                      "fleet DB reads it.", settings={"type": click.Path(dir_okay=False, path_type=Path)}),
+    "vehicle": Shared(("--vehicle",), "vehicle", "NAME", "vehicle name",
+                      "the vehicle the log comes from, instead of the one the log names", ("fit", "batch"),
+                      "With --history: the vehicle{what} comes from, instead of the one the log names "
+                      "(SYSID_THISMAV, PX4 sys_uuid, the ROS namespace or the log's folder)."),
     "calibration": Shared(("--calibration",), "cal_path", "CAL.json", "calibration document",
                           "a calibration document from magcal fit", ("diagnose", "check"), "{what}",
                           settings={"type": click.Path(exists=True, dir_okay=False, path_type=Path)}),
