@@ -9,7 +9,7 @@ import click
 from magcal_cli.cli import guards, options
 from magcal_cli.cli.common import CONTEXT, QualityGateError, handle_errors, say, verbosity
 
-FLEET_EXIT = ("Exit codes: 0 success; 1 the store cannot be read; 2 usage error (a bad option, an --html file that "
+FLEET_EXIT = ("Exit codes: 0 success; 1 the store cannot be read; 2 usage error (a bad option, an -o file that "
               "exists without --force); 3 a compass is in a --fail-on state; 123 internal error (a bug).")
 FAIL_STATES = ("changed", "settled", "new")
 
@@ -36,8 +36,7 @@ def _scale(_: click.Context, __: click.Parameter, value: float | None) -> float 
 
 @click.command("fleet", context_settings=CONTEXT, epilog=FLEET_EXIT)
 @click.argument("db", type=click.Path(exists=True, dir_okay=False, path_type=Path))
-@click.option("--html", "html_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              metavar="FILE", help="Write the fleet report (one HTML page: the vehicles' table and trend plots).")
+@options.option("output", ": the HTML fleet report (one page: the vehicles' table and trend plots)")
 @options.option("fail-on", callback=_states, metavar="STATE[,STATE]",
                 help="Exit 3 when a compass is in one of these states: changed (a watched parameter alarmed at "
                      "its latest flight: 'a compass changed'), settled (changed earlier), new (one flight).")
@@ -45,11 +44,11 @@ def _scale(_: click.Context, __: click.Parameter, value: float | None) -> float 
               help="Multiply every reported std by this factor instead of the fleet's observed flight-to-flight "
                    "inflation (1: trust the reported std).")
 @options.as_json("Print one JSON document: every compass's state, changes and series.")
-@options.force("Overwrite an existing --html file.")
+@options.force(" (the -o report)")
 @verbosity
 @click.pass_context
 @handle_errors
-def fleet_cmd(ctx: click.Context, db: Path, html_path: Path | None, fail_on: tuple[str, ...],
+def fleet_cmd(ctx: click.Context, db: Path, out: Path | None, fail_on: tuple[str, ...],
               std_scale: float | None, as_json: bool, force: bool) -> None:
     """Every vehicle's compasses over time from the history store DB (magcal fit/batch --history DB).
 
@@ -62,19 +61,25 @@ def fleet_cmd(ctx: click.Context, db: Path, html_path: Path | None, fail_on: tup
     from magcal_cli.history import fleet as model
     from magcal_cli.history.store import load
 
-    if html_path is not None:
-        guards.refuse_existing((html_path,), force)
+    to_stdout = out is not None and str(out) == "-"
+    if out is not None and not to_stdout:
+        guards.refuse_existing((out,), force)
     fleet = model.build(load(db), scale=std_scale)
-    if html_path is not None:
-        from magcal_cli.atomic import write_text
+    summary = json.dumps(model.to_json(fleet), indent=2) + "\n" if as_json else model.text(fleet)
+    if out is not None:
         from magcal_cli.writers.fleet import html
 
-        write_text(html_path, html(fleet))
-        say(ctx, f"wrote {html_path}")
-    if as_json:
-        click.echo(json.dumps(model.to_json(fleet), indent=2))
-    else:
-        click.echo(model.text(fleet), nl=False)
+        page = html(fleet)
+        if to_stdout:                               # the page is the result; the summary goes to stderr
+            click.echo(page, nl=False)
+            click.echo(summary, nl=False, err=True)
+        else:
+            from magcal_cli.atomic import write_text
+
+            write_text(out, page)
+            say(ctx, f"wrote {out}")
+    if not to_stdout:
+        click.echo(summary, nl=False)
     failed = [c for c in fleet.compasses if c.state in fail_on]
     if failed:
         names = ", ".join(f"{c.vehicle} {c.sensor}" for c in failed[:5]) + (", ..." if len(failed) > 5 else "")

@@ -283,7 +283,7 @@ SHARED: dict[str, Shared] = {
                      settings={"type": click.Path(path_type=Path), "callback": output_folder}),
     "output": Shared(("-o", "--output"), "out", "FILE|-", "file or '-'",
                      "the output: a file, for commands that write one; '-' is standard output",
-                     ("apply", "export"), "File to write{what} ('-': standard output).",
+                     ("apply", "export", "fleet"), "File to write{what} ('-': standard output).",
                      settings={"type": click.Path(dir_okay=False, allow_dash=True, path_type=Path)}),
     "log-output": Shared(("-o", "--output"), "out", "LOG", "file or ROS 2 bag folder",
                          "the output: the log simulate writes (its extension picks the format)", ("simulate",),
@@ -333,8 +333,8 @@ SHARED: dict[str, Shared] = {
                       "(report.txt), html (report.html with plots), ardupilot (ardupilot.param), px4 (px4.params).",
                       settings={"callback": outputs_option}),
     "fail-on": Shared(("--fail-on",), "fail_on", "EXPR", "conditions",
-                      "exit 3 when a magnetometer meets a condition (METRIC OP NUMBER, comma-separated)",
-                      ("fit", "check", "batch", "fleet"), "{what}"),
+                      "exit 3 when a magnetometer meets a condition (METRIC OP NUMBER, comma-separated; fleet: "
+                      "compass states changed, settled, new)", ("fit", "check", "batch", "fleet"), "{what}"),
     "history": Shared(("--history",), "history", "DB", "SQLite file",
                       "record every result in this history store (created if absent; magcal fleet reads it)",
                       ("fit", "batch"), "Record every magnetometer's result in the history store DB (SQLite, "
@@ -360,10 +360,10 @@ SHARED: dict[str, Shared] = {
                                             example=": PX4 sensor_combined, delta-angle IMUs"),
                          settings={"type": click.Choice(TIMING_CHOICES), "callback": sampling}),
     "quiet": Shared(("-q", "--quiet"), "quiet", None, "flag", "print nothing on stderr but errors",
-                    ("fit", "diagnose", "check", "batch", "simulate", "inspect", "export", "apply"),
+                    ("fit", "diagnose", "check", "batch", "simulate", "inspect", "export", "apply", "fleet"),
                     "Print nothing on stderr but errors.", settings={"is_flag": True, "expose_value": False}),
     "verbose": Shared(("-v", "--verbose"), "verbose", None, "flag", "more detail on stderr; tracebacks of bugs",
-                      ("fit", "diagnose", "check", "batch", "simulate", "inspect", "export", "apply"),
+                      ("fit", "diagnose", "check", "batch", "simulate", "inspect", "export", "apply", "fleet"),
                       "More detail on stderr; a traceback for internal errors.",
                       settings={"is_flag": True, "expose_value": False}),
 }

@@ -18,7 +18,8 @@ from click.testing import CliRunner
 from magcal_cli.cli.main import cli
 from magcal_cli.history import fleet as model
 from magcal_cli.history.store import load
-from magcal_cli.synth.vehicle import VehicleFileError, load as load_vehicle
+from magcal_cli.synth.vehicle import VehicleFileError
+from magcal_cli.synth.vehicle import load as load_vehicle
 from tests.history.conftest import STEP_AT
 from tests.test_report_browser import IMAGES, check_in_browser
 
@@ -93,11 +94,11 @@ def test_fleet_command_text_json_and_fail_on(store: Path, fleet_logs: list[Path]
 def test_fleet_report_in_a_browser(store: Path, tmp_path: Path) -> None:
     """The HTML report: a table row per compass and a trend figure each, clean in headless Chromium."""
     page = tmp_path / "fleet.html"
-    run = CliRunner().invoke(cli, ["fleet", str(store), "--html", str(page)])
+    run = CliRunner().invoke(cli, ["fleet", str(store), "-o", str(page)])
     assert run.exit_code == 0, run.output
     html = page.read_text(encoding="utf-8")
     assert html.count("<tr style=") == 3 and html.count("<img ") == 3 and "settled" in html
-    refused = CliRunner().invoke(cli, ["fleet", str(store), "--html", str(page)])
+    refused = CliRunner().invoke(cli, ["fleet", str(store), "-o", str(page)])
     assert refused.exit_code == 2 and "exists already" in refused.output
     probe = check_in_browser(page, IMAGES / "fleet-report.png")
     assert probe["images"] == 3
