@@ -146,6 +146,22 @@ def _run(cmd: list[str]) -> tuple[float, subprocess.CompletedProcess[str]]:
     return time.perf_counter() - start, done
 
 
+def cpu_per_flight(logs: list[Path], folder: Path) -> float:
+    """CPU seconds one flight's recording costs (the fit, its json output, batch.json and the history entries, as a
+    batch worker runs it), from `logs` fitted in this process: what the wall time is on idle cores, where the load
+    of other work does not count."""
+    from magcal_cli.batch.plan import FitOptions, Job
+    from magcal_cli.batch.run import run_one
+
+    options = FitOptions(effects=("current_interference",), outputs=("json",), history=True)
+    jobs = [Job(p, f"cpu{k}", folder / f"cpu{k}", ("json",), None, options) for k, p in enumerate(logs)]
+    run_one(jobs[0])                                            # imports and caches out of the count
+    start = time.process_time()
+    for job in jobs[1:]:
+        run_one(job)
+    return (time.process_time() - start) / (len(jobs) - 1)
+
+
 def score(plan: list[dict[str, Any]], fleet: dict[str, Any], flights: int) -> dict[str, Any]:
     """Detection within 2 flights (by step size in reported stds) and false alarms per vehicle-flight."""
     by_sysid = {c["vehicle"]: c for c in fleet["compasses"]}
@@ -215,9 +231,13 @@ def main() -> None:
     if rep.returncode != 0:
         sys.exit(f"magcal fleet failed (exit {rep.returncode}): {rep.stderr}")
     fleet = json.loads(rep.stdout)
+    sample = sorted((folder / "logs").glob("*/flight0[0-1].bin"))[::max(1, args.vehicles // 20)][:41]
+    cpu = cpu_per_flight(sample, folder / "cpu")
+    shutil.rmtree(folder / "cpu", ignore_errors=True)
     result = score(plan, fleet, args.flights)
     result |= {"vehicles": args.vehicles, "flights": args.flights, "jobs": args.jobs, "simulate_s": sim_s,
                "record_s": record_s, "report_s": report_s, "record_and_report_s": record_s + report_s,
+               "cpu_s_per_flight": cpu, "sample_flights": len(sample) - 1,
                "batch_exit": rec.returncode, "inflation": fleet["inflation"],
                "detector": fleet["detector"], "load_avg_before": load_before,
                "load_avg": os.getloadavg()}
@@ -237,6 +257,9 @@ def main() -> None:
         f"| record (batch --history) | {record_s:.0f} s | |",
         f"| report (fleet --json -o fleet.html) | {report_s:.1f} s | |",
         f"| record + report | {record_s + report_s:.0f} s | < 300 s |",
+        f"| CPU per flight recorded (fit, json, batch.json, history entries; {len(sample) - 1} flights in-process) | "
+        f"{cpu:.2f} s: {args.vehicles * args.flights * cpu / args.jobs:.0f} s for the fleet on {args.jobs} idle "
+        "cores, worker start-up aside | |",
         f"| simulate (not part of the target{', this run reused the logs' if args.reuse else ''}) | {sim_s:.0f} s | |",
         "",
         "Detection within 2 flights by step size (the largest component's step over its median reported std):", "",

@@ -9,9 +9,9 @@ fleet's vehicles, so that the rare steps do not count) is the factor, at least 1
 Each flight is then compared with the reference, the inverse-variance mean of the flights since the last change:
 z_i = (x_i - ref) / sqrt(s_i^2 + var_ref). A two-sided CUSUM (Page 1954) accumulates g+ = max(0, g+ + z - k) and
 g- = max(0, g- - z - k); when either exceeds h the series alarms at that flight, the change is placed where that
-sum last left zero, and the reference restarts there. With k = 1.5 and h = 4: one flight 5.5 reference-stds off,
-or two flights 3.5 off, alarm; a steady series alarms on about 1 flight in 10,000 per parameter (MC_FALSE_ALARM,
-measured by tests/history/test_detect.py).
+sum last left zero, and the reference restarts there. With k = 1.25 and h = 2.75, one flight 4 reference-stds
+off, or two flights 2.65 off each, alarm; a steady parameter alarms on about 4 flights in 10,000, and a 5-std step
+is found within 2 flights 99 % of the time (Gaussian series of 20 flights; tests/history/test_detect.py).
 """
 
 from __future__ import annotations

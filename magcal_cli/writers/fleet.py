@@ -16,6 +16,8 @@ COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b")
 STATE_COLORS = {"changed": "#f8d0d0", "settled": "#fdf0c8", "new": "#e6e6e6", "steady": "#d8f0d8"}
 TITLES = {"hard_iron": "hard iron o [{unit}]", "soft_iron": "soft iron (unitless)",
           "orientation": "orientation [deg]", "interference": "interference [{unit}/A]"}
+#: what the panels show: each parameter's change since the compass's first flight, so that series of different
+#: size share a panel and a step stands out against the bands
 #: the band drawn around each series, in (inflated) standard deviations
 BAND_SIGMAS = 2.0
 CSS = """body{font-family:DejaVu Sans,Helvetica,Arial,sans-serif;margin:24px;color:#222;max-width:1250px}
@@ -30,6 +32,8 @@ def _panel(ax: Axes, c: Compass, group: str, factors: dict[str, float]) -> None:
     x = np.arange(1, len(c.flights) + 1, dtype=np.float64)
     for k, n in enumerate(names):
         v, s = c.series[n]
+        finite = v[np.isfinite(v)]
+        v = v - (finite[0] if finite.size else 0.0)
         s = s * factors.get(n, 1.0)
         color = COLORS[k % len(COLORS)]
         ax.band(x, v - BAND_SIGMAS * s, v + BAND_SIGMAS * s, color, 0.18)
@@ -38,7 +42,7 @@ def _panel(ax: Axes, c: Compass, group: str, factors: dict[str, float]) -> None:
     for ch in c.changes:
         if ch.category == group:
             ax.vspan(ch.start + 0.5, ch.start + 1.5, "#d62728", 0.12)
-    ax.title = TITLES[group].format(unit=c.unit)
+    ax.title = "change of " + TITLES[group].format(unit=c.unit) + " since flight 1"
     ax.xlabel = "flight"
     ax.xlim = (0.5, len(c.flights) + 0.5)
     ax.legend_at, ax.legend_cols = "upper left", min(len(names), 6)
@@ -91,8 +95,8 @@ def html(fleet: Fleet, title: str = "magcal fleet report") -> str:
            + ", ".join(f"{counts[s]} {s}" for s in counts) + ".</p>",
            f"<p class='note'>Change detection: two-sided CUSUM (slack {fleet.slack:g}, threshold "
            f"{fleet.threshold:g}) on each watched parameter, standardised by the flight's reported std times the "
-           "fleet's observed flight-to-flight inflation; bands are ±2 inflated std; red spans mark the first "
-           "flight after a change. See docs/fleet.md.</p>",
+           "fleet's observed flight-to-flight inflation. Plots: each parameter's change since the compass's first "
+           "flight; bands are ±2 inflated std; red spans mark the first flight after a change. See docs/fleet.md.</p>",
            "<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>",
            *(_row(c, k) for k, c in enumerate(compasses)), "</table>"]
     for k, c in enumerate(compasses):
