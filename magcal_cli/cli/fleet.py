@@ -37,14 +37,14 @@ def _scale(_: click.Context, __: click.Parameter, value: float | None) -> float 
 @click.command("fleet", context_settings=CONTEXT, epilog=FLEET_EXIT)
 @click.argument("db", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @options.option("output", ": the HTML fleet report (one page: the vehicles' table and trend plots)")
-@options.option("fail-on", callback=_states, metavar="STATE[,STATE]",
-                help="Exit 3 when a compass is in one of these states: changed (a watched parameter alarmed at "
+@options.option("fail-on", callback=_states,
+                help="Exit 3 when a compass is in one of these states (STATE[,STATE]): changed (a watched parameter alarmed at "
                      "its latest flight: 'a compass changed'), settled (changed earlier), new (one flight).")
 @click.option("--std-scale", type=float, default=None, callback=_scale,
               help="Multiply every reported std by this factor instead of the fleet's observed flight-to-flight "
                    "inflation (1: trust the reported std).")
 @options.as_json("Print one JSON document: every compass's state, changes and series.")
-@options.force(" (the -o report)")
+@options.force("Overwrite an existing -o report.")
 @verbosity
 @click.pass_context
 @handle_errors

@@ -100,6 +100,8 @@ def test_fleet_report_in_a_browser(store: Path, tmp_path: Path) -> None:
     assert html.count("<tr style=") == 3 and html.count("<img ") == 3 and "settled" in html
     refused = CliRunner().invoke(cli, ["fleet", str(store), "-o", str(page)])
     assert refused.exit_code == 2 and "exists already" in refused.output
+    piped = CliRunner().invoke(cli, ["fleet", str(store), "-o", "-"])      # the page on stdout, the summary on stderr
+    assert piped.stdout.startswith("<!DOCTYPE html>") and "3 compasses on 3 vehicles" in piped.stderr
     probe = check_in_browser(page, IMAGES / "fleet-report.png")
     assert probe["images"] == 3
 
