@@ -42,7 +42,7 @@ from magcal_cli.wmm import reference_for
 
 #: the channels effect plug-ins may use, handed to the estimators beside the IMU and magnetometers
 AUX_KINDS = frozenset({Kind.BATTERY_CURRENT, Kind.BATTERY_VOLTAGE, Kind.THROTTLE, Kind.TEMPERATURE,
-                       Kind.POSITION, Kind.ATTITUDE})
+                       Kind.POSITION, Kind.ATTITUDE, Kind.MOTOR_OUTPUT})
 
 
 def _known_physics(cfg: Config, aux: tuple[Stream, ...]) -> tuple[str, ...]:

@@ -29,6 +29,8 @@ class Kind(Enum):
     THROTTLE = "throttle"
     TEMPERATURE = "temperature"
     POSITION = "position"
+    #: one motor's output, 0..1 of its PWM range (one stream per motor, ids motor[1], motor[2], ...)
+    MOTOR_OUTPUT = "motor_output"
 
     @property
     def width(self) -> int:
@@ -63,6 +65,7 @@ _SI_UNIT = {
     Kind.MAGNETOMETER: "tesla", Kind.ACCELEROMETER: "m/s^2", Kind.GYROSCOPE: "rad/s",
     Kind.ATTITUDE: "quaternion wxyz, body to nav", Kind.BATTERY_CURRENT: "A", Kind.BATTERY_VOLTAGE: "V",
     Kind.THROTTLE: "1", Kind.TEMPERATURE: "degC", Kind.POSITION: "deg, deg, m (lat, lon, alt)",
+    Kind.MOTOR_OUTPUT: "1",
 }
 
 

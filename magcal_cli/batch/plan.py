@@ -50,9 +50,12 @@ class FitOptions:
     mag_timing: Sampling | None = None
     start_s: float | None = None                    # --start/--end: the part of every log to fit
     end_s: float | None = None
+    history: bool = False                           # --history: each report carries its store entries
+    vehicle: str | None = None                      # --vehicle: the entries' vehicle instead of the log's
 
     def fingerprint(self) -> dict[str, Any]:
-        """What batch.json records: outputs fitted with other options (or another magcal) are not up to date."""
+        """What batch.json records: outputs fitted with other options (or another magcal) are not up to date.
+        --history and --vehicle change no output, so they are left out (batch.json keeps the entries)."""
         return {"magcal_version": __version__, "method": self.method, "effects": list(self.effects),
                 "outputs": None if self.outputs is None else list(self.outputs), "mags": list(self.mags),
                 "fail_on": [str(c) for c in self.fail_on], "strict": self.strict,
@@ -90,10 +93,14 @@ class LogReport:
     outputs: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     traceback: str | None = None                    # for an internal error (123): printed with -v
+    history: list[dict[str, Any]] = field(default_factory=list)   # --history: the store entries (history.entry)
 
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON entry."""
-        return asdict(self)
+    def to_dict(self, history: bool = False) -> dict[str, Any]:
+        """The JSON entry (the store entries only in batch.json, with `history`)."""
+        out = asdict(self)
+        if not history:
+            del out["history"]
+        return out
 
 
 @dataclass
@@ -217,6 +224,8 @@ def up_to_date(job: Job) -> LogReport | None:
     report = doc.get("report", {})
     if doc.get("log_stamp") != [size, mtime] or report.get("status") not in COMPLETE:
         return None
+    if job.options.history and not report.get("history"):
+        return None                                 # fitted before without --history: its entries are needed
     outputs = [Path(p) for p in report.get("outputs", [])]
     if not outputs or any(not p.is_file() or p.stat().st_mtime_ns < mtime for p in outputs):
         return None
@@ -229,7 +238,8 @@ def write_status(job: Job, report: LogReport) -> None:
     from magcal_cli.atomic import write_text
 
     doc = {"format": "magcal-batch-log", "format_version": FORMAT_VERSION, "log": str(job.log),
-           "log_stamp": list(log_stamp(job.log)), "options": job.options.fingerprint(), "report": report.to_dict()}
+           "log_stamp": list(log_stamp(job.log)), "options": job.options.fingerprint(),
+           "report": report.to_dict(history=True)}
     job.outdir.mkdir(parents=True, exist_ok=True)
     write_text(job.outdir / STATUS_FILE, json.dumps(doc, indent=2, default=float) + "\n")
 

@@ -32,7 +32,7 @@ from magcal_cli.writers.fitrun import USER_ERRNOS
 TASKS_PER_WORKER = 1
 #: imported once in the fork server, so that every worker starts with them: with a fresh worker per log, a
 #: module a fit imports lazily would otherwise be imported again for every log (1-2 s of a 3 s log)
-PRELOAD = ["magcal_cli.batch.run", "magcal_cli.pipeline", "magcal_cli.writers.fitrun", "magcal_cli.firmware.gates", "pygeomag",
+PRELOAD = ["magcal_cli.batch.run", "magcal_cli.pipeline", "magcal_cli.history.entry", "magcal_cli.writers.fitrun", "magcal_cli.firmware.gates", "pygeomag",
            "scipy.signal"]
 #: the subpackages whose every module a fit may import (readers, estimators, effects, outputs)
 PRELOAD_PACKAGES = ("readers", "models", "effects", "diagnose", "firmware", "writers")
@@ -121,6 +121,10 @@ def _fit(job: Job, report: LogReport, start: float) -> None:
         report.warnings.append(f"warning: {result.recording.cut.message}")
     report.warnings += [f"warning: {f.message}" for f in result.findings if f.severity.value == "warning"]
     report.magnetometers = _mag_numbers(result)
+    if o.history:                                   # made here, written once by the client (cli/batch.py)
+        from magcal_cli.history.entry import entries
+
+        report.history = entries(result, o.vehicle)
     failed = gate_failures(result, o.fail_on)
     if failed:
         report.status, report.exit_code, report.error = "gate_failed", 3, f"fit --fail-on: {'; '.join(failed)}"

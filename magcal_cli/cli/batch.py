@@ -48,6 +48,9 @@ BATCH_EXIT = ("Exit codes: 0 every log fitted (or up to date); 1 a log could not
 @options.as_json("Print one JSON document with one entry per log.")
 @options.force("Overwrite outputs that are not up to date (up-to-date logs are "
                "still skipped; remove DIR/<log>/batch.json to refit one).")
+@options.option("history", ", by this process once the logs are fitted (on a Dask cluster too: the workers never "
+                           "open it); logs skipped as up to date are recorded from their batch.json")
+@options.option("vehicle", " every log")
 @options.timing
 @verbosity
 @click.pass_context
@@ -55,7 +58,8 @@ BATCH_EXIT = ("Exit codes: 0 every log fitted (or up to date); 1 a log could not
 def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: int | None, scheduler: str | None,
               mags: tuple[str, ...], method: str, effects: tuple[str, ...], outputs: tuple[str, ...] | None,
               start_s: float | None, end_s: float | None, fail_on: tuple[Any, ...], strict: bool, as_json: bool,
-              force: bool, imu_timing: Sampling | None, mag_timing: Sampling | None) -> None:
+              force: bool, history: Path | None, vehicle: str | None, imu_timing: Sampling | None,
+              mag_timing: Sampling | None) -> None:
     """Fit many logs (files, folders searched recursively, globs) in parallel, locally or on a Dask cluster.
 
     Each log is fitted as 'magcal fit LOG -o DIR/<name>/' would; logs whose outputs are complete and newer than
@@ -77,7 +81,9 @@ def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: i
         require_distributed()                       # before any work: one line naming the extra to install
     guards.time_window(start_s, end_s)
     guards.method_effects(method, effects)
-    opts = FitOptions(method, effects, outputs, mags, fail_on, strict, imu_timing, mag_timing, start_s, end_s)
+    guards.history(history, vehicle)
+    opts = FitOptions(method, effects, outputs, mags, fail_on, strict, imu_timing, mag_timing, start_s, end_s,
+                      history is not None, vehicle)
     try:
         work = plan(discover(list(inputs), outdir), outdir, opts, force)
     except BatchUsageError as exc:
@@ -106,11 +112,13 @@ def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: i
 
             reports, runner = run_local(work.jobs, workers, done), Runner("local", workers)
     except Interrupted as stop:
+        _record(ctx, history, [*work.skipped, *stop.reports])
         click.echo(f"Error: {interrupted_line([*work.skipped, *stop.reports], len(work.order))}", err=True)
         ctx.exit(130)
     wall = time.perf_counter() - start
     by_log = {r.log: r for r in (*work.skipped, *reports)}
     ordered = [by_log[log] for log in work.order if log in by_log]
+    _record(ctx, history, ordered)
     click.echo(document(ordered, wall, runner, outdir) if as_json else table(ordered, wall, runner), nl=False)
     code = exit_code(ordered)
     if code:
@@ -119,3 +127,14 @@ def batch_cmd(ctx: click.Context, inputs: tuple[str, ...], outdir: Path, jobs: i
                    f" ({', '.join(r.name for r in bad[:5])}{', ...' if len(bad) > 5 else ''}). Their errors are in the "
                    f"summary and in {outdir}/<log>/batch.json", err=True)
         ctx.exit(code)
+
+
+def _record(ctx: click.Context, history: Path | None, reports: list[Any]) -> None:
+    """--history: every report's entries into the store in one transaction, by this process alone."""
+    if history is None:
+        return
+    from magcal_cli.history.store import record
+
+    made = [e for r in reports for e in r.history]
+    added = record(history, made)
+    say(ctx, f"history: {added} of {len(made)} results new in {history}")

@@ -126,7 +126,7 @@ def export_cmd(ctx: click.Context, calibration: Path, out: Path | None, ardupilo
     stdout = any(guards.is_stdout(path) for _, path in targets)
     for firmware, path in targets:
         exp = export(cal, firmware, params, opts, list(mags) or None)
-        for line in exp.notes + exp.warnings:
+        for line in exp.notes + exp.warnings + exp.not_held:
             say(ctx, line)
         text = render(exp.params, kinds[firmware], exp.header(), exp.integers)
         if not guards.is_stdout(path):

@@ -51,6 +51,8 @@ if TYPE_CHECKING:
 @options.option("fail-on", callback=options.fail_on("fit"),
                 help="Exit 3 when a magnetometer meets a condition, e.g. 'heading_std_deg>1,field_norm_rms_pct>2' "
                      "(METRIC OP NUMBER, comma-separated; see docs/firmware-export.md).")
+@options.option("history")
+@options.option("vehicle", " the log")
 @options.timing
 @verbosity
 @click.pass_context
@@ -58,14 +60,15 @@ if TYPE_CHECKING:
 def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...], imu: str | None, method: str,
         outputs: tuple[str, ...], start_s: float | None, end_s: float | None, fmt: str | None, strict: bool,
         as_json: bool, force: bool, location: tuple[float, float, float] | None, date: str | None,
-        robust_loss: str, effects: tuple[str, ...], fail_on: tuple[Any, ...], imu_timing: Sampling | None,
-        mag_timing: Sampling | None) -> None:
+        robust_loss: str, effects: tuple[str, ...], fail_on: tuple[Any, ...], history: Path | None,
+        vehicle: str | None, imu_timing: Sampling | None, mag_timing: Sampling | None) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from magcal_cli.calibration.document import dumps_json
     from magcal_cli.pipeline import calibrate
     from magcal_cli.writers import FIRMWARE_OUTPUTS
 
     guards.time_window(start_s, end_s)
+    guards.history(history, vehicle)
     names = list(outputs)
     guards.method_effects(method, effects)
     auto = _firmware_output(ctx, log, fmt, names)
@@ -81,6 +84,8 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
         if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:
             names.append(auto)
         written = _write_fit_outputs(ctx, result, outdir, names, auto)
+    if history is not None:
+        _record(ctx, history, result, vehicle)
     if result.recording.cut is not None:
         say(ctx, f"warning: {result.recording.cut.message}")
     if as_json:
@@ -104,6 +109,17 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
     for p in written:
         click.echo(f"wrote {p}")
     _fit_gates(result, fail_on)
+
+
+def _record(ctx: click.Context, history: Path, result: Any, vehicle: str | None) -> None:
+    """--history: the result's entries into the store (a log recorded before changes nothing)."""
+    from magcal_cli.history.entry import entries
+    from magcal_cli.history.store import record
+
+    made = entries(result, vehicle)
+    added = record(history, made)
+    say(ctx, f"history: {added} of {len(made)} results new in {history}"
+             + ("" if added == len(made) else " (the log was recorded before)"))
 
 
 def _check_outdir(outdir: Path, names: list[str], force: bool) -> None:

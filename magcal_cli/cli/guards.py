@@ -112,3 +112,15 @@ def mags_in(mags: Iterable[str], have: list[str], where: str) -> None:
 def is_stdout(path: Path | None) -> bool:
     """'-' names standard output wherever a file is written, as Unix tools read it (not a file named '-')."""
     return path is not None and str(path) == "-"
+
+
+def history(store: Path | None, vehicle: str | None) -> None:
+    """--history: a store that opens (created and migrated) before any work; --vehicle needs it (exit 2)."""
+    if vehicle is not None and store is None:
+        msg = "--vehicle names the vehicle in the history store: give --history DB too"
+        raise click.UsageError(msg)
+    if store is not None:
+        from magcal_cli.history.store import connect
+
+        with connect(store):
+            pass

@@ -8,7 +8,7 @@ import warnings
 import click
 
 from magcal_cli import __version__
-from magcal_cli.cli import apply, batch, check, diagnose, export, fit, inspect, simulate
+from magcal_cli.cli import apply, batch, check, diagnose, export, fit, fleet, inspect, simulate
 from magcal_cli.cli.common import CONTEXT, EXIT_CODES, output_lost
 
 __all__ = ["cli", "main"]
@@ -23,7 +23,7 @@ def cli(ctx: click.Context) -> None:
 
 
 for command in (fit.fit, diagnose.diagnose_cmd, check.check_cmd, batch.batch_cmd, simulate.simulate, inspect.inspect_cmd,
-                export.export_cmd, apply.apply_cmd):
+                export.export_cmd, apply.apply_cmd, fleet.fleet_cmd):
     cli.add_command(command)
 
 

@@ -69,6 +69,10 @@ def _old_out(ctx: click.Context, param: click.Parameter, value: Path | None) -> 
 @options.option("inject", _effect_help())
 @options.alias("--effect", "old_effects", "the same as --effects.", multiple=True, metavar="ID[:key=value,...]",
                callback=options.injected_effects)
+@click.option("--vehicle-file", "vehicle_file", type=click.Path(exists=True, dir_okay=False, path_type=Path), default=None,
+              help="A vehicle file (JSON) setting this flight's compass: sysid, start_utc, hard_iron_uT, soft_iron, "
+                   "orientation_deg, interference_uT_per_A (each optional; see docs/fleet.md). A fleet simulation "
+                   "writes one per flight.")
 @click.option("--truth", "truth_path", type=click.Path(path_type=Path), default=None,
               help="Where to write the truth [default: the log's name + .truth.json].")
 @options.force()
@@ -77,7 +81,8 @@ def _old_out(ctx: click.Context, param: click.Parameter, value: Path | None) -> 
 @handle_errors
 def simulate(ctx: click.Context, old_out: Path | None, out: Path | None, scenario: str, seed: int,
              duration: float | None, rate: float | None, mag_rate: float | None, mag_phase: float | None,
-             effects: tuple[Any, ...], old_effects: tuple[Any, ...], truth_path: Path | None, force: bool) -> None:
+             effects: tuple[Any, ...], old_effects: tuple[Any, ...], vehicle_file: Path | None, truth_path: Path | None,
+             force: bool) -> None:
     """Write a synthetic log (-o LOG; its extension picks the format) and its truth as a calibration document.
 
     The IMU samples the way the format defines (instantaneous, or the mean over the last IMU period in a .ulg);
@@ -89,8 +94,10 @@ def simulate(ctx: click.Context, old_out: Path | None, out: Path | None, scenari
     from magcal_cli.calibration.run import utc_now
     from magcal_cli.readers import open_recording
     from magcal_cli.synth.logs import imu_sampling, write_log
+    from magcal_cli.synth.simulate import rates as run_rates
     from magcal_cli.synth.simulate import simulate as run_simulation
     from magcal_cli.synth.simulate import truth_calibration
+    from magcal_cli.synth.vehicle import flight as vehicle_flight
 
     out = _log_path(ctx, old_out, out)
     effects = _all_effects(ctx, (*effects, *old_effects))
@@ -103,8 +110,12 @@ def simulate(ctx: click.Context, old_out: Path | None, out: Path | None, scenari
         check_writable(p.parent, hint="Choose another path")
     say(ctx, f"simulating {scenario} (seed {seed})" + (f" with {', '.join(e.id for e in effects)}"
                                                              if effects else ""))
-    sim = run_simulation(scenario, seed, rate, mag_rate, duration, effects=effects, imu_sampling=imu_sampling(out),
-                         mag_phase_s=mag_phase)
+    vehicle = _vehicle(vehicle_file, effects)
+    rates_hz = run_rates(scenario, rate, mag_rate)
+    sim = run_simulation(scenario, seed, rate, mag_rate, duration, truth=vehicle.truth(seed, *rates_hz),
+                         effects=(*effects, *vehicle.effects()), imu_sampling=imu_sampling(out),
+                         mag_phase_s=mag_phase, truth_noise=True)
+    sim = vehicle_flight(sim, vehicle)
     write_log(sim, out)
     written = open_recording(out)                       # the truth uses the ids and unit readers report
     write_text(truth_path, dumps_json(truth_calibration(sim, written, __version__, utc_now())))
@@ -134,6 +145,19 @@ def _all_effects(ctx: click.Context, specs: tuple[Any, ...]) -> tuple[Any, ...]:
     except EffectSpecError as exc:
         raise click.BadParameter(str(exc), ctx, param_hint="'--effects'") from None
     return specs
+
+
+def _vehicle(path: Path | None, effects: tuple[Any, ...]) -> Any:
+    """The --vehicle file (an empty Vehicle without it); interference set both ways is a usage error."""
+    from magcal_cli.synth.vehicle import Vehicle, load
+
+    if path is None:
+        return Vehicle()
+    vehicle = load(path)
+    if vehicle.effects() and any(e.id == "current_interference" for e in effects):
+        msg = f"{path} sets interference_uT_per_A and --effects has current_interference: give it once"
+        raise click.BadParameter(msg, param_hint="'--vehicle'")
+    return vehicle
 
 
 def _duration(scenario: str, duration: float | None) -> None:

@@ -53,7 +53,8 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
         hook(f"{mag.id} diagnosis: fitting every {step}th reading", 0)
     start = base if step <= 1 else fit_map(problem, thin, loss, dip_prior, declination=declination)
     before = ppc.check(problem, thin, start, replicates, progress=hook, stage="replicates of the base model")
-    candidates = tuple(e for e in registry.EFFECTS if e not in problem.base_effects)
+    candidates = tuple(e for e in registry.EFFECTS
+                       if e not in problem.base_effects and registry.get(e).applies(problem.aux))
     sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior, hook)
     modelled = tuple(v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None)
     after = ppc.check(problem, thin, sel.estimate, replicates, progress=hook,

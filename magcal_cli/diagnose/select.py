@@ -23,18 +23,18 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from magcal_cli import effects as registry
+from magcal_cli.diagnose.relevance import relevance, relevant
 from magcal_cli.diagnose.score import Score, Screen, screen
 from magcal_cli.diagnose.validate import FOLD_NOISE_ROUNDS, REFIT_ERRORS, Heldout, crossvalidate
 from magcal_cli.effects.base import Target
 from magcal_cli.errors import reason
-from magcal_cli.models.map.cost import point_at
 from magcal_cli.models.map.effects import Bound
 from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
 from magcal_cli.progress import Hook, current
-from magcal_cli.streams import FloatArray, Stream
+from magcal_cli.streams import Stream
 
 FAMILY_ALPHA = 0.05
 #: Wald p-value an effect must keep given the others (backward check)
@@ -43,13 +43,6 @@ WALD_ALPHA = 0.01
 SEPARABLE = 0.95
 #: 2 ln(Bayes factor) for "strong" evidence (Kass & Raftery 1995)
 BIC_MIN = 6.0
-RELEVANT_DEG = 0.25
-RELEVANT_FIELD = 0.01
-#: the calibration shift (in its own stds) that makes an effect matter: the simulated warm-ups the heading rule
-#: rejected (0.23 deg) had moved the offsets 5.7-6.4 std
-RELEVANT_SIGMAS = 2.0
-#: the quantile over the log that stands for an effect's largest change
-TOP_QUANTILE = 0.99
 MAX_EFFECTS = 3
 #: a fold "chose" an effect often enough
 MIN_SHARE = 0.5
@@ -95,64 +88,6 @@ def n_eff(est: MapEstimate) -> float:
     return float(n / (1.0 + 2.0 * rho_sum))
 
 
-def relevance(est: MapEstimate, eid: str) -> dict[str, float]:
-    """The largest (99th percentile) and RMS heading change (deg) an effect's fitted term makes and its largest
-    field change (%) (magnetometer effects), or tilt change (deg, accelerometer), or 10-s attitude change (deg,
-    gyro)."""
-    ctx = est.context
-    assert ctx is not None
-    b = next(x for x in ctx.bound if x.effect.id == eid)
-    beta = ctx.theta[ctx.layout.cols(*b.names())]
-    if not beta.size:
-        return {}
-    at = point_at(ctx.states, ctx.theta, ctx.layout, ctx.pre)
-    value = b.effect.term(b.inputs, beta, at).value
-    out = {"calibration_shift_sigma": calibration_shift(est, b.names())}
-    if b.effect.target is Target.MAG:
-        dh = value @ np.linalg.inv(at.D).T                      # fraction of the field, body frame
-        east = np.einsum("kij,kj->ki", ctx.states, dh)[:, 1]
-        dip = float(ctx.layout.get(ctx.theta, "dip")[0])
-        head = np.rad2deg(np.abs(east) / max(abs(np.cos(dip)), 0.05))
-        return out | {"heading_max_deg": _top(head), "heading_rms_deg": float(np.sqrt(np.mean(head**2))),
-                      "field_max_pct": _top(100.0 * np.linalg.norm(dh, axis=1))}
-    if b.effect.target is Target.ACCEL:
-        tilt = np.rad2deg(np.linalg.norm(value, axis=1) / 9.80665)
-        return out | {"tilt_max_deg": _top(tilt), "tilt_rms_deg": float(np.sqrt(np.mean(tilt**2)))}
-    dt = float(np.median(np.diff(ctx.ep.t)))
-    k = max(1, int(round(10.0 / dt)))
-    acc = np.cumsum(value, axis=0)
-    drift = np.linalg.norm(acc[k:] - acc[:-k], axis=1) if acc.shape[0] > k else np.linalg.norm(acc, axis=1)
-    return out | {"attitude_10s_max_deg": _top(np.rad2deg(drift))}
-
-
-def calibration_shift(est: MapEstimate, names: Sequence[str]) -> float:
-    """How far (in their own stds) leaving the effect out would move the calibration (D, o, dip), to first order:
-    the posterior regression of those on the effect's parameters at beta = 0, against their std with beta held."""
-    cal, eff = est.layout.cols("D", "o", "dip"), est.layout.cols(*names)
-    c = est.cov
-    c_ce, c_ee = c[np.ix_(cal, eff)], c[np.ix_(eff, eff)]
-    try:
-        gain = np.linalg.solve(c_ee, c_ce.T).T                  # C_ce C_ee^-1
-    except np.linalg.LinAlgError:
-        return 0.0
-    shift = gain @ est.theta[eff]
-    held = np.clip(np.diag(c[np.ix_(cal, cal)] - gain @ c_ce.T), 1e-300, None)
-    return float(np.max(np.abs(shift) / np.sqrt(held)))
-
-
-def _top(x: FloatArray) -> float:
-    """The "largest" change: the TOP_QUANTILE of |x| (a single vibration spike is not the operating envelope)."""
-    return float(np.quantile(np.abs(x), TOP_QUANTILE))
-
-
-def _relevant(rel: dict[str, float]) -> bool:
-    """Does the effect matter in practice: for the heading, the field or the tilt, or for the calibration's own
-    honesty (left out, it would move D, o or the dip by more than RELEVANT_SIGMAS of their stds)?"""
-    return any(v >= RELEVANT_DEG for k, v in rel.items() if k.endswith("max_deg")) or \
-        rel.get("field_max_pct", 0.0) >= 100.0 * RELEVANT_FIELD or \
-        rel.get("calibration_shift_sigma", 0.0) >= RELEVANT_SIGMAS
-
-
 @dataclass(frozen=True, eq=False)
 class Forward:
     """Greedy forward selection: the effects added, the fit with them, each candidate's latest score (given what
@@ -168,15 +103,16 @@ class Forward:
 
 def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float,
             loss: str, dip_prior: float | None, holdout: tuple[tuple[float, float], ...] = (),
-            progress: Hook | None = None) -> Forward:
-    """Add the strongest significant candidate, refit, screen the rest given it; at most MAX_EFFECTS rounds.
+            progress: Hook | None = None, given: tuple[str, ...] = ()) -> Forward:
+    """Add the strongest significant candidate, refit, screen the rest given it; at most MAX_EFFECTS rounds
+    (counting the effects `given`, which `base` models already).
 
     Re-screening after each addition matters: an unmodelled strong effect leaks into the score of every other
     candidate (the IMU scale factors pick up part of a current's signature), so adding all significant ones at
     once would take passengers. Candidates the log cannot tell apart from the one added are recorded as pairs.
     """
     est = base
-    picked: list[str] = []
+    picked: list[str] = list(given)
     pairs: list[frozenset[str]] = []
     screens: list[Screen] = []
     scores: dict[str, Score] = {}
@@ -194,8 +130,8 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         sig = holm(scr)
         if not sig:
             break
-        best = sig[0]
-        rivals = [e for e in sig[1:] if scr.correlation.get(frozenset((best, e)), 0.0) > SEPARABLE]
+        best, rivals = _nested_choice(problem, mag, est, tuple(picked), sig, scr, loss, dip_prior, declination,
+                                      holdout)
         pairs += [frozenset((best, r)) for r in rivals]
         hook(f"{mag.id} diagnosis: fitting with {best}", 0)
         try:
@@ -216,6 +152,54 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         left = [e for e in left if e != best and e not in rivals]
         est = trial
     return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs), implausible)
+
+
+def _nested_choice(problem: Problem, mag: Stream, est: MapEstimate, picked: tuple[str, ...], sig: list[str],
+                   scr: Screen, loss: str, dip_prior: float | None, declination: float,
+                   holdout: tuple[tuple[float, float], ...]) -> tuple[str, list[str]]:
+    """The candidate to add and its rivals. Without nesting effects (Effect.nests) this is the old rule: the
+    strongest, rivals above SEPARABLE. A nested term that explains the same readings with fewer parameters is added
+    instead (throttle rather than per-motor fields when the motors move together) and the nesting one becomes its
+    rival; a nesting pair whose bigger term explains more than the smaller one is not a pair of rivals."""
+    beyond: dict[tuple[str, str], bool] = {}
+
+    def goes_beyond(big: str, small: str) -> bool:
+        if (big, small) not in beyond:
+            beyond[big, small] = _beyond(problem, mag, est, (*picked, small), big, loss, dip_prior, declination,
+                                         holdout)
+        return beyond[big, small]
+
+    def close(a: str, b: str) -> bool:
+        return scr.correlation.get(frozenset((a, b)), 0.0) > SEPARABLE
+
+    best = sig[0]
+    best = next((e for e in sig[1:] if e in registry.get(best).nests and close(best, e) and not goes_beyond(best, e)),
+                best)
+    rivals = [e for e in sig if e != best and close(best, e)
+              and not (e in registry.get(best).nests and goes_beyond(best, e))
+              and not (best in registry.get(e).nests and goes_beyond(e, best))]
+    return best, rivals
+
+
+def _beyond(problem: Problem, mag: Stream, est: MapEstimate, given: tuple[str, ...], best: str, loss: str,
+            dip_prior: float | None, declination: float, holdout: tuple[tuple[float, float], ...]) -> bool:
+    """Whether `best`, whose term nests the last of `given` (Effect.nests: per-motor fields contain the throttle's as
+    the case where the motors move together), still explains significantly more with that one fitted: then the
+    two are not rivals (the canonical correlation of nested terms is always near 1), whichever was added first.
+    False for other pairs."""
+    if given[-1] not in registry.get(best).nests:
+        return False
+    try:
+        fitted = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=given, declination=declination,
+                         holdout=holdout, warm=est.context)
+    except REFIT_ERRORS:
+        return False
+    scr = screen(problem, mag, fitted, [best], declination)
+    if not holm(scr):
+        return False
+    # the backward step's evidence bar too: the extra parameters must pay for themselves (2 ln BF > BIC_MIN)
+    s = scr.scores[0]
+    return bool(s.classical - s.dof * float(np.log(n_eff(fitted))) > BIC_MIN)
 
 
 def beyond_limits(est: MapEstimate, eid: str) -> str:
@@ -257,15 +241,29 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
     scr = fw.screens[0]
     first = fw.picked
     ambiguous = list(fw.ambiguous)
-    est, picked = fit(fw.picked, fw.estimate)
-    for _ in range(2):           # backward: keep what stays significant, with strong evidence, given the rest
-        neff = n_eff(est) if picked else float("nan")
-        weak = [f.id for f in est.effects if f.id in picked and not (
-            f.p_value < WALD_ALPHA and f.statistic - f.dof * float(np.log(neff)) > BIC_MIN)]
-        if not weak:
-            break
-        hook(f"{mag.id} diagnosis: refitting without {', '.join(weak)}", 0)
-        est, picked = fit([p for p in picked if p not in weak], base)
+
+    def backward(est: MapEstimate, picked: list[str]) -> tuple[MapEstimate, list[str]]:
+        for _ in range(2):           # keep what stays significant, with strong evidence, given the rest
+            neff = n_eff(est) if picked else float("nan")
+            weak = [f.id for f in est.effects if f.id in picked and not (
+                f.p_value < WALD_ALPHA and f.statistic - f.dof * float(np.log(neff)) > BIC_MIN)]
+            if not weak:
+                break
+            hook(f"{mag.id} diagnosis: refitting without {', '.join(weak)}", 0)
+            est, picked = fit([p for p in picked if p not in weak], base)
+        return est, picked
+
+    est, picked = backward(*fit(fw.picked, fw.estimate))
+    if any(registry.get(e).nests for e in fw.picked if e not in picked):
+        # a nesting term the others then made weak (per-motor fields, once the lag is modelled: log171's MAG[0]) had
+        # kept out the terms it nests: the selection goes on from what stayed, without it
+        more = forward(problem, mag, est, [c for c in candidates if c not in fw.picked], declination, loss, dip_prior,
+                       progress=hook, given=tuple(picked))
+        if len(more.picked) > len(picked):
+            fw = Forward(more.picked, more.estimate, {**fw.scores, **more.scores}, (*fw.screens, *more.screens),
+                         (*fw.ambiguous, *more.ambiguous), {**fw.implausible, **more.implausible})
+            ambiguous = list(fw.ambiguous)
+            est, picked = backward(*fit(more.picked, more.estimate))
     held = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior, hook) if picked else None
     neff = n_eff(est) if picked else float("nan")
     verdicts: dict[str, EffectFit] = {}
@@ -283,7 +281,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         why = [w for w, bad in (("the likelihood evidence is weak", not bic > BIC_MIN),
                                 ("it does not improve held-out readings", not lo > 0.0),
                                 ("most training folds did not choose it", held.share(f.id) < MIN_SHARE),
-                                ("its size does not matter in practice", not _relevant(rel))) if bad]
+                                ("its size does not matter in practice", not relevant(rel))) if bad]
         verdicts[f.id] = replace(f, status="rejected" if why else "accepted", evidence=evidence,
                                  reason="; ".join(why))
     accepted = tuple(e for e, v in verdicts.items() if v.status == "accepted")

@@ -20,6 +20,7 @@ EFFECTS: dict[str, str] = {
     "lever_arm": "magcal_cli.effects.lever_arm:EFFECT",
     "nongravity_acceleration": "magcal_cli.effects.nongravity:EFFECT",
     "transient_disturbance": "magcal_cli.effects.transient:EFFECT",
+    "motor_interference": "magcal_cli.effects.motor:EFFECT",
 }
 
 

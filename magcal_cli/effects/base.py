@@ -127,6 +127,15 @@ class Effect:
     #: the term vanishes with the vehicle at rest (motors off: no current, no throttle), so the offsets it leaves are
     #: the hard iron itself; of an ambiguous pair the diagnosis carries such a one (diagnose/select.py)
     zero_at_rest: ClassVar[bool] = False
+    #: effects whose term this one contains as a special case (per-motor fields: throttle and current, when the
+    #: motors move together); the diagnosis calls such a pair rivals only when this one explains nothing beyond the
+    #: other (diagnose/select.py)
+    nests: ClassVar[tuple[str, ...]] = ()
+
+    def applies(self, aux: tuple[Stream, ...]) -> bool:
+        """Whether the diagnosis screens it on a log with these channels (False: it is left out, not listed as
+        not testable; an effect added after logs were diagnosed without it keeps their documents unchanged)."""
+        return True
 
     def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
                declination: float = 0.0) -> Inputs:

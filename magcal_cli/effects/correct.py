@@ -16,6 +16,7 @@ import numpy as np
 
 from magcal_cli.effects import EFFECTS, get
 from magcal_cli.effects.base import Effect, Target
+from magcal_cli.effects.motor import motor_streams
 from magcal_cli.streams import FloatArray, Kind, Stream
 
 #: the statuses whose fitted entries are part of the calibration
@@ -69,7 +70,9 @@ def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels, t: Flo
         for kind in eff.channels:
             named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
             found = named or [s for s in rec.of_kind(kind) if len(s) >= 2]
-            if found:
+            if found and kind is Kind.MOTOR_OUTPUT:          # one stream per motor: (N, motors) in motor order
+                chans[kind.value] = np.column_stack([np.interp(t, s.t, s.values[:, 0]) for s in motor_streams(found)])
+            elif found:
                 chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
         missing = [k.value for k in eff.channels if k.value not in chans]
         if missing:

@@ -31,7 +31,7 @@ class Temperature(Effect):
     target = Target.MAG
     additive = True
     params = (ParamBlock("k", 3, "field", "temperature drift", XYZ),)
-    units: ClassVar[dict[str, str]] = {"k": "{field}/degC", "T0": "degC"}
+    units: ClassVar[dict[str, str]] = {"k": "{field}/degC", "T0": "degC", "T_min": "degC", "T_max": "degC"}
     channels = (Kind.TEMPERATURE,)
     limits: ClassVar[dict[str, float]] = {"k": 1e-6}
     separating_experiment = ("a warm-up or cool-down with the motors off, so the temperature changes while the current does not")
@@ -39,7 +39,8 @@ class Temperature(Effect):
 
     def inputs(self, aux: tuple[Stream, ...], mag: Stream, kin: Kinematics,
                declination: float = 0.0) -> Inputs:
-        """The magnetometer's own temperature where logged (else the IMU's, else the first)."""
+        """The magnetometer's own temperature where logged (else the IMU's, else the first); T0 its mean, T_min and
+        T_max the range the fit saw (a firmware's thermal compensation must not extrapolate beyond it)."""
         s = pick(aux, Kind.TEMPERATURE, (mag.id, "mag"))
         temp = resample(s, kin.t)[:, 0]
         span = float(np.percentile(temp, 98) - np.percentile(temp, 2))
@@ -48,7 +49,8 @@ class Temperature(Effect):
                    "cannot be told from the offset")
             raise NotTestable(msg)
         t0 = float(np.mean(temp))
-        return Inputs(kin.t, kin.omega, kin.omega_dot, {"temperature": temp - t0}, (s.id,), {"T0": t0})
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"temperature": temp - t0}, (s.id,),
+                      {"T0": t0, "T_min": float(np.min(temp)), "T_max": float(np.max(temp))})
 
     def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
         """k dT and d/dk = dT I3."""

@@ -30,6 +30,7 @@ from magcal_cli.firmware.common import (
     soft_range,
 )
 from magcal_cli.firmware.effects import carried
+from magcal_cli.firmware.extras import not_held, pmot
 from magcal_cli.firmware.split import choose_rotation, split_rotation_first
 from magcal_cli.readers.dataflash.compass import correct_field, effective_scale, iron_matrix, param_suffix
 from magcal_cli.streams import FloatArray
@@ -213,11 +214,15 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
         mot = -sp.held @ (inter.c * k)
         out |= {f"COMPASS_MOT{suffix}_{a}": float(mot[i]) for i, a in enumerate(AXES)}
         kind = inter.kind
+    per_motor, per_motor_ints, per_motor_notes, lost = pmot(cal, mag, suffix, sp.held, k, params)
+    out |= per_motor
+    integers |= per_motor_ints
+    notes += per_motor_notes
+    warnings = _warnings(mag.id, suffix, out)
     offs_max = params.get("COMPASS_OFFS_MAX", OFFS_MAX_DEFAULT)
     check_limits(f"export {mag.id} (ArduPilot)", _limits(mag.id, suffix, out, offs_max))
-    exp = MagExport(mag.id, f"COMPASS_*{suffix}", out, sp, mag.dip_deg, external, tuple(notes),
-                    tuple(_warnings(mag.id, suffix, out)), _rotation_why(external, rot.kind, params, options,
-                                                                         bool(custom_free), suffix))
+    exp = MagExport(mag.id, f"COMPASS_*{suffix}", out, sp, mag.dip_deg, external, tuple(notes), tuple(warnings),
+                    _rotation_why(external, rot.kind, params, options, bool(custom_free), suffix), tuple(lost))
     return exp, integers, kind
 
 
@@ -262,11 +267,12 @@ def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Opt
     else:
         acc.notes.append("no accepted current or throttle interference in the document: COMPASS_MOT* and "
                          "COMPASS_MOTCT are left as the vehicle has them")
+    acc.not_held += not_held(cal, [cal.magnetometer(m.mag_id) for m in acc.mags], "ardupilot")
     if not params:
         acc.notes.append("no vehicle parameters: slots from the magnetometer ids, COMPASS_SCALE written as 1, "
                          "no custom rotations (pass --params with the vehicle's parameter file or its log)")
     return Export("ardupilot", tuple(acc.mags), acc.params, frozenset(acc.integers), tuple(acc.notes),
-                  tuple(acc.warnings), cal.source.path)
+                  tuple(acc.warnings), cal.source.path, tuple(acc.not_held))
 
 
 def correct(raw: FloatArray, params: Mapping[str, float], suffix: str, signal: FloatArray | None) -> FloatArray:

@@ -39,6 +39,7 @@ class MagExport:
     notes: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
     rotation_why: str = ""              # why the firmware cannot take the misalignment (said when some is lost)
+    not_held: tuple[str, ...] = ()      # effects it carries that this firmware cannot hold
 
     def lost(self) -> dict[str, float]:
         """Residual misalignment (deg), largest field error (%) and level heading error (deg) the export keeps."""
@@ -70,12 +71,15 @@ class Export:
     notes: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
     source: str = ""
+    #: effects the calibration carries that this firmware has no parameter for (a lag on ArduPilot, ...)
+    not_held: tuple[str, ...] = ()
 
     def header(self) -> list[str]:
-        """Comment lines for the file: origin, what is lost per magnetometer, warnings."""
+        """Comment lines for the file: origin, what is lost per magnetometer, effects not held, warnings."""
         lines = [f"magcal {self.firmware} compass parameters from {self.source}" if self.source else
                  f"magcal {self.firmware} compass parameters"]
         lines += [m.lost_text() for m in self.mags]
+        lines += [f"not held: {n}" for n in self.not_held]
         lines += [f"warning: {w}" for w in self.warnings]
         return lines
 
@@ -154,6 +158,7 @@ class Collected:
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     mags: list[MagExport] = field(default_factory=list)
+    not_held: list[str] = field(default_factory=list)
 
     def add(self, m: MagExport, integers: set[str]) -> None:
         """Add one magnetometer's export."""
@@ -162,6 +167,7 @@ class Collected:
         self.integers |= integers
         self.notes += m.notes
         self.warnings += m.warnings
+        self.not_held += m.not_held
 
     def require_any(self) -> None:
         """Raise NotExportableError with every magnetometer's reason when none could be exported."""

@@ -30,6 +30,7 @@ from magcal_cli.firmware.common import (
     soft_range,
 )
 from magcal_cli.firmware.effects import carried
+from magcal_cli.firmware.extras import extras, not_held
 from magcal_cli.firmware.split import choose_rotation, split_symmetric_first
 from magcal_cli.streams import FloatArray
 
@@ -178,7 +179,8 @@ def _export_one(cal: Calibration, mag: MagCalibration, position: int, params: Ma
 
 def export_px4(cal: Calibration, params: Mapping[str, float], options: Options | None = None,
                mag_ids: Sequence[str] | None = None) -> Export:
-    """CAL_MAGn_* parameters of the selected magnetometers; COMP and CAL_MAG_COMP_TYP from accepted effects."""
+    """CAL_MAGn_* parameters of the selected magnetometers; COMP and CAL_MAG_COMP_TYP from accepted effects;
+    EKF2_MAG_DELAY and TC_M* from a carried time offset and temperature drift (firmware/extras.py)."""
     options = options or Options()
     mags = select_mags(cal, mag_ids, options)
     acc = Collected()
@@ -212,11 +214,17 @@ def export_px4(cal: Calibration, params: Mapping[str, float], options: Options |
     else:
         acc.notes.append("no accepted current or throttle interference in the document: CAL_MAGn_xCOMP and "
                          "CAL_MAG_COMP_TYP are left as the vehicle has them")
+    more = extras(cal, [(cal.magnetometer(m.mag_id), int(m.slot[7])) for m in acc.mags], params)
+    acc.params |= more.params
+    acc.integers |= more.integers
+    acc.notes += more.notes
+    acc.warnings += more.warnings
+    acc.not_held += not_held(cal, [cal.magnetometer(m.mag_id) for m in acc.mags], "px4")
     if any(k.startswith("SENS_MAG0_") for k in params):
         acc.notes.append("this PX4 keeps rotations in SENS_MAGn_* configuration parameters; magcal writes the "
                          "CAL_MAGn_* layout, so set the rotation there by hand")
     return Export("px4", tuple(acc.mags), acc.params, frozenset(acc.integers), tuple(acc.notes),
-                  tuple(acc.warnings), cal.source.path)
+                  tuple(acc.warnings), cal.source.path, tuple(acc.not_held))
 
 
 def correct(raw: FloatArray, params: Mapping[str, float], n: int, signal: FloatArray | None) -> FloatArray:

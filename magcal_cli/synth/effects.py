@@ -81,6 +81,15 @@ EFFECTS: dict[str, EffectDef] = {
                 Key("source", "source", "choice", 1.0, "gps", "log the position or not", ("gps", "none")),
                 Key("delay_s", "delay_s", "number", 1.0, 0.0, "s, the logged position lags the motion")),
         ("position",), {"sigma_a": "m/s^2", "delay_s": "s"}, "f = R^T (a_n - g_n)"),
+    "motor_interference": EffectDef(
+        "magnetometer", (_vec("c1", "c1_uT", 1e-6, (3e-7, -1.5e-7, 2e-7), "uT per unit (u V)^0.65 of motor 1"),
+                         _vec("c2", "c2_uT", 1e-6, (-2.5e-7, 2e-7, 1e-7), "uT per unit of motor 2"),
+                         _vec("c3", "c3_uT", 1e-6, (1e-7, 3e-7, -2e-7), "uT per unit of motor 3"),
+                         _vec("c4", "c4_uT", 1e-6, (-2e-7, -2.5e-7, 2.5e-7), "uT per unit of motor 4"),
+                         Key("diff", "diff", "number", 1.0, 0.08,
+                             "differential thrust per rad/s^2 of angular acceleration (0..1 output)")),
+        ("motor_output", "battery_voltage"), {f"c{i}": "{mag}" for i in range(1, 5)} | {"diff": "1"},
+        "y += sum_i c_i (u_i(t) V(t))^0.65"),
     "transient_disturbance": EffectDef(
         "magnetometer", (Key("windows_s", "windows_s", "windows", 1.0, None, "s"),
                          _vec("b_rel", "b_rel", 1.0, (0.12, -0.14, 0.06), "NED, fraction of the Earth field")),

@@ -298,6 +298,37 @@ def _throttle(q: Mapping[str, Any], d: Draft) -> None:
                (Kind.THROTTLE,))
 
 
+#: a quad X's motors 1-4 (ArduCopter's order: front-right, back-left, front-left, back-right) as roll, pitch and yaw
+#: factors of AP_MotorsMatrix: differential thrust turns body angular acceleration into per-motor outputs
+QUAD_X = np.array([[-0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0.5, 0.5, -0.5], [-0.5, -0.5, -0.5]])
+MOTOR_ID = "motor[{}]"
+
+
+def _motor(q: Mapping[str, Any], d: Draft) -> None:
+    """motor_interference: sum_i c_i (u_i V)^0.65, u_i the throttle plus the quad X mix of the body's angular
+    acceleration times `diff`, clipped to 0..1; the four outputs are logged at the magnetometer stamps."""
+    from magcal_cli.effects.motor import EXPO
+
+    pw, base = d.power(), d.base
+    c = np.array([q[f"c{i}"] for i in range(1, 5)])
+    gain = float(q["diff"])
+
+    def outputs(s: FloatArray) -> FloatArray:
+        _, w_dot = base.trajectory.rate_and_acceleration(s)
+        out: FloatArray = np.clip(pw.throttle(s)[:, None] + gain * w_dot @ QUAD_X.T, 0.0, 1.0)
+        return out
+
+    def term(s: FloatArray) -> FloatArray:
+        x = outputs(s) * pw.voltage(s)[:, None]
+        out: FloatArray = np.where(x > 0, np.abs(x) ** EXPO, 0.0) @ c
+        return out
+
+    u = outputs(base.t_mag)
+    d.streams += [_aux(Kind.MOTOR_OUTPUT, MOTOR_ID.format(i + 1), base.t_mag, u[:, i], "1", base) for i in range(4)]
+    d.add_term("motor_interference", term, {f"c{i}": c[i - 1] for i in range(1, 5)} | {"diff": gain},
+               (Kind.MOTOR_OUTPUT, Kind.BATTERY_VOLTAGE))
+
+
 def _temperature(q: Mapping[str, Any], d: Draft) -> None:
     """temperature_drift: k (T(t) - T0) of a warming board, whose temperature is logged."""
     base = d.base
@@ -344,6 +375,7 @@ INJECTIONS: dict[str, Injection] = {
     "current_interference": _current,
     "throttle_interference": _throttle,
     "temperature_drift": _temperature,
+    "motor_interference": _motor,
     "gyro_scale": _gyro_scale,
     "accel_scale": _accel_scale,
     "lever_arm": _lever_arm,

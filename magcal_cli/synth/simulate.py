@@ -208,7 +208,7 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
              power_profile: str = "flight", imu_sampling: Sampling = Sampling.INSTANT,
              mag_phase_s: float | None = None, vibration: bool | None = None, n_mags: int = 1,
              log_power: bool = False, tilt_limit_deg: float | None = None,
-             accel_limit_mps2: float | None = None) -> Simulation:
+             accel_limit_mps2: float | None = None, truth_noise: bool = False) -> Simulation:
     """Simulate one recording (IMU stream `/imu/data`, magnetometer `/imu/mag`) with seeded truth.
 
     `truth` replaces the drawn calibration (its noise_std is still set from the rates). `effects` are injected
@@ -224,7 +224,8 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
     noise_scale). `n_mags` magnetometers read the field (`/imu/mag`, `/imu/mag1`, ...; effects act on the first
     alone). `log_power` logs the power model's current, voltage and throttle without any magnetic term.
     `tilt_limit_deg` and `accel_limit_mps2` bound the multirotor's tilt and horizontal acceleration
-    (scenarios.Limits; None, None: the original flight).
+    (scenarios.Limits; None, None: the original flight). `truth_noise` keeps a given `truth`'s own noise std
+    (a vehicle file's truth, drawn as a vehicle's compass: synth/vehicle.py).
     """
     if scenario not in SCENARIOS:
         msg = f"simulate: unknown scenario {scenario!r}; choose one of {', '.join(SCENARIOS)}"
@@ -251,7 +252,7 @@ def simulate(scenario: str, seed: int, rate: float | None = None, mag_rate: floa
         # World Magnetic Model gives there, or a fit that compares with the WMM (or takes the dip from it) disagrees;
         # the paper scenario keeps methods.md's draw (27 uT, dip 72 +- 5 deg) for the replication
         drawn = at_home(drawn)
-    truth = drawn if truth is None else replace(truth, noise_std=drawn.noise_std)
+    truth = drawn if truth is None else truth if truth_noise else replace(truth, noise_std=drawn.noise_std)
     made = _scenario(scenario, rng, rate, duration, trajectory, limits)
     t = imu_stamps(round(made.trajectory.end * rate), rate)     # the truth runs one IMU period past the last
     t_mag = mag_stamps(phase, mag_rate, float(t[-1]))

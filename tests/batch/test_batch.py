@@ -297,7 +297,10 @@ def test_ctrl_c_stops_a_fit_that_does_not_answer(logs: Path, tmp_path: Path) -> 
 
 
 def test_dask_cluster_on_loopback(runner, logs: Path, tmp_path: Path) -> None:
-    """A real scheduler and two worker processes on 127.0.0.1: the batch runs through --scheduler tcp://..."""
+    """A real scheduler and two worker processes on 127.0.0.1: the batch runs through --scheduler tcp://...; with
+    --history the workers make the entries and the client records them once (issue 29: a Job carries no store)."""
+    from magcal_cli.history.store import load
+
     distributed = pytest.importorskip("distributed", reason="magcal batch --scheduler needs the fleet extra: "
                                                             "pip install 'magcal-cli[fleet]'")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -305,8 +308,11 @@ def test_dask_cluster_on_loopback(runner, logs: Path, tmp_path: Path) -> None:
         address = cluster.scheduler_address
         assert address.startswith("tcp://127.0.0.1:")
         result, doc = _run(runner, str(logs / "alpha.bin"), str(logs / "sub"), str(logs / "corrupt.bin"),
-                           "-o", str(tmp_path / "out"), "--scheduler", address, "--json", *FAST)
+                           "-o", str(tmp_path / "out"), "--scheduler", address, "--json", "--history",
+                           str(tmp_path / "h.db"), *FAST)
     assert result.exit_code == 1, result.stderr
+    assert sorted(Path(e["path"]).stem for e in load(tmp_path / "h.db")) == ["alpha", "bravo"]
+    assert "history" not in doc["logs"][0]
     assert doc["runner"] == {"kind": "dask", "workers": 2, "scheduler": address}
     entries = _by_name(doc)
     assert (entries["alpha"]["status"], entries["bravo"]["status"]) == ("ok", "ok")

@@ -1,8 +1,8 @@
 """The mismatch diagnosis on logs with known truth: what it finds, what it refuses to claim, and the CLI.
 
 Modules it covers (the mirrored test file aside): magcal_cli.calibration.diagnosis, magcal_cli.cli.diagnose,
-magcal_cli.diagnose.parallel, magcal_cli.diagnose.ppc, magcal_cli.diagnose.score, magcal_cli.diagnose.select,
-magcal_cli.diagnose.summary, magcal_cli.diagnose.validate.
+magcal_cli.diagnose.parallel, magcal_cli.diagnose.ppc, magcal_cli.diagnose.relevance, magcal_cli.diagnose.score,
+magcal_cli.diagnose.select, magcal_cli.diagnose.summary, magcal_cli.diagnose.validate.
 """
 
 from __future__ import annotations
@@ -19,8 +19,9 @@ from magcal_cli import effects as registry
 from magcal_cli.cli.main import cli
 from magcal_cli.config import Config
 from magcal_cli.diagnose import ppc
+from magcal_cli.diagnose.relevance import relevant as _relevant
 from magcal_cli.diagnose.score import Score, Screen, screen
-from magcal_cli.diagnose.select import Selection, _modelled, _relevant, holm, select
+from magcal_cli.diagnose.select import Selection, _modelled, holm, select
 from magcal_cli.diagnose.validate import blocks, folds
 from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.map.fit import fit_map

@@ -2,7 +2,7 @@
 
 Modules it covers (the mirrored test file aside): magcal_cli.effects.accel_scale, magcal_cli.effects.base,
 magcal_cli.effects.current, magcal_cli.effects.gyro_scale, magcal_cli.effects.lever_arm,
-magcal_cli.effects.nongravity, magcal_cli.effects.temperature, magcal_cli.effects.throttle,
+magcal_cli.effects.motor, magcal_cli.effects.nongravity, magcal_cli.effects.temperature, magcal_cli.effects.throttle,
 magcal_cli.effects.time_offset, magcal_cli.effects.transient.
 """
 
@@ -30,7 +30,7 @@ RTOL = 1e-5
 def bound() -> dict[str, tuple[Effect, Inputs, object]]:
     """Every effect bound to a short handheld log that carries all channels, with the preintegration."""
     specs = (EffectSpec("current_interference"), EffectSpec("throttle_interference"),
-             EffectSpec("temperature_drift"), EffectSpec("nongravity_acceleration"))
+             EffectSpec("temperature_drift"), EffectSpec("nongravity_acceleration"), EffectSpec("motor_interference"))
     sim = simulate("handheld", 3, rate=50.0, mag_rate=25.0, duration=60.0, effects=specs)
     rec = sim.recording
     acc, gyr, mag = (rec.select(k) for k in (Kind.ACCELEROMETER, Kind.GYROSCOPE, Kind.MAGNETOMETER))
@@ -189,3 +189,46 @@ def test_a_lever_arm_is_not_testable_in_a_flight_measured_by_its_fixes() -> None
     t = mag.t[(mag.t > gyr.t[1]) & (mag.t < gyr.t[-2])]
     got, untestable = bind(problem, mag, t, sim.truth.gyro_bias, ("lever_arm",))
     assert not got and "turn the vehicle quickly in place" in untestable[0].reason
+
+
+def test_temperature_records_the_range_it_saw(bound: dict[str, tuple[Effect, Inputs, object]]) -> None:
+    """issue 28: T_min/T_max (the temperatures at the epochs) travel with T0, so an export can bound the slope to
+    them (PX4 TC_Mn_TMIN/TMAX)."""
+    _, inp, _ = bound["temperature_drift"]
+    temp = inp.channels["temperature"] + inp.constants["T0"]
+    assert inp.constants["T_min"] == pytest.approx(float(temp.min()))
+    assert inp.constants["T_max"] == pytest.approx(float(temp.max()))
+    assert inp.constants["T_min"] < inp.constants["T0"] < inp.constants["T_max"]
+
+
+def test_the_per_motor_term_keeps_the_additive_contract(bound: dict[str, tuple[Effect, Inputs, object]]) -> None:
+    """issue 28: motor_interference is additive (the EKFs carry it): its term reads no model quantity."""
+    from magcal_cli.effects.base import Point
+
+    eff, inp, _ = bound["motor_interference"]
+    term = eff.term(inp, eff.start() + 1e-7, Point.unknown(inp.t.size))
+    assert eff.additive and term.d_state is None and not term.d_base
+    assert np.all(np.isfinite(term.value)) and np.all(np.isfinite(term.d_beta))
+
+
+def test_motors_that_move_together_are_not_testable() -> None:
+    """issue 28: four identical outputs make four vectors one (a singular block): not testable, said why; fewer than
+    four motors or none: not testable either; `applies` only with motor streams (other logs' documents unchanged)."""
+    from magcal_cli.effects.base import Kinematics, NotTestable
+    from magcal_cli.effects.motor import EFFECT as MOTOR
+    from magcal_cli.streams import Stream
+
+    t = np.linspace(0.0, 60.0, 601)
+    u = 0.4 + 0.1 * np.sin(t)
+    volts = Stream(Kind.BATTERY_VOLTAGE, "BAT[0]", t, np.full(t.size, 15.0), "v", "V")
+    same = tuple(Stream(Kind.MOTOR_OUTPUT, f"motor[{i}]", t, u, "m", "1") for i in range(1, 5))
+    kin = Kinematics(t, np.zeros((t.size, 3)), np.zeros((t.size, 3)), t, np.zeros((t.size, 3)))
+    mag = Stream(Kind.MAGNETOMETER, "MAG[0]", t, np.ones((t.size, 3)), "m", "milligauss")
+    with pytest.raises(NotTestable, match="move together"):
+        MOTOR.inputs((*same, volts), mag, kin)
+    with pytest.raises(NotTestable, match="3 per-motor output channels"):
+        MOTOR.inputs((*same[:3], volts), mag, kin)
+    apart = tuple(Stream(Kind.MOTOR_OUTPUT, f"motor[{i}]", t, u + 0.05 * np.sin((i + 1) * t), "m", "1")
+                  for i in range(1, 5))
+    assert MOTOR.inputs((*apart, volts), mag, kin).channels["s"].shape == (t.size, 4)
+    assert MOTOR.applies(apart) and not MOTOR.applies((volts,))

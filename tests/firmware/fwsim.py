@@ -1,4 +1,6 @@
-"""The two firmwares' compass corrections, re-implemented from ../shared/design/firmware-export.md only.
+"""The two firmwares' compass corrections, re-implemented from ../shared/design/firmware-export.md only (and, for
+the EKF's magnetometer delay, PX4's thermal compensation and ArduPilot's per-motor compensation, from the sources
+[S7] and [S32]-[S35] docs/firmware-export.md quotes).
 
 Nothing here imports magcal's exporter: parameter files are read with a few lines of string handling, rotation
 enums are built from the angle tables with elementary matrices (roll applied first: Rz(yaw) Ry(pitch) Rx(roll)),
@@ -75,9 +77,27 @@ def ardupilot_rotation(p: dict[str, float], suffix: str, board: np.ndarray) -> n
     return enum(orient)
 
 
+def ardupilot_per_motor(p: dict[str, float], pwm: np.ndarray, volts: np.ndarray) -> np.ndarray:
+    """Compass_PerMotor::compensate [S7]: sum over motors 1-4 of COMPASS_PMOTn times
+    ((scale_esc_to_unity(pwm) + 1) / 2 * voltage)^COMPASS_PMOT_EXP, 0 where the output is <= 0 (N, 3) mGauss;
+    pwm (N, 4) us over MOT_PWM_MIN..MAX."""
+    lo, hi = p.get("MOT_PWM_MIN", 1000.0), p.get("MOT_PWM_MAX", 2000.0)
+    out = np.zeros((len(pwm), 3))
+    for n in range(4):
+        unity = 2.0 * (pwm[:, n] - lo) / (hi - lo) - 1.0                   # scale_esc_to_unity
+        output = (unity + 1.0) * 0.5
+        scaled = np.zeros(len(pwm))
+        on = output > 0
+        scaled[on] = (output[on] * volts[on]) ** p.get("COMPASS_PMOT_EXP", 0.65)
+        out += scaled[:, None] * np.array([p.get(f"COMPASS_PMOT{n + 1}_{a}", 0.0) for a in AXES])
+    return out
+
+
 def ardupilot_field(sensor: np.ndarray, p: dict[str, float], suffix: str = "", board: np.ndarray | None = None,
-                    signal: np.ndarray | None = None) -> np.ndarray:
-    """Body field (N, 3) mGauss of sensor-frame readings (N, 3) mGauss: rotate_field, then correct_field [S3]."""
+                    signal: np.ndarray | None = None, pwm: np.ndarray | None = None,
+                    volts: np.ndarray | None = None) -> np.ndarray:
+    """Body field (N, 3) mGauss of sensor-frame readings (N, 3) mGauss: rotate_field, then correct_field [S3]; the
+    first compass takes the per-motor offsets instead of MOT when COMPASS_PMOT_EN (pwm (N, 4), volts (N,))."""
     r = ardupilot_rotation(p, suffix, np.eye(3) if board is None else board)
     mag = sensor @ r.T
     dia = np.array([p.get(f"COMPASS_DIA{suffix}_{a}", 0.0) for a in AXES])
@@ -91,14 +111,44 @@ def ardupilot_field(sensor: np.ndarray, p: dict[str, float], suffix: str = "", b
     M = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
     mag = mag @ M.T
     motct = int(p.get("COMPASS_MOTCT", 0))
-    if motct in (1, 2) and signal is not None:                                          # after the matrix
+    if p.get("COMPASS_PMOT_EN", 0) and suffix == "":                                    # first compass only
+        if pwm is not None and volts is not None:
+            mag = mag + ardupilot_per_motor(p, pwm, volts)
+    elif motct in (1, 2) and signal is not None:                                        # after the matrix
         mag = mag + signal[:, None] * np.array([p.get(f"COMPASS_MOT{suffix}_{a}", 0.0) for a in AXES])
     return mag
 
 
+def px4_thermal_offset(temperature: np.ndarray, p: dict[str, float], device_id: int) -> np.ndarray:
+    """TemperatureCompensation::calc_thermal_offsets_3D [S34]: with TC_M_ENABLE = 1 and the slot j whose TC_Mj_ID is
+    the device, X0 + X1 dT + X2 dT^2 + X3 dT^3 per axis, dT = T clipped to [TMIN, TMAX] minus TREF (N, 3) gauss."""
+    out = np.zeros((len(temperature), 3))
+    if int(p.get("TC_M_ENABLE", 0)) != 1:
+        return out
+    for j in range(4):
+        if int(p.get(f"TC_M{j}_ID", 0)) != device_id or not device_id:
+            continue
+        q = f"TC_M{j}_"
+        t = np.where(temperature > p[f"{q}TMAX"], p[f"{q}TMAX"],
+                     np.where(temperature < p[f"{q}TMIN"], p[f"{q}TMIN"], temperature))
+        d = t - p[f"{q}TREF"]
+        for i in range(3):
+            out[:, i] = (p[f"{q}X0_{i}"] + p[f"{q}X1_{i}"] * d + p[f"{q}X2_{i}"] * d**2 + p[f"{q}X3_{i}"] * d**3)
+        return out
+    return out
+
+
+def ekf_mag_time(stamp_s: np.ndarray, p: dict[str, float]) -> np.ndarray:
+    """The time PX4's EKF fuses a magnetometer sample stamped `stamp_s` at: time_us - EKF2_MAG_DELAY * 1000
+    (EstimatorInterface::setMagData [S33]; the half EKF period it also subtracts is the same for every sensor)."""
+    return stamp_s - p.get("EKF2_MAG_DELAY", 0.0) / 1000.0
+
+
 def px4_field(raw: np.ndarray, p: dict[str, float], n: int = 0, current_a: np.ndarray | None = None,
-              throttle: np.ndarray | None = None) -> np.ndarray:
-    """m_body = R S ((raw + P COMP) - OFF), gauss [S16]; R = Dcm(Euler(SENS_BOARD_*_OFF)) rot(ROT or board)."""
+              throttle: np.ndarray | None = None, temperature: np.ndarray | None = None,
+              device_id: int = 0) -> np.ndarray:
+    """m_body = R S ((raw + P COMP) - OFF - thermal offset), gauss [S16][S34]; R = Dcm(Euler(SENS_BOARD_*_OFF))
+    rot(ROT or board)."""
     q = f"CAL_MAG{n}_"
     d = [p[f"{q}{a}SCALE"] for a in AXES]
     o = [p[f"{q}{a}ODIAG"] for a in AXES]
@@ -119,4 +169,5 @@ def px4_field(raw: np.ndarray, p: dict[str, float], n: int = 0, current_a: np.nd
         P = current_a / 1000.0                                                          # kA
     comp = np.array([p.get(f"{q}{a}COMP", 0.0) for a in AXES])
     off = np.array([p[f"{q}{a}OFF"] for a in AXES])
-    return ((raw + P[:, None] * comp) - off) @ S.T @ R.T
+    thermal = 0.0 if temperature is None else px4_thermal_offset(temperature, p, device_id)
+    return ((raw + P[:, None] * comp) - off - thermal) @ S.T @ R.T

@@ -31,6 +31,7 @@ from magcal_cli.readers.dataflash.compass import (
 )
 from magcal_cli.readers.dataflash.rawfield import sample_time
 from magcal_cli.streams import Kind
+from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.logs import write_log
 from magcal_cli.synth.logs.dataflash import PreviousCalibration, build
 from magcal_cli.synth.simulate import Simulation, simulate
@@ -510,3 +511,20 @@ def test_logged_offsets_show_the_cast_each_distinct_value_once() -> None:
     params = np.repeat([[-11.40, -137.32, -27.70]], 500, axis=0)          # only z tells the casts apart
     assert offset_cast_evidence(np.trunc(params), params) == pytest.approx(np.log(ROUNDED_EVIDENCE))
     assert offset_cast_evidence(np.rint(params), params) == pytest.approx(-np.log(ROUNDED_EVIDENCE))
+
+
+def test_rcou_motor_outputs_round_trip(tmp_path: Path) -> None:
+    """issue 28: RCOU C1..C4 become motor[1..4] (0..1 of MOT_PWM_MIN..MAX, channel from SERVOn_FUNCTION); a log
+    written without per-motor outputs has no RCOU and no motor streams."""
+    sim = simulate("multirotor", 2, duration=90.0, effects=(EffectSpec("motor_interference"),))
+    path = tmp_path / "motors.bin"
+    write_log(sim, path)
+    rec = open_recording(path)
+    got = {s.id: s for s in rec.of_kind(Kind.MOTOR_OUTPUT)}
+    assert sorted(got) == [f"motor[{k}]" for k in range(1, 5)]
+    for s in sim.recording.of_kind(Kind.MOTOR_OUTPUT):
+        g = got[s.id]                                                        # logged 600 us after the sample
+        assert np.max(np.abs(g.values[:, 0] - np.interp(g.t - 6e-4, s.t, s.values[:, 0]))) < 6e-4   # whole us PWM
+    plain = tmp_path / "plain.bin"
+    write_log(simulate("multirotor", 2, duration=90.0), plain)
+    assert not open_recording(plain).of_kind(Kind.MOTOR_OUTPUT)

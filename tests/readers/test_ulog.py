@@ -417,7 +417,8 @@ REAL = {
         ("magnetometer", "sensor_mag[0]"): (10, 1.1), ("magnetometer", "sensor_mag[1]"): (10, 1.1),
         ("accelerometer", "sensor_combined"): (1737, 194.2),
         ("battery_current", "battery_status[0]"): (46, 5.1),
-        ("attitude", "vehicle_attitude"): (113, 20.2), ("position", "vehicle_gps_position"): (19, 2.1)},
+        ("attitude", "vehicle_attitude"): (113, 20.2), ("position", "vehicle_gps_position"): (19, 2.1),
+        ("motor_output", "motor[4]"): (91, 10.1)},                 # actuator_outputs (issue 28)
     "sample.ulg": {
         ("magnetometer", "sensor_combined"): (6759, 98.1),
         ("accelerometer", "sensor_combined"): (17070, 247.8),
@@ -430,7 +431,8 @@ REAL = {
     "sample_logging_tagged_and_default_params_SITL.ulg": {
         ("magnetometer", "sensor_mag[1]"): (11, 1.0), ("temperature", "sensor_mag[0]"): (11, 1.0)},
     "sample_px4_events_SITL.ulg": {
-        ("magnetometer", "sensor_mag[0]"): (31, 1.0), ("position", "vehicle_gps_position"): (583, 19.2)},
+        ("magnetometer", "sensor_mag[0]"): (31, 1.0), ("position", "vehicle_gps_position"): (583, 19.2),
+        ("motor_output", "motor[1]"): (313, 10.0)},                # actuator_motors (issue 28)
 }
 
 

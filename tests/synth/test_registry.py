@@ -72,4 +72,4 @@ def test_power_effects_are_the_injections_that_log_the_power_system() -> None:
         sim = simulate("paper", 5, rate=100.0, noise_scale=0.0, trajectory=knots, effects=(EffectSpec(eid),))
         logged = {s.kind.value for s in sim.recording.streams} & set(POWER_CHANNELS)
         assert logged == (set(POWER_CHANNELS) if eid in POWER_EFFECTS else set()), eid
-    assert POWER_EFFECTS == ("current_interference", "throttle_interference")
+    assert POWER_EFFECTS == ("current_interference", "throttle_interference", "motor_interference")

@@ -7,6 +7,7 @@ firmware logs (COMPASS_ORIENTn / AHRS_ORIENTATION already applied). See docs/rea
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -124,6 +125,36 @@ def _throttle(path: Path, raw: RawLog, clock: Clock, params: dict[str, float]) -
                     f"{path.name}#RCOU.{'/'.join(chans)} (mean PWM, MOT_PWM_MIN..MAX)", ("1",))]
 
 
+#: SERVOn_FUNCTION of motor 1 (33 = k_motor1 ... 40 = k_motor8)
+MOTOR1_FUNCTION = 33
+
+
+def _motors(path: Path, raw: RawLog, clock: Clock, params: dict[str, float]) -> list[Pending]:
+    """motor[k]: motor k's output 0..1 of its PWM range from RCOU (C1../Ch1..), as ArduPilot's per-motor compass
+    compensation reads it (scale_esc_to_unity over MOT_PWM_MIN..MAX, else RC3_MIN..MAX, else 1000..2000 [S7]);
+    the channel of motor k is the one whose SERVOn_FUNCTION is 32 + k, else channel k (a quad's default)."""
+    rcou = raw.table("RCOU")
+    if rcou is None:
+        return []
+    prefix = next((p for p in ("C", "Ch") if rcou.fmt.has(f"{p}1")), None)
+    if prefix is None:
+        return []
+    lo = params.get("MOT_PWM_MIN", 0.0) or params.get("RC3_MIN", 0.0) or 1000.0
+    hi = params.get("MOT_PWM_MAX", 0.0) or params.get("RC3_MAX", 0.0) or 2000.0
+    servo = {int(v) - MOTOR1_FUNCTION + 1: int(k[5:-9]) for k, v in params.items()
+             if re.fullmatch(r"SERVO\d+_FUNCTION", k) and MOTOR1_FUNCTION <= v < MOTOR1_FUNCTION + 8}
+    t = time_of(rcou, clock)
+    out = []
+    for motor in range(1, 9):
+        ch = servo.get(motor, motor if not servo else 0)
+        if not ch or not rcou.fmt.has(f"{prefix}{ch}"):
+            continue
+        u = np.clip((rcou.num(f"{prefix}{ch}") - lo) / (hi - lo), 0.0, 1.0)
+        out.append(Pending((Kind.MOTOR_OUTPUT,), f"motor[{motor}]", t, u[:, None],
+                           f"{path.name}#RCOU.{prefix}{ch} (PWM over {lo:.0f}..{hi:.0f})", ("1",)))
+    return out
+
+
 def _attitude(path: Path, raw: RawLog, clock: Clock) -> list[Pending]:
     """ATT and AHR2 attitude as quaternions (body to NED) from Roll/Pitch/Yaw in degrees."""
     out = []
@@ -196,7 +227,8 @@ def build_ardupilot(path: Path, raw: RawLog) -> Recording:
         pending.append(Pending((Kind.MAGNETOMETER,), f"MAG[{m.instance}]", m.t, m.raw * MG_TO_T, m.source,
                                ("milligauss",), None if m.resolution is None else m.resolution * MG_TO_T))
     hook("reading", BUILD_STEPS[1], 1.0)
-    pending += _attitude(path, raw, clock) + battery + throttle + _gps(path, raw, clock, notes)
+    pending += (_attitude(path, raw, clock) + battery + throttle + _gps(path, raw, clock, notes)
+                + _motors(path, raw, clock, params))
     hook("reading", BUILD_STEPS[2], 1.0)
     with active(within(hook, BUILD_STEPS[2], 1.0)):
         rec = finish(path, "dataflash", pending, params, notes)

@@ -21,13 +21,13 @@ from magcal_cli.readers.cut import mark_cut, refuse_if_strict
 from magcal_cli.readers.ulog.load import Loaded, load_ulog
 from magcal_cli.readers.ulog.sensors import imu_pieces, mag_pieces
 from magcal_cli.readers.ulog.topics import ImuPiece, Piece, Topics
-from magcal_cli.readers.ulog.vehicle import other_pieces, utc_of_boot
+from magcal_cli.readers.ulog.vehicle import motor_pieces, other_pieces, utc_of_boot
 from magcal_cli.streams import Cut, Kind, Recording, Stream
 
 #: the topics magcal reads; pyulog skips the others while parsing
 TOPICS = ["sensor_mag", "sensor_combined", "sensor_accel", "sensor_gyro", "vehicle_attitude",
           "battery_status", "vehicle_gps_position", "sensor_gps", "vehicle_magnetometer",
-          "vehicle_thrust_setpoint", "actuator_controls_0"]
+          "vehicle_thrust_setpoint", "actuator_controls_0", "actuator_motors", "actuator_outputs"]
 
 
 def _number(value: Any) -> float | None:
@@ -74,7 +74,7 @@ class UlogReader:
         params = _params(ulog, tp.notes)
         mags = mag_pieces(tp, params)
         imus, temps = imu_pieces(tp, params)
-        pieces = mags + temps + other_pieces(tp)
+        pieces = mags + temps + other_pieces(tp) + motor_pieces(tp, params)
         if not imus and not pieces:
             have = ", ".join(loaded.topics[:25]) + (", ..." if len(loaded.topics) > 25 else "")
             msg = (f"{path}: no topic magcal reads ({', '.join(TOPICS)}); the log has: "

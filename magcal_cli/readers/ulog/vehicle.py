@@ -54,6 +54,34 @@ def _throttle_piece(tp: Topics) -> Piece | None:
     return None
 
 
+#: the most motors read (ArduPilot's per-motor compensation uses 4; the effect uses motors 1-4)
+MAX_MOTORS = 8
+
+
+def motor_pieces(tp: Topics, params: dict[str, float]) -> list[Piece]:
+    """motor[k]: each motor's output 0..1 (issue 28): actuator_motors.control[k-1] (PX4 >= 1.14; NaN while disarmed
+    -> 0), else actuator_outputs[0].output[k-1] as a fraction of PWM_MAIN_MIN..MAX (default 1000..2000 us). Only
+    outputs that change (std > 1 % of the range) are motors; none: no stream."""
+    ds = tp.get("actuator_motors")
+    name, fields, lo, hi = "actuator_motors", "control[{}]", 0.0, 1.0
+    if ds is None:
+        ds, name, fields = tp.get("actuator_outputs"), "actuator_outputs", "output[{}]"
+        lo, hi = params.get("PWM_MAIN_MIN", 1000.0), params.get("PWM_MAIN_MAX", 2000.0)
+    if ds is None:
+        return []
+    t = tp.stamps(ds, name)
+    out = []
+    for k in range(MAX_MOTORS):
+        col = tp.columns(ds, [fields.format(k)])
+        if col is None:
+            break
+        u = np.clip((np.nan_to_num(col[:, 0], nan=lo) - lo) / (hi - lo), 0.0, 1.0)
+        if float(np.std(u)) < 0.01:
+            break
+        out.append(Piece(Kind.MOTOR_OUTPUT, f"motor[{k + 1}]", t, u[:, None], tp.source(name, fields.format(k)), "1"))
+    return out
+
+
 def _gps_piece(tp: Topics) -> Piece | None:
     """vehicle_gps_position (the selected receiver), else sensor_gps; rows at (0, 0) (no fix) are dropped."""
     for topic in ("vehicle_gps_position", "sensor_gps"):

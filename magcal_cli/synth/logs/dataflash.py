@@ -73,10 +73,17 @@ STRUCT = {"b": "b", "B": "B", "h": "h", "H": "H", "i": "i", "I": "I", "f": "f", 
           "Q": "Q", "g": "e"}
 
 
+#: RCOU (motor PWM of channels 1-4, as ArduCopter logs C1..C14): written, with its FMT/FMTU, MOT_PWM_MIN/MAX and
+#: SERVOn_FUNCTION, only when the simulation has per-motor outputs, so other simulated logs keep their bytes
+RCOU = (60, "RCOU", "QHHHH", "TimeUS,C1,C2,C3,C4", "s----", "F----")
+#: the PWM range the simulated motors' outputs 0..1 span (MOT_PWM_MIN, MOT_PWM_MAX)
+PWM_RANGE = (1000.0, 2000.0)
+
+
 def _formats() -> dict[str, MessageFormat]:
     """The MessageFormat of every record type written."""
     return {name: MessageFormat(tid, name, 3 + MessageFormat(tid, name, 0, fmt, ()).payload_size, fmt,
-                                tuple(cols.split(","))) for tid, name, fmt, cols, _, _ in RECORDS}
+                                tuple(cols.split(","))) for tid, name, fmt, cols, _, _ in (*RECORDS, RCOU)}
 
 
 FORMATS = _formats()
@@ -125,17 +132,18 @@ def interleave(parts: list[tuple[npt.NDArray[np.int64], np.ndarray]]) -> npt.NDA
     return out
 
 
-def _metadata(params: dict[str, float], t_us: int, banner: str) -> bytes:
-    """FMT for every type, UNIT, MULT, FMTU, the PARM dump, VER and MSG."""
+def _metadata(params: dict[str, float], t_us: int, banner: str, rcou: bool = False) -> bytes:
+    """FMT for every type (RCOU only with `rcou`), UNIT, MULT, FMTU, the PARM dump, VER and MSG."""
+    records = [*RECORDS, RCOU] if rcou else RECORDS
     fmt_code = "<BB4s16s64s"
     out = [bytes([HEAD1, HEAD2, FMT_ID]) + struct.pack(fmt_code, FMT_ID, FMT_LENGTH, b"FMT", b"BBnNZ",
                                                           b"Type,Length,Name,Format,Columns")]
     out += [bytes([HEAD1, HEAD2, FMT_ID]) + struct.pack(fmt_code, f.type_id, f.length, f.name.encode(),
                                                            f.format.encode(), ",".join(f.columns).encode())
-            for f in FORMATS.values()]
+            for f in FORMATS.values() if rcou or f.name != "RCOU"]
     out += [_pack("UNIT", t_us, ord(k), v.encode()) for k, v in UNITS.items()]
     out += [_pack("MULT", t_us, ord(k), v) for k, v in MULTS.items()]
-    out += [_pack("FMTU", t_us, tid, u.encode(), m.encode()) for tid, _, _, _, u, m in RECORDS]
+    out += [_pack("FMTU", t_us, tid, u.encode(), m.encode()) for tid, _, _, _, u, m in records]
     out += [_pack("PARM", t_us, k.encode(), v, v) for k, v in params.items()]
     out += [_pack("VER", t_us, 3, 0, 4, 6, 2, 255, 0, banner.encode()), _pack("MSG", t_us, banner.encode())]
     return b"".join(out)
@@ -218,9 +226,27 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
         change["Value"] = change["Default"] = f32(prev.ofs_after)
         parts.append((change["TimeUS"], change))
     banner = f"ArduCopter V4.6.2 (magcal simulate {sim.scenario} seed={sim.seed})"
-    meta = _metadata(compass_params(prev, ofs0, tuple(more_ofs)), int(_us(0.0)) - 50_000, banner)
+    params = compass_params(prev, ofs0, tuple(more_ofs))
+    motors = rec.of_kind(Kind.MOTOR_OUTPUT)
+    if motors:
+        parts.append(_rcou(motors))
+        params |= {"MOT_PWM_MIN": PWM_RANGE[0], "MOT_PWM_MAX": PWM_RANGE[1]}
+        params |= {f"SERVO{k}_FUNCTION": 32.0 + k for k in range(1, len(motors) + 1)}     # 33 = motor 1 [S7]
+        params |= {"COMPASS_PMOT_EN": 0.0, "COMPASS_PMOT_EXP": 0.65}         # a 4.6 vehicle has them, off
+    meta = _metadata(params, int(_us(0.0)) - 50_000, banner, rcou=bool(motors))
     head = np.frombuffer(meta, dtype=np.uint8)
     return np.concatenate([head, interleave(parts)])
+
+
+def _rcou(motors: list[Stream]) -> tuple[npt.NDArray[np.int64], np.ndarray]:
+    """RCOU records at the first motor's stamps: each motor's output 0..1 as PWM over PWM_RANGE (channels 1-4)."""
+    t = motors[0].t
+    out = _records("RCOU", len(t))
+    out["TimeUS"] = _us(t) + 600
+    for k, m in enumerate(motors[:4], start=1):
+        u = np.interp(t, m.t, m.values[:, 0])
+        out[f"C{k}"] = np.round(PWM_RANGE[0] + np.clip(u, 0.0, 1.0) * (PWM_RANGE[1] - PWM_RANGE[0]))
+    return out["TimeUS"], out
 
 
 def _mag_records(mag: Stream, k: int, cp: CompassParams, ofs: FloatArray,
