@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -88,3 +89,17 @@ def test_per_motor_fields_accepted_with_differential_thrust_ambiguous_without(di
     else:
         assert got["motor_interference"]["confounded_with"] == ["throttle_interference"]
         assert "c" in got["throttle_interference"]["params"] and not got["motor_interference"]["params"]
+
+
+def test_log171_mag0_keeps_its_interference_after_the_per_motor_term_is_dropped(realdata: Path) -> None:
+    """Issue 28 regression: on log171's MAG[0] the per-motor fields were added first (keeping throttle and current
+    out as terms they nest), then dropped once the lag was modelled, and nothing screened throttle and current again:
+    the compass lost its interference term. The selection now goes on from what stayed."""
+    from magcal_cli.config import Config
+    from magcal_cli.pipeline import calibrate
+
+    res = calibrate(realdata / "ardupilot" / "log171.bin", Config(diagnose=True, mag="MAG[0]"))
+    status = {e["id"]: e["status"] for e in res.calibration.effects if e["sensor"] == "MAG[0]"}
+    assert status["motor_interference"] == "rejected"
+    assert status["throttle_interference"] in ("accepted", "ambiguous")
+    assert status["current_interference"] in ("accepted", "ambiguous")
