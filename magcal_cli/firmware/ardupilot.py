@@ -260,8 +260,9 @@ def export_ardupilot(cal: Calibration, params: Mapping[str, float], options: Opt
             if e.mag_id in dropped or e.mag_id not in kinds:
                 acc.params |= {f"COMPASS_MOT{sfx}_{a}": 0.0 for a in AXES}
         if dropped:
-            acc.notes.append(f"{', '.join(dropped)}: throttle interference not exported; COMPASS_MOTCT is one "
-                             "signal for all compasses and another compass needs current")
+            acc.notes.append(f"{', '.join(dropped)}: {'throttle' if kind == 'current' else 'current'} interference "
+                             f"not exported; COMPASS_MOTCT is one signal for all compasses and more of them need "
+                             f"{kind}")
         acc.params["COMPASS_MOTCT"] = 2.0 if kind == "current" else 1.0
         acc.integers.add("COMPASS_MOTCT")
     else:

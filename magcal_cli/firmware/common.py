@@ -178,5 +178,8 @@ class Collected:
 
 def shared_signal(kinds: Mapping[str, str]) -> str:
     """The one interference signal a firmware applies to every compass (COMPASS_MOTCT, CAL_MAG_COMP_TYP are
-    global): current when any magnetometer's accepted effect is a current one, else throttle."""
-    return "current" if "current" in kinds.values() else "throttle"
+    global): the one most magnetometers' carried effects follow, current on a tie (it follows the load itself).
+    "Current when any" dropped two compasses' throttle terms for one compass's current (log171, where each
+    compass carries one of an ambiguous current/throttle pair)."""
+    values = list(kinds.values())
+    return "current" if values.count("current") >= values.count("throttle") else "throttle"

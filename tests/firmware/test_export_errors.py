@@ -241,3 +241,14 @@ def test_a_partial_calibration_exports_only_what_the_log_determined() -> None:
         assert ofs_x in part.params and iron not in part.params and ofs_y not in part.params
         assert any("could not determine D[2][2], o[1]" in n and "the vehicle keeps its own values" in n
                    for n in part.notes)
+
+
+def test_one_interference_signal_for_all_compasses_follows_most_of_them() -> None:
+    """COMPASS_MOTCT / CAL_MAG_COMP_TYP are global: the signal most compasses carry, current on a tie. log171 carries
+    throttle on two compasses and current on one (an ambiguous pair each): "current when any" zeroed two."""
+    from magcal_cli.firmware.common import shared_signal
+
+    assert shared_signal({"MAG[0]": "current", "MAG[1]": "throttle", "MAG[2]": "throttle"}) == "throttle"
+    assert shared_signal({"MAG[0]": "current", "MAG[1]": "throttle"}) == "current"
+    assert shared_signal({"MAG[0]": "throttle"}) == "throttle"
+    assert shared_signal({"MAG[0]": "current"}) == "current"
