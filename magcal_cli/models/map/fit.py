@@ -137,8 +137,8 @@ def _rounds(problem: Problem, run: Run, cfg: FitSettings) -> tuple[Solution, Flo
     scale_jac = run.pre.d_scale is not None
     bg = run.layout.slice("gyroscope_bias")
     # a partial calibration keeps the default damping throughout: what it holds, priors alone hold, and undamped
-    # steps along those directions led the phidgets bag to a point where nothing looked determined, where the
-    # field's non-uniformity is what the log shows (tests/readers/test_rosbag.py)
+    # steps along those directions took the phidgets bag to a point where nothing looked determined, so it was
+    # refused for its motion instead of for the non-uniform field the log shows (tests/readers/test_rosbag.py)
     partial_fit = cfg.prior is not None or (run.held is not None and run.held.cols.size > 0)
     first = _to_convergence(loss, cfg.warm is not None and not partial_fit)
     if cfg.holdout:                 # a cross-validation fold: only its held-out likelihood is used
