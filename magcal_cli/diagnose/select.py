@@ -73,6 +73,11 @@ def holm(scr: Screen, alpha: float = FAMILY_ALPHA) -> list[str]:
     return [s.id for s in sorted(out, key=lambda s: -s.classical)]
 
 
+def two_ln_bayes(statistic: float, dof: int, neff: float) -> float:
+    """2 ln(Bayes factor) of adding an effect, by BIC: its likelihood-ratio (or Wald) statistic less dof ln(n_eff)."""
+    return float(statistic - dof * float(np.log(neff)))
+
+
 def n_eff(est: MapEstimate) -> float:
     """Effective number of magnetometer readings: n / (1 + 2 sum of the residuals' autocorrelation)."""
     ctx = est.context
@@ -199,7 +204,7 @@ def _beyond(problem: Problem, mag: Stream, est: MapEstimate, given: tuple[str, .
         return False
     # the backward step's evidence bar too: the extra parameters must pay for themselves (2 ln BF > BIC_MIN)
     s = scr.scores[0]
-    return bool(s.classical - s.dof * float(np.log(n_eff(fitted))) > BIC_MIN)
+    return two_ln_bayes(s.classical, s.dof, n_eff(fitted)) > BIC_MIN
 
 
 def beyond_limits(est: MapEstimate, eid: str) -> str:
@@ -246,7 +251,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         for _ in range(2):           # keep what stays significant, with strong evidence, given the rest
             neff = n_eff(est) if picked else float("nan")
             weak = [f.id for f in est.effects if f.id in picked and not (
-                f.p_value < WALD_ALPHA and f.statistic - f.dof * float(np.log(neff)) > BIC_MIN)]
+                f.p_value < WALD_ALPHA and two_ln_bayes(f.statistic, f.dof, neff) > BIC_MIN)]
             if not weak:
                 break
             hook(f"{mag.id} diagnosis: refitting without {', '.join(weak)}", 0)
@@ -271,7 +276,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         if f.id not in picked:
             continue
         rel = relevance(est, f.id)
-        bic = f.statistic - f.dof * float(np.log(neff))
+        bic = two_ln_bayes(f.statistic, f.dof, neff)
         assert held is not None
         lo, hi = held.ci95()
         evidence = {"score_p_value": _p(fw.scores, f.id), "delta_bic": -bic, "n_eff": neff,
