@@ -374,7 +374,9 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
         for i, j in enumerate(jobs):
             try:
                 futures[pool.submit(run_one, j)] = j
-            except BrokenProcessPool:     # a worker died while the rest were being queued: those go back too
+            except (BrokenProcessPool, OSError):
+                # a worker died while the rest were being queued: those go back too. OSError is the same death
+                # seen a moment earlier, as the pool spawns a worker on fds its breaking has just closed (EBADF)
                 broken.extend(jobs[i:])
                 break
         for fut in as_completed(futures):
@@ -391,5 +393,5 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
     except KeyboardInterrupt:
         reports += _stop(pool, {f: j for f, j in futures.items() if f not in seen}, since, existed)
         raise
-    pool.shutdown(wait=True)
+    pool.shutdown(wait=True, cancel_futures=True)   # what a submit that raised had queued: dropped unless started
     return broken

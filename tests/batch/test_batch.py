@@ -181,6 +181,34 @@ def test_worker_death_fails_that_log_only(logs: Path, tmp_path: Path) -> None:
     assert "worker process fitting this log died" in next(r.error for r in reports if r.name == "killer")
 
 
+def test_spawn_failing_as_the_pool_breaks_requeues_the_rest(logs: Path, tmp_path: Path, monkeypatch) -> None:
+    """The pool spawning a worker on fds its breaking just closed (OSError EBADF from submit, a race seen in CI)
+    sends the unsubmitted logs back to a new pool: every log fitted once, none lost, nothing raised."""
+    real = batch_run._pool
+    calls = {"n": 0}
+
+    def flaky(workers: int):
+        pool = real(workers)
+        submit = pool.submit
+
+        def once_broken(fn, /, *a, **k):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise OSError(9, "Bad file descriptor")
+            return submit(fn, *a, **k)
+
+        pool.submit = once_broken
+        return pool
+
+    monkeypatch.setattr(batch_run, "_pool", flaky)
+    opts = FitOptions(effects=(), outputs=("json",))
+    paths = {"alpha": logs / "alpha.bin", "charlie": logs / "charlie.csv", "bravo": logs / "sub" / "bravo.mcap"}
+    jobs = [Job(p, n, tmp_path / n, ("json",), None, opts) for n, p in paths.items()]
+    reports = batch_run.run_local(jobs, 2, lambda r: None)
+    assert sorted((r.name, r.status) for r in reports) == [("alpha", "ok"), ("bravo", "ok"), ("charlie", "ok")]
+    assert calls["n"] >= 4                          # the raising submit's log went to a new pool
+
+
 #: how soon after Ctrl-C a batch must have exited (issue 30: "within 1 s"; the margin is a loaded test machine's)
 CTRL_C_S = 1.5
 
