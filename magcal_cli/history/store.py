@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import sqlite3
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,21 @@ def _migrate(con: sqlite3.Connection, path: Path) -> None:
         raise
 
 
+def _wal(con: sqlite3.Connection) -> None:
+    """Put the store in WAL mode, waiting out another opener doing the same: SQLite answers that switch with
+    "database is locked" at once, without the busy handler, when two processes open a new store together."""
+    deadline = time.monotonic() + BUSY_TIMEOUT_MS / 1000
+    while True:
+        try:
+            if con.execute("PRAGMA journal_mode").fetchone()[0] != "wal":     # WAL persists: set once per file
+                con.execute("PRAGMA journal_mode = WAL")
+            return
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
+
+
 @contextlib.contextmanager
 def connect(path: Path, create: bool = True) -> Iterator[sqlite3.Connection]:
     """An open store (created and migrated when `create`), closed on exit."""
@@ -81,7 +97,7 @@ def connect(path: Path, create: bool = True) -> Iterator[sqlite3.Connection]:
         raise _fail(path, exc, "open") from None
     try:
         con.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
-        con.execute("PRAGMA journal_mode = WAL")
+        _wal(con)
         _migrate(con, path)
         yield con
     except sqlite3.DatabaseError as exc:
