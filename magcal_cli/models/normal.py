@@ -79,6 +79,35 @@ def _gram(a: FloatArray, b: FloatArray) -> FloatArray:
     return out
 
 
+def _add_gradient(f: Factor, r: FloatArray, gx: FloatArray, gt: FloatArray, cols: slice, start: int | None) -> None:
+    """gx += J_x^T r (at state idx and idx + 1), gt[cols] += J_theta^T r, for one factor's (weighted) rows r."""
+    if f.J_theta is not None:
+        gt[cols] += f.J_theta.reshape(-1, f.J_theta.shape[2]).T @ r.reshape(-1)
+    if f.idx is None:
+        return
+    for jx, shift in ((f.J_x, 0), (f.J_next, 1)):
+        if jx is not None:
+            scatter(gx, f.idx + shift, np.einsum("mki,mk->mi", jx, r), None if start is None else start + shift)
+
+
+def _expanded(f: Factor, p: int) -> tuple[Factor, slice]:
+    """The factor and where its theta columns sit, with scattered columns expanded to all p (rare)."""
+    cols = f.theta_slice(p)
+    if isinstance(cols, slice):
+        return f, cols
+    return Factor(f.name, f.r, f.idx, f.J_x, f.J_next, f.full_theta(p)), slice(0, p)
+
+
+def gradient(factors: Sequence[Factor], residuals: Sequence[FloatArray], n: int, p: int
+             ) -> tuple[FloatArray, FloatArray]:
+    """J^T r with the factors' Jacobians and other residuals of the same rows (unit weights): (gx (N, 3), gt)."""
+    gx, gt = np.zeros((n, 3)), np.zeros(p)
+    for f, r in zip(factors, residuals, strict=True):
+        f, cols = _expanded(f, p)
+        _add_gradient(f, r, gx, gt, cols, None if f.idx is None else run_start(f.idx))
+    return gx, gt
+
+
 def assemble(factors: Sequence[Factor], weights: Sequence[FloatArray], n: int, p: int) -> NormalEquations:
     """Accumulate J^T W J and J^T W r factor by factor (vectorised over rows; theta blocks through BLAS)."""
     ne = NormalEquations(np.zeros((n, 3, 3)), np.zeros((max(n - 1, 0), 3, 3)), np.zeros((n, 3, p)),
@@ -87,20 +116,16 @@ def assemble(factors: Sequence[Factor], weights: Sequence[FloatArray], n: int, p
         unit = bool(np.all(w == 1.0))
         r = f.r if unit else f.r * w[:, None]
         jt_w = None
-        cols = f.theta_slice(p)
-        if not isinstance(cols, slice):                       # scattered columns: expand (rare)
-            f = Factor(f.name, f.r, f.idx, f.J_x, f.J_next, f.full_theta(p))
-            cols = slice(0, p)
+        f, cols = _expanded(f, p)
+        start = None if f.idx is None else run_start(f.idx)
+        _add_gradient(f, r, ne.gx, ne.gt, cols, start)
         if f.J_theta is not None:
             jt = f.J_theta
             q = jt.shape[2]
             jt_w = jt if unit else jt * w[:, None, None]
-            jt2 = jt.reshape(-1, q)
-            ne.htt[cols, cols] += jt_w.reshape(-1, q).T @ jt2
-            ne.gt[cols] += jt2.T @ r.reshape(-1)
+            ne.htt[cols, cols] += jt_w.reshape(-1, q).T @ jt.reshape(-1, q)
         if f.idx is None:
             continue
-        start = run_start(f.idx)
         hxt = ne.hxt[:, :, cols]                              # a view: scatters below write into ne.hxt
         for jx, shift in ((f.J_x, 0), (f.J_next, 1)):
             if jx is None:
@@ -108,7 +133,6 @@ def assemble(factors: Sequence[Factor], weights: Sequence[FloatArray], n: int, p
             at = None if start is None else start + shift
             idx = f.idx + shift
             scatter(ne.diag, idx, _gram(jx, jx if unit else jx * w[:, None, None]), at)
-            scatter(ne.gx, idx, np.einsum("mki,mk->mi", jx, r), at)
             if jt_w is not None:
                 scatter(hxt, idx, jx.transpose(0, 2, 1) @ jt_w, at)
         if f.J_x is not None and f.J_next is not None:
@@ -209,6 +233,38 @@ def step(ne: NormalEquations, lam: float, u: int, need_w: bool = False, lam_thet
     dx = -back[:, 0]
     w = back[:, 1:].reshape(n, 3, p) if need_w else None
     return dx.reshape(n, 3), dt, s_inv, diag, w
+
+
+@dataclass(frozen=True, eq=False)
+class Factorised:
+    """The damped normal equations at a point, factorised (`_schur`): the Gauss-Newton step for any gradient with
+    the same information costs two banded triangular solves (replicates simulated at that point)."""
+
+    cb: FloatArray         # banded Cholesky factor U of the damped Hxx
+    x: FloatArray          # U^-T Hxt (3N, p)
+    s_inv: FloatArray      # inverse damped Schur complement
+
+    def step(self, gx: FloatArray, gt: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """(dx (N, 3), dtheta) for gradient (gx, gt), as `step` computes them."""
+        y = _triangular(self.cb, gx.reshape(-1, 1), "T")[:, 0]
+        dt = self.s_inv @ (self.x.T @ y - gt)
+        dx = -_triangular(self.cb, (y + self.x @ dt)[:, None], "N")[:, 0]
+        return dx.reshape(-1, 3), dt
+
+
+def _triangular(cb: FloatArray, b: FloatArray, trans: str) -> FloatArray:
+    """U^-T b or U^-1 b for the banded upper factor U."""
+    out, info = lapack.dtbtrs(cb, np.asfortranarray(b, dtype=np.float64), uplo="U", trans=trans)
+    if info != 0:
+        msg = "banded triangular solve failed"
+        raise np.linalg.LinAlgError(msg)
+    return np.asarray(out)
+
+
+def factorise(ne: NormalEquations, lam: float, u: int) -> Factorised:
+    """The factors of `step`'s damped system, kept for steps with other gradients."""
+    s, x, _, cb, _ = _schur(ne, lam, u)
+    return Factorised(cb, x, schur_inverse(s))
 
 
 def undamped(ne: NormalEquations, u: int, log: list[str] | None = None, need_w: bool = True

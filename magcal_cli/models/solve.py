@@ -158,6 +158,33 @@ def solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray,
 
 
 @dataclass(frozen=True, eq=False)
+class Linearised:
+    """The Gauss-Newton system at a point, factorised once; `step` refits other data of the same rows from that
+    point (a replicate simulated there) with the point's Jacobians: one step of `solve` at its default damping,
+    without linearising and factorising again. The Jacobians depend on the data only at second order."""
+
+    factors: tuple[Factor, ...]
+    system: normal.Factorised
+
+    def step(self, residuals: Sequence[FloatArray]) -> tuple[FloatArray, FloatArray]:
+        """(dx (N, 3), dtheta) for the factors' rows with these residuals (l2 loss)."""
+        n, p = self.system.x.shape[0] // 3, self.system.s_inv.shape[0]
+        with normal.one_blas_thread():
+            return self.system.step(*normal.gradient(self.factors, residuals, n, p))
+
+
+def linearised(linearize: Linearize, states: FloatArray, theta: FloatArray, lam: float = Options.lambda0
+               ) -> Linearised:
+    """`Linearised` at (states, theta), damped as a first step of `solve` is (l2 loss)."""
+    n, p = np.shape(states)[0], np.size(theta)
+    with normal.one_blas_thread():
+        factors = tuple(linearize(states, theta, True))
+        u = 5 if any(f.J_next is not None for f in factors) else 2
+        ne = normal.assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        return Linearised(factors, normal.factorise(ne, lam, u))
+
+
+@dataclass(frozen=True, eq=False)
 class Iterated(Generic[S]):
     """Where the Levenberg-Marquardt loop stopped: the point, its cost, the system built there (`S`, e.g. factors
     and robust weights), the iterations, whether it converged, and one log line per iteration."""

@@ -1,4 +1,5 @@
-"""The banded-Schur Levenberg-Marquardt solver against dense linear algebra on small problems."""
+"""The banded-Schur Levenberg-Marquardt solver against dense linear algebra on small problems; `linearised` (one
+factorisation, steps for other residuals) against the solver's own first step and the dense Gauss-Newton step."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import numpy as np
 
 from magcal_cli import so3
 from magcal_cli.models.factor import Factor
-from magcal_cli.models.solve import solve
+from magcal_cli.models.solve import Options, linearised, solve
 
 
 def _chain_problem(rng: np.random.Generator, n: int):  # noqa: ANN202
@@ -79,6 +80,42 @@ def test_covariance_is_the_dense_inverse_block() -> None:
     j = np.concatenate(rows)
     dense = np.linalg.inv(j.T @ j)
     np.testing.assert_allclose(sol.cov_theta, dense[3 * n:, 3 * n:], rtol=1e-8)
+
+
+def _dense(factors, n: int, p: int) -> np.ndarray:  # noqa: ANN001
+    """The full Jacobian (rows of every factor) over (3N trajectory, p theta)."""
+    rows = []
+    for f in factors:
+        block = np.zeros((f.r.shape[0], f.r.shape[1], 3 * n + p))
+        for i, k in enumerate(f.idx):
+            block[i, :, 3 * k:3 * k + 3] = f.J_x[i]
+            if f.J_next is not None:
+                block[i, :, 3 * k + 3:3 * k + 6] = f.J_next[i]
+            if f.J_theta is not None:
+                block[i, :, 3 * n:] = f.J_theta[i]
+        rows.append(block.reshape(-1, 3 * n + p))
+    return np.concatenate(rows)
+
+
+def test_linearised_step_is_the_solvers_first_step_and_the_dense_gauss_newton_step() -> None:
+    """On the data it was linearised on, `linearised(...).step` moves exactly as solve's first iteration (same
+    damping); undamped, for any other residuals r it is the dense Gauss-Newton step -(J^T J)^-1 J^T r."""
+    rng = np.random.default_rng(6)
+    n, p = 15, 2
+    truth, _, linearize = _chain_problem(rng, n)
+    start = truth @ so3.exp(0.02 * rng.normal(size=(n, 3)))
+    theta0 = np.array([0.1, 0.0])
+    at = linearised(linearize, start, theta0)
+    dx, dt = at.step([f.r for f in linearize(start, theta0, False)])
+    one = solve(linearize, start, theta0, Options(max_iterations=1, covariance=False))
+    np.testing.assert_allclose(start @ so3.exp(dx), one.states, atol=1e-12)
+    np.testing.assert_allclose(theta0 + dt, one.theta, atol=1e-12)
+    plain = linearised(linearize, start, theta0, lam=0.0)
+    other = [rng.normal(size=f.r.shape) for f in plain.factors]
+    dx, dt = plain.step(other)
+    j = _dense(plain.factors, n, p)
+    want = -np.linalg.solve(j.T @ j, j.T @ np.concatenate([r.ravel() for r in other]))
+    np.testing.assert_allclose(np.concatenate([dx.ravel(), dt]), want, rtol=1e-8, atol=1e-12)
 
 
 def test_leverage_matches_the_dense_hat_matrix() -> None:
