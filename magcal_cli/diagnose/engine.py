@@ -64,8 +64,11 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
         note = f"{mag.id}: diagnosed on every {step}th of {base.epochs.size} readings; effects fitted on all"
         if modelled:
             hook(f"{mag.id} diagnosis: fitting {', '.join(modelled)} on every reading", 0)
+        # from the base fit, with the effects as the thinned fit found them: their slow directions (a lag against
+        # a lever arm) took BROAD 06's fit from zero 2x the iterations
+        assert base.context is not None and sel.estimate.context is not None
         full = fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
-                       warm=base.context) if modelled else base
+                       warm=base.context.with_effects_of(sel.estimate.context)) if modelled else base
         fitted = {f.id: f for f in full.effects}
         verdicts = tuple(replace(v, estimate=fitted[v.id].estimate, statistic=fitted[v.id].statistic,
                                  p_value=fitted[v.id].p_value) if v.id in fitted else v for v in sel.verdicts)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -49,6 +49,13 @@ class FitContext:
         return make_linearize(self.ep if ep is None else ep, self.pre if pre is None else pre, self.noise,
                               self.layout if layout is None else layout, self.bound if bound is None else bound,
                               w, self.held)
+
+    def with_effects_of(self, other: FitContext) -> FitContext:
+        """This fit as a warm start that also carries the effect blocks `other` (a fit of the same magnetometer on
+        other epochs, e.g. every k-th reading) found, in this fit's units; the base blocks stay this fit's."""
+        theta = other.theta * other.layout.si_factors(other.ep.scale) / other.layout.si_factors(self.ep.scale)
+        other.layout.carry(theta, self.layout, self.theta)
+        return replace(self, layout=other.layout, theta=theta)
 
 
 @dataclass(frozen=True, eq=False)
