@@ -135,13 +135,13 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
         sig = holm(scr)
         if not sig:
             break
+        fits: Trials = {}
         best, rivals = _nested_choice(problem, mag, est, tuple(picked), sig, scr, loss, dip_prior, declination,
-                                      holdout)
+                                      holdout, fits)
         pairs += [frozenset((best, r)) for r in rivals]
         hook(f"{mag.id} diagnosis: fitting with {best}", 0)
         try:
-            trial = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=(*picked, best),
-                            declination=declination, holdout=holdout, warm=est.context)
+            trial = _trial(problem, mag, est, (*picked, best), loss, dip_prior, declination, holdout, fits)
         except REFIT_ERRORS as exc:
             # a weakly determined log (an offsets-only flight) may not carry the extra term at all: the effect is
             # not established, and the diagnosis goes on without it
@@ -159,9 +159,31 @@ def forward(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequen
     return Forward(tuple(picked), est, scores, tuple(screens), tuple(pairs), implausible)
 
 
+#: one forward round's trial fits by their effects (or what the fit raised): `_beyond`'s fit with the nested term
+#: is the forward step's fit when that term is then added
+Trials = dict[tuple[str, ...], "MapEstimate | Exception"]
+
+
+def _trial(problem: Problem, mag: Stream, est: MapEstimate, effects: tuple[str, ...], loss: str,
+           dip_prior: float | None, declination: float, holdout: tuple[tuple[float, float], ...],
+           fits: Trials) -> MapEstimate:
+    """The fit with `effects` from `est` (what a forward step fits), made once per round."""
+    got = fits.get(effects)
+    if got is None:
+        try:
+            got = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=effects,
+                          declination=declination, holdout=holdout, warm=est.context)
+        except REFIT_ERRORS as exc:
+            got = exc
+        fits[effects] = got
+    if isinstance(got, Exception):
+        raise got
+    return got
+
+
 def _nested_choice(problem: Problem, mag: Stream, est: MapEstimate, picked: tuple[str, ...], sig: list[str],
                    scr: Screen, loss: str, dip_prior: float | None, declination: float,
-                   holdout: tuple[tuple[float, float], ...]) -> tuple[str, list[str]]:
+                   holdout: tuple[tuple[float, float], ...], fits: Trials) -> tuple[str, list[str]]:
     """The candidate to add and its rivals. Without nesting effects (Effect.nests) this is the old rule: the
     strongest, rivals above SEPARABLE. A nested term that explains the same readings with fewer parameters is added
     instead (throttle rather than per-motor fields when the motors move together) and the nesting one becomes its
@@ -171,7 +193,7 @@ def _nested_choice(problem: Problem, mag: Stream, est: MapEstimate, picked: tupl
     def goes_beyond(big: str, small: str) -> bool:
         if (big, small) not in beyond:
             beyond[big, small] = _beyond(problem, mag, est, (*picked, small), big, loss, dip_prior, declination,
-                                         holdout)
+                                         holdout, fits)
         return beyond[big, small]
 
     def close(a: str, b: str) -> bool:
@@ -187,7 +209,8 @@ def _nested_choice(problem: Problem, mag: Stream, est: MapEstimate, picked: tupl
 
 
 def _beyond(problem: Problem, mag: Stream, est: MapEstimate, given: tuple[str, ...], best: str, loss: str,
-            dip_prior: float | None, declination: float, holdout: tuple[tuple[float, float], ...]) -> bool:
+            dip_prior: float | None, declination: float, holdout: tuple[tuple[float, float], ...],
+            fits: Trials | None = None) -> bool:
     """Whether `best`, whose term nests the last of `given` (Effect.nests: per-motor fields contain the throttle's as
     the case where the motors move together), still explains significantly more with that one fitted: then the
     two are not rivals (the canonical correlation of nested terms is always near 1), whichever was added first.
@@ -195,8 +218,7 @@ def _beyond(problem: Problem, mag: Stream, est: MapEstimate, given: tuple[str, .
     if given[-1] not in registry.get(best).nests:
         return False
     try:
-        fitted = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, effects=given, declination=declination,
-                         holdout=holdout, warm=est.context)
+        fitted = _trial(problem, mag, est, given, loss, dip_prior, declination, holdout, {} if fits is None else fits)
     except REFIT_ERRORS:
         return False
     scr = screen(problem, mag, fitted, [best], declination)

@@ -103,3 +103,28 @@ def test_log171_mag0_keeps_its_interference_after_the_per_motor_term_is_dropped(
     assert status["motor_interference"] == "rejected"
     assert status["throttle_interference"] in ("accepted", "ambiguous")
     assert status["current_interference"] in ("accepted", "ambiguous")
+
+
+def test_a_forward_rounds_trial_fit_is_made_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`_beyond`'s fit with the nested term is the forward step's fit when that term is then added: one fit per
+    round and effects (a failure too is remembered, and raised again)."""
+    calls: list[tuple[str, ...]] = []
+
+    def fake(*_a: object, effects: tuple[str, ...] = (), **_k: object) -> object:
+        calls.append(effects)
+        if effects == ("bad",):
+            raise np.linalg.LinAlgError("singular")
+        return SimpleNamespace(effects=effects)
+
+    monkeypatch.setattr(select_module, "fit_map", fake)
+    fits: select_module.Trials = {}
+    est = SimpleNamespace(context=None)
+    args = (None, None, est, ("throttle_interference",), "l2", None, 0.0, ())
+    first = select_module._trial(*args, fits)  # type: ignore[arg-type]
+    assert select_module._trial(*args, fits) is first  # type: ignore[arg-type]
+    for _ in range(2):
+        with pytest.raises(np.linalg.LinAlgError):
+            select_module._trial(None, None, est, ("bad",), "l2", None, 0.0, (), fits)  # type: ignore[arg-type]
+    assert calls == [("throttle_interference",), ("bad",)]
+    select_module._trial(*args, {})  # type: ignore[arg-type]
+    assert len(calls) == 3                                   # a new round (a new start) fits again
