@@ -46,3 +46,20 @@ def test_reader_imports_only_its_format_library(log: str, own: set[str]) -> None
     """Reading a log imports its own format library and no other one (and neither scipy.stats nor matplotlib)."""
     found = _imported(f"from magcal_cli.readers import open_recording\nopen_recording({str(SAMPLES / log)!r})")
     assert found & {*FORMATS, "scipy.stats", "matplotlib"} <= own
+
+
+def test_a_default_fit_imports_no_scipy_stats(tmp_path: Path) -> None:
+    """A default fit (diagnosis on) of the sample log, and a flight log's GPS acceleration, need neither scipy.stats
+    nor scipy.signal (0.2-1.2 s): the p-values come from scipy.special, the Gumbel tail and the Savitzky-Golay
+    derivative are computed as scipy.stats and scipy.signal would (ppc.gumbel_fit, nongravity)."""
+    found = _imported("from magcal_cli.cli.main import cli\n"
+                      f"cli(['fit', {str(SAMPLES / 'handheld.bin')!r}, '-o', {str(tmp_path)!r}, '-q'], "
+                      "standalone_mode=False)\n"
+                      "import numpy as np\n"
+                      "from magcal_cli.streams import Kind, Stream\n"
+                      "from magcal_cli.effects.nongravity import acceleration_grid\n"
+                      "t = np.arange(0, 60, 0.2)\n"
+                      "pos = np.stack([47 + 1e-5 * np.sin(t / 5), 8 + 1e-5 * np.cos(t / 5), 400 + 0 * t], axis=1)\n"
+                      "acceleration_grid(Stream(Kind.POSITION, 'gps', t, pos, 'test', 'deg'))")
+    assert found & {"scipy.stats", "scipy.signal"} == set()
+    assert (tmp_path / "calibration.json").is_file()

@@ -33,7 +33,7 @@ TASKS_PER_WORKER = 1
 #: imported once in the fork server, so that every worker starts with them: with a fresh worker per log, a
 #: module a fit imports lazily would otherwise be imported again for every log (1-2 s of a 3 s log)
 PRELOAD = ["magcal_cli.batch.run", "magcal_cli.pipeline", "magcal_cli.history.entry", "magcal_cli.writers.fitrun", "magcal_cli.firmware.gates", "pygeomag",
-           "scipy.signal"]
+           "scipy.ndimage", "scipy.optimize"]
 #: the subpackages whose every module a fit may import (readers, estimators, effects, outputs)
 PRELOAD_PACKAGES = ("readers", "models", "effects", "diagnose", "firmware", "writers")
 WORKER_DIED = ("the worker process fitting this log died (killed, e.g. out of memory, or crashed). Fit it alone "

@@ -68,13 +68,30 @@ def acceleration_grid(pos: Stream) -> tuple[FloatArray, FloatArray]:
     if grid.size <= window:
         msg = f"the position ({pos.id}) is too short to differentiate"
         raise NotTestable(msg)
-    from scipy.signal import savgol_filter  # on use: scipy.signal brings scipy.stats (issue 27)
-
-    acc = savgol_filter(ned, window, POLY_ORDER, deriv=2, delta=1.0 / GRID_HZ, axis=0)
+    acc = _second_derivative(ned, window, 1.0 / GRID_HZ)
     # a degree-7 fit extrapolates wildly at the ends and across gaps between fixes (17 m/s^2 at the first fix of
     # a real log): no acceleration is known there, so none is claimed (and `known` keeps those rows out)
     acc[~known(pos, grid, 0.0)] = 0.0
     return grid, acc
+
+
+def _second_derivative(x: FloatArray, window: int, delta: float) -> FloatArray:
+    """The Savitzky-Golay (POLY_ORDER, odd `window`) second derivative of x along axis 0: scipy.signal.savgol_filter's
+    coefficients and convolution, so the same digits, except the first and last window // 2 rows, which that filter
+    extrapolates and which are 0 here (`known` drops them anyway). scipy.signal is not imported: it brings
+    scipy.stats, 0.2-1.2 s (issue 27)."""
+    from scipy.linalg import lstsq
+    from scipy.ndimage import convolve1d
+
+    half = window // 2
+    design = np.arange(-half, window - half, dtype=np.float64)[::-1] ** np.arange(POLY_ORDER + 1.0).reshape(-1, 1)
+    unit = np.zeros(POLY_ORDER + 1)
+    unit[2] = 2.0 / delta**2
+    coeffs = lstsq(design, unit, cond=np.finfo(np.float64).eps * max(design.shape))[0]
+    out: FloatArray = convolve1d(x, coeffs, axis=0, mode="constant")
+    out[:half] = 0.0
+    out[out.shape[0] - half:] = 0.0
+    return out
 
 
 def known(pos: Stream, t: FloatArray, margin: float) -> npt.NDArray[np.bool_]:

@@ -336,3 +336,13 @@ def test_window_statistics_count_only_windows_that_hold_epochs() -> None:
     assert occupied.tolist() == [0, 1, 2, int(1.4e8 // ppc.WINDOW_S)] and which.size == t.size
     wz = np.array([0.0, 9.0, 9.0, 9.0])                     # the second, third and last windows stand out
     assert ppc._windows(t, wz) == ((5.0, 15.0), (1.4e8, 1.4e8))
+
+
+def test_the_gumbel_tail_is_scipys() -> None:
+    """ppc.gumbel_fit is scipy.stats.gumbel_r.fit to the digit (the p-value beyond every replicate)."""
+    from scipy import stats
+
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        x = np.abs(rng.gumbel(3.0 + 50.0 * rng.random(), 0.3 + 5.0 * rng.random(), size=ppc.REPLICATES))
+        assert ppc.gumbel_fit(x) == stats.gumbel_r.fit(x)

@@ -232,3 +232,19 @@ def test_motors_that_move_together_are_not_testable() -> None:
                   for i in range(1, 5))
     assert MOTOR.inputs((*apart, volts), mag, kin).channels["s"].shape == (t.size, 4)
     assert MOTOR.applies(apart) and not MOTOR.applies((volts,))
+
+
+def test_the_gps_acceleration_filter_is_scipys_savgol_inside() -> None:
+    """nongravity's second derivative gives scipy.signal.savgol_filter's digits away from the ends, and 0 at the
+    ends, which that filter extrapolates (it is computed without importing scipy.signal: issue 27)."""
+    from scipy.signal import savgol_filter
+
+    from magcal_cli.effects import nongravity
+
+    rng = np.random.default_rng(0)
+    for n in (21, 100, 2433):
+        x = np.cumsum(np.cumsum(rng.normal(size=(n, 3)), axis=0), axis=0)
+        want = savgol_filter(x, 21, nongravity.POLY_ORDER, deriv=2, delta=0.1, axis=0)
+        got = nongravity._second_derivative(x, 21, 0.1)
+        np.testing.assert_array_equal(got[10:-10], want[10:-10])
+        assert not np.any(got[:10]) and not np.any(got[-10:])
