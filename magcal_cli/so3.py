@@ -283,3 +283,13 @@ def exp_and_right_jacobian(phi: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     k2 = hat_squared(phi)
     a, b, c = a[..., None, None], b[..., None, None], c[..., None, None]
     return np.eye(3) + a * k + b * k2, np.eye(3) - b * k + c * k2
+
+
+def slerp(rots: FloatArray, t_rots: FloatArray, t: FloatArray) -> FloatArray:
+    """Rotations (N, 3, 3) at increasing times t_rots (N >= 2) at times t, along the geodesic between the two
+    neighbours (held at the first and last outside their span)."""
+    j = np.clip(np.searchsorted(t_rots, t, side="right") - 1, 0, t_rots.size - 2)
+    w = np.clip((t - t_rots[j]) / (t_rots[j + 1] - t_rots[j]), 0.0, 1.0)
+    out: FloatArray = rots[j] @ exp(w[:, None] * log(np.swapaxes(rots[j], -1, -2) @ rots[j + 1]))
+    return out
+

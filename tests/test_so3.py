@@ -146,3 +146,17 @@ def test_cumulative_product_matches_a_sequential_product() -> None:
     for k in range(len(rots)):
         acc = acc @ rots[k]
         np.testing.assert_allclose(out[k], acc, atol=1e-12)
+
+
+def test_slerp_follows_the_geodesic_between_neighbours() -> None:
+    """At the given times the rotations themselves; between two, the rotation a fraction w along the geodesic
+    (angle w times theirs, same axis); outside the span held at the ends."""
+    rng = np.random.default_rng(8)
+    rots = so3.exp(rng.normal(size=(5, 3)))
+    t = np.array([0.0, 1.0, 2.5, 3.0, 4.0])
+    np.testing.assert_allclose(so3.slerp(rots, t, t), rots, atol=1e-12)
+    mid = so3.slerp(rots, t, np.array([1.0 + 0.3 * 1.5]))[0]
+    rel = so3.log(rots[1].T @ rots[2])
+    np.testing.assert_allclose(so3.log(rots[1].T @ mid), 0.3 * rel, atol=1e-12)
+    ends = so3.slerp(rots, t, np.array([-1.0, 9.0]))
+    np.testing.assert_allclose(ends, rots[[0, -1]], atol=1e-12)

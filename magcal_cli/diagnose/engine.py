@@ -17,8 +17,10 @@ from magcal_cli import effects as registry
 from magcal_cli.diagnose import ppc
 from magcal_cli.diagnose.select import Selection, select
 from magcal_cli.diagnose.summary import paragraph
+from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.map.fit import fit_map
+from magcal_cli.models.map.start import start_on
 from magcal_cli.models.problem import Problem
 from magcal_cli.progress import Hook, current
 from magcal_cli.streams import Stream
@@ -51,7 +53,7 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
                                         mag.native_unit)
     if step > 1:
         hook(f"{mag.id} diagnosis: fitting every {step}th reading", 0)
-    start = base if step <= 1 else fit_map(problem, thin, loss, dip_prior, declination=declination)
+    start = base if step <= 1 else _thinned(problem, thin, base, loss, dip_prior, declination)
     before = ppc.check(problem, thin, start, replicates, progress=hook, stage="replicates of the base model")
     candidates = tuple(e for e in registry.EFFECTS
                        if e not in problem.base_effects and registry.get(e).applies(problem.aux))
@@ -86,3 +88,15 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
     block["ppc_after"] = after.document()
     block["summary"] = paragraph(mag.id, sel, before, after, mag.native_unit)
     return Diagnosis(est, block)
+
+
+def _thinned(problem: Problem, thin: Stream, base: MapEstimate, loss: str, dip_prior: float | None,
+             declination: float) -> MapEstimate:
+    """The base model fitted on every k-th reading, starting from the fit on all of them (BROAD 06: 0.61 -> 0.3 s),
+    or from scratch when that start does not stand."""
+    assert base.context is not None
+    try:
+        return fit_map(problem, thin, loss, dip_prior, declination=declination,
+                       warm=start_on(problem, base.context, thin))
+    except (InsufficientDataError, np.linalg.LinAlgError):
+        return fit_map(problem, thin, loss, dip_prior, declination=declination)

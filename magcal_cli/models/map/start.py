@@ -126,6 +126,16 @@ def prepare(problem: Problem, mag: Stream, cfg: FitSettings, cache: dict[bytes, 
     return Run(where, mag.id, ep, pre, noise, floor, layout, bound, untestable, hold, held, states, theta, notes)
 
 
+def start_on(problem: Problem, base: FitContext, mag: Stream) -> FitContext:
+    """A warm start for a fit of `mag` on other epochs than `base`'s (every k-th reading, for the diagnosis):
+    base's trajectory slerped to the new epochs, its parameters, noise levels and gyro bias, preintegrated between
+    the new epochs."""
+    ep = epochs_for(problem, mag, base.ep.scale)
+    pre = preintegrated(problem, ep, base.pre.bias, base.noise, {})
+    states = so3.slerp(base.states, base.ep.t, ep.t)
+    return replace(base, ep=ep, pre=pre, states=states, holdout=None, excluded=None)
+
+
 def preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
                   cache: dict[bytes, Preintegrated], scale_jacobian: bool = False) -> Preintegrated:
     """Preintegrate between the epochs (with the gyro-scale Jacobian when asked), or rescale a cached
