@@ -150,7 +150,9 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
 
     best = min(ests, key=bias_std) if joint is None else joint.estimates[0]     # the joint fit's IMU biases
     if joint is None and len(ests) > 1:                # one IMU, one accelerometer bias (map/shared.py)
-        ests = shared(problem, ests, best, loss, dip_prior, declination)
+        from magcal_cli.diagnose.parallel import pmap
+
+        ests = shared(problem, ests, best, loss, dip_prior, declination, pmap)
     imu = ImuFit(problem.imu_id, best.value("accelerometer_bias"), best.value("gyroscope_bias"),
                  best.std_of("accelerometer_bias"), best.std_of("gyroscope_bias"))
     notes: list[str] = []

@@ -1,5 +1,5 @@
 """The diagnosis on threads: the same digits whatever the number of threads (its folds and replicates run side by
-side)."""
+side, and the magnetometers' shared-bias refits)."""
 
 from __future__ import annotations
 
@@ -43,4 +43,6 @@ def test_two_magnetometers_diagnosed_alike_on_one_thread_and_on_two(monkeypatch:
         docs.append(doc)
     assert docs[0] == docs[1]
     assert [d["sensor"] for d in docs[0]["diagnosis"]["sensors"]] == ["/imu/mag", "/imu/mag1"]
+    # the shared-bias refit (map/shared.py) ran, side by side with JOBS = 2
+    assert any("one IMU, one bias" in n for n in docs[0]["notes"])
     assert ("time_offset", "/imu/mag", "accepted") in [(e["id"], e["sensor"], e["status"]) for e in docs[0]["effects"]]

@@ -11,7 +11,9 @@ agree across fits (within 0.5 mrad/s on log171) and stay free.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -28,6 +30,8 @@ from magcal_cli.streams import Stream
 #: determine it), so the document's `held` list leaves it out (`is_shared`) and a note says what was done
 SHARED = "accelerometer_bias"
 TAG = "one IMU, one bias"
+#: a map over independent items, in order ([fn(x) for x in items], or on threads)
+Each = Callable[[Callable[[Any], MapEstimate], Sequence[Any]], list[MapEstimate]]
 
 
 def is_shared(source: str) -> bool:
@@ -74,7 +78,12 @@ def refit(problem: Problem, mag: Stream, est: MapEstimate, ref: MapEstimate, los
 
 
 def shared(problem: Problem, ests: list[MapEstimate], ref: MapEstimate, loss: str, dip_prior: float | None,
-           declination: float) -> list[MapEstimate]:
-    """Every estimate but `ref` refitted with `ref`'s accelerometer bias (`refit`)."""
-    return [e if e is ref else refit(problem, m, e, ref, loss, dip_prior, declination)
-            for e, m in zip(ests, problem.mags, strict=True)]
+           declination: float, each: Each | None = None) -> list[MapEstimate]:
+    """Every estimate but `ref` refitted with `ref`'s accelerometer bias (`refit`); `each` maps the independent
+    refits (diagnose.parallel.pmap runs them side by side: log171's two take 0.8 s one after the other)."""
+    def one(em: tuple[MapEstimate, Stream]) -> MapEstimate:
+        e, m = em
+        return e if e is ref else refit(problem, m, e, ref, loss, dip_prior, declination)
+
+    items = list(zip(ests, problem.mags, strict=True))
+    return [one(x) for x in items] if each is None else each(one, items)
