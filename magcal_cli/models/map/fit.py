@@ -49,7 +49,7 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
             noise_rounds: int = NOISE_ROUNDS, imu_start: Noise | None = None,
             cache: dict[bytes, Preintegrated] | None = None, effects: tuple[str, ...] = (),
             declination: float = 0.0, holdout: tuple[tuple[float, float], ...] = (),
-            warm: FitContext | None = None, cost_tol: float | None = None) -> MapEstimate:
+            warm: FitContext | None = None) -> MapEstimate:
     """The joint MAP calibration of one magnetometer against the problem's IMU.
 
     `imu_start`: accelerometer and gyro noise levels to start from (another magnetometer's fit, same IMU);
@@ -57,13 +57,11 @@ def fit_map(problem: Problem, mag: Stream, loss: str = "l2", dip_prior: float | 
     plug-ins to model (those the log cannot test come back as not_testable); `declination` (rad): turns the
     log's true-north vectors into the model's magnetic-north frame; `holdout`: time windows (s) whose
     accelerometer and magnetometer readings the fit must not see (validation); `warm`: a fit of the same
-    magnetometer to start from (its trajectory, parameters and noise levels); `cost_tol`: the cost drop below which
-    the solves stop (default 1e-3; HELDOUT_COST_TOL with `holdout`).
+    magnetometer to start from (its trajectory, parameters and noise levels).
     """
     effects = (*problem.base_effects, *(e for e in effects if e not in problem.base_effects))
     cache = {} if cache is None else cache
-    cfg = FitSettings(loss, dip_prior, noise_rounds, imu_start, effects, declination, holdout, warm,
-                      cost_tol=cost_tol)
+    cfg = FitSettings(loss, dip_prior, noise_rounds, imu_start, effects, declination, holdout, warm)
     with one_blas_thread():       # small dense blocks: BLAS threads only cost
         try:
             return _plausible(_fit(problem, mag, cfg, cache), dip_prior, problem.where)
@@ -143,8 +141,8 @@ def _rounds(problem: Problem, run: Run, cfg: FitSettings) -> tuple[Solution, Flo
     # refused for its motion instead of for the non-uniform field the log shows (tests/readers/test_rosbag.py)
     partial_fit = cfg.prior is not None or (run.held is not None and run.held.cols.size > 0)
     first = _to_convergence(loss, cfg.warm is not None and not partial_fit)
-    if cfg.cost_tol is not None or cfg.holdout:     # a cross-validation fold: only its held-out likelihood is used
-        first = replace(first, abs_cost_tol=HELDOUT_COST_TOL if cfg.cost_tol is None else cfg.cost_tol)
+    if cfg.holdout:                 # a cross-validation fold: only its held-out likelihood is used
+        first = replace(first, abs_cost_tol=HELDOUT_COST_TOL)
     # the noise levels will change after round 0: a relative cost change of 1e-4 is close enough there
     round0 = replace(first, cost_tol=1e-4)
     opts_scale = first.loss_scale

@@ -33,8 +33,7 @@ from magcal_cli.streams import FloatArray, Stream
 class FitSettings:
     """How `fit.fit_map` fits one magnetometer: the loss, the dip prior (rad), the noise rounds, IMU noise levels to
     start from, the effect plug-ins to model, the declination (rad), held-out windows (s), a fit of the same
-    magnetometer to start from (`warm`), a prior to hold what the motion cannot determine at (`prior`) and the
-    cost drop below which a solve stops (`cost_tol`; None: 1e-3, a held-out fold's HELDOUT_COST_TOL)."""
+    magnetometer to start from (`warm`) and a prior to hold what the motion cannot determine at (`prior`)."""
 
     loss: str = "l2"
     dip_prior: float | None = None
@@ -45,7 +44,6 @@ class FitSettings:
     holdout: tuple[tuple[float, float], ...] = ()
     warm: FitContext | None = None
     prior: partial.MagPrior | None = None
-    cost_tol: float | None = None
 
 
 @dataclass(eq=False)
