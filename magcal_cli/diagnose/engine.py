@@ -92,7 +92,7 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
 
 def _thinned(problem: Problem, thin: Stream, base: MapEstimate, loss: str, dip_prior: float | None,
              declination: float) -> MapEstimate:
-    """The base model fitted on every k-th reading, starting from the fit on all of them (BROAD 06: 0.61 -> 0.3 s),
+    """The base model fitted on every k-th reading, starting from the fit on all of them (BROAD 06: 0.61 -> 0.2 s),
     or from scratch when that start does not stand."""
     assert base.context is not None
     try:
