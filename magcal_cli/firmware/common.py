@@ -150,13 +150,26 @@ def determined(m: MagExport, mag: MagCalibration) -> MagExport:
 
 
 @dataclass
-class Collected:
-    """Accumulates the parameters, notes and warnings of several magnetometers."""
+class Extras:
+    """Parameters, integer-valued names, notes and warnings an export gathers."""
 
     params: dict[str, float] = field(default_factory=dict)
     integers: set[str] = field(default_factory=set)
     notes: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+
+    def absorb(self, more: Extras) -> None:
+        """Add `more`'s parameters, integer names, notes and warnings to these."""
+        self.params |= more.params
+        self.integers |= more.integers
+        self.notes += more.notes
+        self.warnings += more.warnings
+
+
+@dataclass
+class Collected(Extras):
+    """Accumulates the parameters, notes and warnings of several magnetometers."""
+
     mags: list[MagExport] = field(default_factory=list)
     not_held: list[str] = field(default_factory=list)
 

@@ -16,7 +16,6 @@ magnetometer's own temperature, subtracted from the raw sensor-frame reading in 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -24,6 +23,7 @@ import numpy as np
 from magcal_cli import units
 from magcal_cli.calibration.types import Calibration, MagCalibration
 from magcal_cli.errors import StreamError
+from magcal_cli.firmware.common import Extras
 from magcal_cli.streams import FloatArray
 
 #: EKF2_MAG_DELAY's @min/@max (ms) [S32]
@@ -33,16 +33,6 @@ TC_SLOTS = range(4)
 AXES = "XYZ"
 #: two-sided 95 % normal quantile: lags whose difference exceeds it times its std disagree
 Z95 = 1.959963984540054
-
-
-@dataclass
-class Extras:
-    """Parameters, integer-valued names, notes and warnings the delay and the thermal terms add to an export."""
-
-    params: dict[str, float] = field(default_factory=dict)
-    integers: set[str] = field(default_factory=set)
-    notes: list[str] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)
 
 
 def carried(cal: Calibration, mag_id: str, effect_id: str) -> dict[str, Any] | None:
@@ -211,5 +201,6 @@ def pmot(cal: Calibration, mag: MagCalibration, suffix: str, held: FloatArray, k
 
 def extras(cal: Calibration, slots: Sequence[tuple[MagCalibration, int]], params: Mapping[str, float]) -> Extras:
     """Both: the delay and the thermal terms."""
-    d, t = delay(cal, slots, params), thermal(cal, slots, params)
-    return Extras(d.params | t.params, d.integers | t.integers, d.notes + t.notes, d.warnings + t.warnings)
+    out = delay(cal, slots, params)
+    out.absorb(thermal(cal, slots, params))
+    return out

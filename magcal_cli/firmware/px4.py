@@ -214,11 +214,7 @@ def export_px4(cal: Calibration, params: Mapping[str, float], options: Options |
     else:
         acc.notes.append("no accepted current or throttle interference in the document: CAL_MAGn_xCOMP and "
                          "CAL_MAG_COMP_TYP are left as the vehicle has them")
-    more = extras(cal, [(cal.magnetometer(m.mag_id), int(m.slot[7])) for m in acc.mags], params)
-    acc.params |= more.params
-    acc.integers |= more.integers
-    acc.notes += more.notes
-    acc.warnings += more.warnings
+    acc.absorb(extras(cal, [(cal.magnetometer(m.mag_id), int(m.slot[7])) for m in acc.mags], params))
     acc.not_held += not_held(cal, [cal.magnetometer(m.mag_id) for m in acc.mags], "px4")
     if any(k.startswith("SENS_MAG0_") for k in params):
         acc.notes.append("this PX4 keeps rotations in SENS_MAGn_* configuration parameters; magcal writes the "

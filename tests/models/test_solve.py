@@ -46,6 +46,21 @@ def _chain_problem(rng: np.random.Generator, n: int):  # noqa: ANN202
     return truth, theta_true, linearize
 
 
+def _dense(factors, n: int, p: int) -> np.ndarray:  # noqa: ANN001
+    """The full Jacobian (rows of every factor) over (3N trajectory, p theta)."""
+    rows = []
+    for f in factors:
+        block = np.zeros((f.r.shape[0], f.r.shape[1], 3 * n + p))
+        for i, k in enumerate(f.idx):
+            block[i, :, 3 * k:3 * k + 3] = f.J_x[i]
+            if f.J_next is not None:
+                block[i, :, 3 * k + 3:3 * k + 6] = f.J_next[i]
+            if f.J_theta is not None:
+                block[i, :, 3 * n:] = f.J_theta[i]
+        rows.append(block.reshape(-1, 3 * n + p))
+    return np.concatenate(rows)
+
+
 def test_converges_to_truth_with_tridiagonal_structure() -> None:
     """Unary + consecutive binary factors + a global parameter: the estimate matches truth within noise."""
     rng = np.random.default_rng(3)
@@ -65,36 +80,9 @@ def test_covariance_is_the_dense_inverse_block() -> None:
     truth, _, linearize = _chain_problem(rng, 12)
     sol = solve(linearize, truth, np.zeros(2))
     n, p = 12, 2
-    rows = []
-    for f in sol.factors:
-        m = f.r.shape[0]
-        block = np.zeros((m, f.r.shape[1], 3 * n + p))
-        for i in range(m):
-            k = f.idx[i]
-            block[i, :, 3 * k:3 * k + 3] = f.J_x[i]
-            if f.J_next is not None:
-                block[i, :, 3 * k + 3:3 * k + 6] = f.J_next[i]
-            if f.J_theta is not None:
-                block[i, :, 3 * n:] = f.J_theta[i]
-        rows.append(block.reshape(-1, 3 * n + p))
-    j = np.concatenate(rows)
+    j = _dense(sol.factors, n, p)
     dense = np.linalg.inv(j.T @ j)
     np.testing.assert_allclose(sol.cov_theta, dense[3 * n:, 3 * n:], rtol=1e-8)
-
-
-def _dense(factors, n: int, p: int) -> np.ndarray:  # noqa: ANN001
-    """The full Jacobian (rows of every factor) over (3N trajectory, p theta)."""
-    rows = []
-    for f in factors:
-        block = np.zeros((f.r.shape[0], f.r.shape[1], 3 * n + p))
-        for i, k in enumerate(f.idx):
-            block[i, :, 3 * k:3 * k + 3] = f.J_x[i]
-            if f.J_next is not None:
-                block[i, :, 3 * k + 3:3 * k + 6] = f.J_next[i]
-            if f.J_theta is not None:
-                block[i, :, 3 * n:] = f.J_theta[i]
-        rows.append(block.reshape(-1, 3 * n + p))
-    return np.concatenate(rows)
 
 
 def test_linearised_step_is_the_solvers_first_step_and_the_dense_gauss_newton_step() -> None:
