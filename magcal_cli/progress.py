@@ -8,7 +8,7 @@ argument (a caller that is not ours to change) finds it with `current()`, set by
 
 A stage names the whole it belongs to: `Parts` prefixes the stages of each part ("magnetometer 2 of 3: ...") and,
 once a part has ended, estimates the whole's time left from the parts' durations; `Shares` turns the reports of
-items running on threads into one rising fraction (the diagnosis' held-out folds move while they run); `steps`
+items running side by side (threads or forked processes) into one rising fraction (the diagnosis' held-out folds move while they run); `steps`
 moves a stage inside one part's share when that part's own steps are not known ahead (a report section's figures).
 """
 
@@ -168,18 +168,20 @@ class Parts:
 
 
 class Shares:
-    """The progress of `count` items run on threads (the diagnosis' folds and replicates), as one rising number.
+    """The progress of `count` items run side by side (the diagnosis' magnetometers, folds and replicates), as one
+    rising number.
 
     `run(i, fn, x)` runs item i with `current()` counting its own reports (the stages of its fits) as its steps;
     `report(done, count)` then gets the items ended plus, for each running item, its steps over the steps an
-    ended item made (at most ITEM_CAP of it; GUESS_STEPS before any ended). The number never goes back. It is
-    reported from the items' threads, one at a time, in the context `Shares` was made in (its `current()` is the
-    caller's hook, not an item's).
+    ended item made (at most ITEM_CAP of it; `guess` or GUESS_STEPS before any ended). The number never goes back.
+    It is reported from the items' threads (or the threads relaying forked workers' reports), one at a time, in the
+    context `Shares` was made in (its `current()` is the caller's hook, not an item's).
     """
 
-    def __init__(self, count: int, report: Callable[[float, int], None]) -> None:
-        """`report(done, count)`: e.g. a stage's hook, `lambda d, n: hook("folds", d, n)`."""
-        self.count, self.report = count, report
+    def __init__(self, count: int, report: Callable[[float, int], None], guess: int | None = None) -> None:
+        """`report(done, count)`: e.g. a stage's hook, `lambda d, n: hook("folds", d, n)`; `guess`: the reports an
+        item makes, before one has ended (GUESS_STEPS if not known)."""
+        self.count, self.report, self.guess = count, report, guess or GUESS_STEPS
         self._steps = [0] * count
         self._ended = [False] * count
         self._shown = 0.0
@@ -189,7 +191,7 @@ class Shares:
     def _done(self) -> float:
         """Items ended, plus the running ones' share of their own steps."""
         made = [s for s, e in zip(self._steps, self._ended, strict=True) if e]
-        per_item = max(sum(made) / len(made), 1.0) if made else float(GUESS_STEPS)
+        per_item = max(sum(made) / len(made), 1.0) if made else float(self.guess)
         return sum(1.0 if e else min(s / per_item, ITEM_CAP) for s, e in zip(self._steps, self._ended, strict=True))
 
     def _update(self, index: int, ended: bool) -> None:
@@ -204,13 +206,21 @@ class Shares:
                 self._shown = max(done, self._shown)
                 self._context.run(self.report, self._shown, self.count)
 
-    def run(self, index: int, fn: Callable[[T], R], item: T) -> R:
-        """fn(item), its reports through `current()` counted as steps of item `index`; its end reported."""
+    def hook(self, index: int) -> Hook:
+        """The hook of item `index`: each report counts as one of its steps."""
         def step(stage: str, done: float | None = None, total: float | None = None) -> None:
             self._update(index, ended=False)
-        with active(step):
-            out = fn(item)
+        return step
+
+    def ended(self, index: int) -> None:
+        """Item `index` has ended."""
         self._update(index, ended=True)
+
+    def run(self, index: int, fn: Callable[[T], R], item: T) -> R:
+        """fn(item), its reports through `current()` counted as steps of item `index`; its end reported."""
+        with active(self.hook(index)):
+            out = fn(item)
+        self.ended(index)
         return out
 
 

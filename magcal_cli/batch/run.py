@@ -73,9 +73,13 @@ def _interruptible() -> Iterator[None]:
             signal.signal(signal.SIGINT, previous)    # a pool worker's: ignored; a caller's own: as it was
 
 
-def _worker_init() -> None:
+def _worker_init(jobs: int = 1) -> None:
     """A local worker: Ctrl-C only while fitting (an idle worker would die printing a traceback); numpy's
-    RuntimeWarnings on degenerate data kept off stderr, as `magcal fit` keeps them."""
+    RuntimeWarnings on degenerate data kept off stderr, as `magcal fit` keeps them; `jobs` processes for its fit's
+    diagnosis (the cores left to each worker: the workers themselves already keep the others busy)."""
+    from magcal_cli.diagnose import parallel
+
+    parallel.JOBS = jobs
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "pthread_sigmask"):          # should a platform's exec keep the mask _context blocked
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
@@ -263,7 +267,10 @@ def _single_threaded_blas() -> None:
 def _pool(workers: int) -> ProcessPoolExecutor:
     """A pool of `workers` processes, each replaced after TASKS_PER_WORKER logs (Python >= 3.11)."""
     extra: dict[str, Any] = {"max_tasks_per_child": TASKS_PER_WORKER} if sys.version_info >= (3, 11) else {}
-    return ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_worker_init, **extra)
+    from magcal_cli.diagnose import parallel
+
+    return ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_worker_init,
+                               initargs=(max(1, parallel.JOBS // workers),), **extra)
 
 
 def _signal_workers(pool: ProcessPoolExecutor, sig: int) -> None:
