@@ -8,8 +8,10 @@ found in plain words (summary.py).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from functools import partial
+from typing import Any, cast
 
 import numpy as np
 
@@ -22,7 +24,7 @@ from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.map.start import start_on
 from magcal_cli.models.problem import Problem
-from magcal_cli.progress import Hook, current
+from magcal_cli.progress import Hook, active, current
 from magcal_cli.streams import Stream
 
 #: magnetometer readings beyond which the diagnosis runs on every k-th one
@@ -57,20 +59,38 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
     before = ppc.check(problem, thin, start, replicates, progress=hook, stage="replicates of the base model")
     candidates = tuple(e for e in registry.EFFECTS
                        if e not in problem.base_effects and registry.get(e).applies(problem.aux))
-    sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior, hook)
+    def after_check(est: MapEstimate, modelled: tuple[str, ...]) -> ppc.Check:
+        return ppc.check(problem, thin, est, replicates, stage=f"replicates with {', '.join(modelled)}")
+
+    def on_all(est: MapEstimate, modelled: tuple[str, ...]) -> MapEstimate:
+        # from the base fit, with the effects as the thinned fit found them: their slow directions (a lag against
+        # a lever arm) took BROAD 06's fit from zero 2x the iterations
+        assert base.context is not None and est.context is not None
+        return fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
+                       warm=base.context.with_effects_of(est.context))
+
+    def ahead(est: MapEstimate) -> list[Callable[[], object]]:
+        # what follows if the held-out check confirms the forward selection's model (nearly always): the fit on
+        # every reading first, the longest item
+        ids = tuple(f.id for f in est.effects if f.estimate is not None and f.id not in problem.base_effects)
+        return [*([partial(on_all, est, ids)] if step > 1 else []), partial(after_check, est, ids)]
+
+    sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior, hook, ahead)
     modelled = tuple(v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None)
-    after = ppc.check(problem, thin, sel.estimate, replicates, progress=hook,
-                      stage=f"replicates with {', '.join(modelled)}") if modelled else before
+    made_for, outcomes = sel.ahead
+    ran = made_for is sel.estimate and tuple(f.id for f in made_for.effects if f.estimate is not None
+                                            and f.id not in problem.base_effects) == modelled
+    with active(hook):
+        after = (cast(ppc.Check, outcomes[-1].get()) if ran else after_check(sel.estimate, modelled)) \
+            if modelled else before
     est, full = replace(sel.estimate, effects=sel.verdicts), sel.estimate
     if step > 1:
         note = f"{mag.id}: diagnosed on every {step}th of {base.epochs.size} readings; effects fitted on all"
-        if modelled:
+        if modelled and not ran:
             hook(f"{mag.id} diagnosis: fitting {', '.join(modelled)} on every reading", 0)
-        # from the base fit, with the effects as the thinned fit found them: their slow directions (a lag against
-        # a lever arm) took BROAD 06's fit from zero 2x the iterations
-        assert base.context is not None and sel.estimate.context is not None
-        full = fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
-                       warm=base.context.with_effects_of(sel.estimate.context)) if modelled else base
+        with active(hook):
+            full = (cast(MapEstimate, outcomes[0].get()) if ran else on_all(sel.estimate, modelled)) \
+                if modelled else base
         fitted = {f.id: f for f in full.effects}
         verdicts = tuple(replace(v, estimate=fitted[v.id].estimate, statistic=fitted[v.id].statistic,
                                  p_value=fitted[v.id].p_value) if v.id in fitted else v for v in sel.verdicts)

@@ -17,12 +17,13 @@ Significant candidates whose signatures the log cannot separate (canonical corre
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from magcal_cli import effects as registry
+from magcal_cli.diagnose.parallel import Outcome
 from magcal_cli.diagnose.relevance import relevance, relevant
 from magcal_cli.diagnose.score import Score, Screen, screen
 from magcal_cli.diagnose.validate import FOLD_NOISE_ROUNDS, REFIT_ERRORS, Heldout, crossvalidate
@@ -47,6 +48,9 @@ MAX_EFFECTS = 3
 #: a fold "chose" an effect often enough
 MIN_SHARE = 0.5
 
+#: the work that follows if the held-out check confirms a model (`select`)
+Ahead = Callable[[MapEstimate], Sequence[Callable[[], object]]]
+
 
 @dataclass(frozen=True, eq=False)
 class Selection:
@@ -56,6 +60,8 @@ class Selection:
     verdicts: tuple[EffectFit, ...]
     heldout: Heldout | None
     ambiguous: tuple[frozenset[str], ...]
+    #: the estimate the work `select` was given to run ahead was made for, and that work's outcomes
+    ahead: tuple[MapEstimate | None, tuple[Outcome[object], ...]] = (None, ())
 
 
 def holm(scr: Screen, alpha: float = FAMILY_ALPHA) -> list[str]:
@@ -241,8 +247,11 @@ def beyond_limits(est: MapEstimate, eid: str) -> str:
 
 
 def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequence[str], declination: float = 0.0,
-           loss: str = "l2", dip_prior: float | None = None, progress: Hook | None = None) -> Selection:
-    """Select forward against the base fit, check backward, validate on held-out data, decide."""
+           loss: str = "l2", dip_prior: float | None = None, progress: Hook | None = None,
+           ahead: Ahead | None = None) -> Selection:
+    """Select forward against the base fit, check backward, validate on held-out data, decide. `ahead(est)` names
+    the work that follows if the held-out check confirms `est` (the forward selection's model): it runs beside the
+    check's folds, and `Selection.ahead` returns its outcomes."""
     hook = progress or current()
 
     failed: dict[str, str] = {}
@@ -291,7 +300,9 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
                          (*fw.ambiguous, *more.ambiguous), {**fw.implausible, **more.implausible})
             ambiguous = list(fw.ambiguous)
             est, picked = backward(*fit(more.picked, more.estimate))
-    held = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior, hook) if picked else None
+    made_for = est if picked and ahead else None
+    held, done_ahead = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior, hook,
+                                     ahead(est) if ahead else ()) if picked else (None, ())
     neff = n_eff(est) if picked else float("nan")
     verdicts: dict[str, EffectFit] = {}
     for f in est.effects:
@@ -352,7 +363,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
         verdicts[eid] = replace(verdicts[eid], status="ambiguous", confounded_with=rival, reason=said,
                                 estimate=verdicts[eid].estimate if carried else None)
     verdicts.update({u.id: u for u in scr.untestable if u.id not in verdicts})
-    return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous))
+    return Selection(est, tuple(verdicts.values()), held, tuple(ambiguous), (made_for, done_ahead))
 
 
 def _rejected(s: Score, fw: Forward, first: Sequence[str], picked: Sequence[str],

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import partial
+from typing import cast
 
 import numpy as np
 
-from magcal_cli.diagnose.parallel import pmap
+from magcal_cli.diagnose.parallel import Outcome, captured, pmap
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models.factor import Factor, Linearize
 from magcal_cli.models.map.effects import row_weights
@@ -111,22 +113,27 @@ def scores_in(ctx: FitContext, windows: Sequence[tuple[float, float]], keep: Flo
     return out[0], out[1], out[2]
 
 
+#: a fold's held-out NLL gains per window, squared residual sums before and after, readings, effects it chose
+FoldScores = tuple[FloatArray, float, float, float, tuple[str, ...]]
 #: a selection procedure: (base fit of a training fold, its held-out windows) -> the effects it chooses
 Procedure = Callable[[MapEstimate, tuple[tuple[float, float], ...]], tuple[str, ...]]
 
 
 def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Procedure, model: MapEstimate,
                   declination: float = 0.0, loss: str = "l2", dip_prior: float | None = None,
-                  progress: Hook | None = None) -> Heldout:
+                  progress: Hook | None = None, beside: Sequence[Callable[[], object]] = ()
+                  ) -> tuple[Heldout, tuple[Outcome[object], ...]]:
     """Blocked cross-validation of the base model plus the effects `model` against the base model, both fitted
-    on each training fold (each fit starts from its whole-log counterpart, `est` or `model`); inside each fold `procedure` also chooses effects from the training data alone (the
-    fraction of folds choosing an effect is the nested check that the whole log did not choose it by chance)."""
+    on each training fold (each fit starts from its whole-log counterpart, `est` or `model`); inside each fold
+    `procedure` also chooses effects from the training data alone (the fraction of folds choosing an effect is the
+    nested check that the whole log did not choose it by chance). The work `beside` (what follows if the check
+    confirms the model) runs side by side with the folds: five folds keep two cores busy only for four."""
     ctx = est.context
     assert ctx is not None
     windows = blocks(ctx.ep.t)
     ids = tuple(f.id for f in model.effects if f.estimate is not None)
 
-    def fold(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]] | None:
+    def fold(hold: tuple[tuple[float, float], ...]) -> FoldScores | None:
         try:
             return scored(hold)
         except REFIT_ERRORS:
@@ -134,7 +141,7 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Pr
             # readings: that fold is left out; the check stands on the others
             return None
 
-    def scored(hold: tuple[tuple[float, float], ...]) -> tuple[FloatArray, float, float, float, tuple[str, ...]]:
+    def scored(hold: tuple[tuple[float, float], ...]) -> FoldScores:
         base = fit_map(problem, mag, loss, dip_prior, FOLD_NOISE_ROUNDS, declination=declination, holdout=hold,
                        warm=ctx)
         picked = procedure(base, hold)
@@ -154,7 +161,11 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Pr
         return (nb - ne)[ok] / n[ok], float(sb.sum()), float(se.sum()), float(n.sum()), picked
 
     hook = progress or current()
-    every = pmap(fold, folds(windows), done=lambda i, n: hook(f"{mag.id} diagnosis: held-out folds", i, n))
+    # the longest first: each core takes the next item when it is free
+    items: list[Callable[[], object]] = [*beside, *(partial(fold, hold) for hold in folds(windows))]
+    outcomes = pmap(captured, items, done=lambda i, n: hook(f"{mag.id} diagnosis: held-out folds", i, n))
+    ahead = tuple(outcomes[:len(beside)])
+    every = [cast(FoldScores | None, o.get()) for o in outcomes[len(beside):]]
     parts = [p for p in every if p is not None]
     if not parts:
         msg = (f"{problem.where}: {mag.id}: no training fold of the held-out check could be fitted (the log determines "
@@ -171,4 +182,4 @@ def crossvalidate(problem: Problem, mag: Stream, est: MapEstimate, procedure: Pr
                 + "; parameters fitted without the held-out block, whose readings are scored with the parameters "
                 "frozen; effects also chosen inside each training fold")
     rms = (np.sqrt(before / max(count, 1.0)), np.sqrt(after / max(count, 1.0)))
-    return Heldout(np.array(gains), float(rms[0]), float(rms[1]), tuple(chosen), protocol)
+    return Heldout(np.array(gains), float(rms[0]), float(rms[1]), tuple(chosen), protocol), ahead

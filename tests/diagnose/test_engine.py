@@ -135,6 +135,34 @@ def test_a_thinned_fits_effects_start_the_full_fit_in_its_units() -> None:
     assert np.all(np.abs(hot.value("current_interference.c") - c) < 0.05 * std)
 
 
+def test_the_work_run_beside_the_folds_is_what_would_follow_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    """engine: the fit on every reading of a thinned diagnosis and the replicates with the accepted effects run
+    beside the held-out folds (select's `ahead`); when the check confirms the model they are used, and the
+    diagnosis is the one made without running them ahead, digit for digit."""
+    from magcal_cli.diagnose import engine
+
+    _, problem, base = _fit("strong", 4)
+    mag = problem.mags[0]
+    monkeypatch.setattr(engine, "DIAGNOSIS_EPOCHS", base.epochs.size // 2)      # diagnosed on every 2nd reading
+    real = engine.select
+    used: list[bool] = []
+
+    def spy(*args: object) -> Selection:
+        sel = real(*args)  # type: ignore[arg-type]
+        used.append(sel.ahead[0] is sel.estimate and len(sel.ahead[1]) == 2)
+        return sel
+
+    monkeypatch.setattr(engine, "select", spy)
+    ahead = engine.diagnose(problem, mag, base)
+    monkeypatch.setattr(engine, "select", lambda *args: real(*args[:-1], None))  # type: ignore[arg-type]
+    after = engine.diagnose(problem, mag, base)
+    assert used == [True]
+    assert "current_interference" in [f.id for f in ahead.estimate.effects if f.status == "accepted"]
+    np.testing.assert_array_equal(ahead.estimate.theta, after.estimate.theta)
+    np.testing.assert_array_equal(ahead.estimate.cov, after.estimate.cov)
+    assert json.dumps(ahead.block, default=str) == json.dumps(after.block, default=str)
+
+
 def test_negative_control_accepts_nothing_and_agrees_with_its_replicates() -> None:
     """Decoy channels, no effect: no effect accepted and the simulation check finds no mismatch."""
     sel = _selected("decoys", 7)
@@ -317,7 +345,8 @@ def test_a_fold_that_cannot_be_fitted_is_left_out(monkeypatch: pytest.MonkeyPatc
         return real(*args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(validate, "fit_map", failing_first)
-    held = validate.crossvalidate(problem, mag, est, lambda b, h: (), model)
+    held, ahead = validate.crossvalidate(problem, mag, est, lambda b, h: (), model)
+    assert ahead == ()
     assert "(1 could not be fitted and was left out)" in held.protocol and held.gain.size > 0
 
     def failing(*args: object, **kwargs: object) -> MapEstimate:
