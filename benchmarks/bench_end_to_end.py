@@ -4,7 +4,8 @@ For each of four logs (the shipped sample, a simulated 5-minute hand-held MCAP w
 magnetometer, ArduPilot log171 and BROAD trial 06; a log whose file is absent is skipped, saying so):
 
 - the whole process `magcal fit LOG -o TMP --force -q`, default and `--effects none`: wall time (median of
-  `--repeats`) and the child's peak memory (ru_maxrss from wait4);
+  `--repeats`) and the child's peak memory (ru_maxrss from wait4: its largest process; and the peak of the summed
+  PSS of it and the diagnosis workers it forks, sampled every 25 ms);
 - per stage, in one fresh interpreter per package: import (everything a default `fit` of this log imports,
   found by running it once), read (`readers.open_recording`), detect/select (`pipeline.select_streams`: still
   segments, impacts, timing), fit (the method with `--effects none`), the rest of `calibrate_recording` (the
@@ -13,7 +14,7 @@ magnetometer, ArduPilot log171 and BROAD trial 06; a log whose file is absent is
   (report.html);
 - the solver's time: the wall time during which a Levenberg-Marquardt loop runs (`models.solve.solve` and
   `models.solve.iterate`, wrapped before anything imports them; overlapping calls on the diagnosis' threads
-  count once), in the `--effects none` fit and in the default one, and the ratio whole process / solver;
+  and forked workers count once), in the `--effects none` fit and in the default one, and the ratio whole process / solver;
 - `magcal fit --help`'s wall time;
 - whether the default run's calibration.json is the same (created_utc aside) before and after.
 
@@ -63,12 +64,23 @@ STAGES = (("import", "import"), ("read", "read"), ("select", "detect/select"), (
 
 
 class SolverClock:
-    """Wall time during which any solver call runs: outermost calls per thread, overlapping intervals merged."""
+    """Wall time during which any solver call runs: outermost calls per thread, overlapping intervals merged. The
+    diagnosis' forked workers (diagnose/forked.py) inherit the clock: each process appends its intervals to one
+    file (CLOCK_MONOTONIC, so they compare across processes), and `seconds` merges them all."""
 
     def __init__(self) -> None:
         self.local = threading.local()
-        self.spans: list[tuple[float, float]] = []
-        self.calls = 0
+        self.path = Path(tempfile.mkstemp(prefix="magcal-solver-")[1])
+
+    @property
+    def spans(self) -> list[tuple[float, float]]:
+        """Every process's intervals."""
+        return [(float(a), float(b)) for a, b in (line.split() for line in self.path.read_text().splitlines())]
+
+    @property
+    def calls(self) -> int:
+        """Outermost solver calls, in every process."""
+        return len(self.spans)
 
     def wrap(self, fn: Callable[..., Any]) -> Callable[..., Any]:
         """`fn`, timed when it is the outermost solver call of its thread."""
@@ -81,15 +93,16 @@ class SolverClock:
             finally:
                 self.local.depth = depth
                 if depth == 0:
-                    self.spans.append((t0, time.perf_counter()))
-                    self.calls += 1
+                    fd = os.open(self.path, os.O_WRONLY | os.O_APPEND)
+                    os.write(fd, f"{t0!r} {time.perf_counter()!r}\n".encode())      # one atomic append
+                    os.close(fd)
 
         timed.__wrapped__ = fn  # type: ignore[attr-defined]
         return timed
 
     def reset(self) -> None:
         """Forget the calls so far."""
-        self.spans, self.calls = [], 0
+        self.path.write_text("")
 
     def seconds(self) -> float:
         """The union of the recorded intervals."""
@@ -214,16 +227,35 @@ def _compiled(package: Path) -> None:
     compileall.compile_dir(str(package / "magcal_cli"), quiet=1)
 
 
+def tree_pss_mb(pid: int) -> float:
+    """The summed proportional set size (MB) of process `pid` and its descendants now: the memory they take
+    between them, pages a forked worker shares with its parent counted once (Linux; 0 elsewhere)."""
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            todo.extend(int(c) for c in Path(f"/proc/{p}/task/{p}/children").read_text().split())
+            rollup = Path(f"/proc/{p}/smaps_rollup").read_text().splitlines()
+            total += next((int(line.split()[1]) for line in rollup if line.startswith("Pss:")), 0) / 1024.0
+        except (OSError, ValueError):
+            continue
+    return total
+
+
 def run_timed(cmd: list[str], package: Path, cwd: Path, timeout: float = TIMEOUT) -> dict[str, Any]:
     """Run `cmd` with `package` first on the path: wall seconds, peak resident memory (MB), exit code, stderr tail."""
     with tempfile.TemporaryFile() as err:
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, env=_env(package), cwd=cwd, stdout=subprocess.DEVNULL, stderr=err)
         deadline = t0 + timeout
+        pss, polls = 0.0, 0
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
             if pid:
                 break
+            polls += 1
+            if polls % 5 == 0:                          # every 25 ms
+                pss = max(pss, tree_pss_mb(proc.pid))
             if time.perf_counter() > deadline:
                 proc.kill()
                 pid, status, usage = os.wait4(proc.pid, 0)
@@ -233,7 +265,7 @@ def run_timed(cmd: list[str], package: Path, cwd: Path, timeout: float = TIMEOUT
         proc.returncode = os.waitstatus_to_exitcode(status)
         err.seek(0)
         tail = err.read().decode(errors="replace").strip().splitlines()[-1:]
-    return {"seconds": seconds, "peak_mb": usage.ru_maxrss / 1024.0, "exit": proc.returncode,
+    return {"seconds": seconds, "peak_mb": usage.ru_maxrss / 1024.0, "pss_mb": pss, "exit": proc.returncode,
             "error": tail[0] if tail and proc.returncode else None}
 
 
@@ -320,7 +352,8 @@ def measure(name: str, log: Path, sides: list[Side], repeats: int, stage_repeats
                 out = work / f"{side.name}-{name}-{mode}"
                 res = run_timed(fit_cmd(log, out, *extra), side.package, work)
                 side.whole.setdefault((name, mode), []).append(res)
-                print(f"  {side.name:6} {mode:7} {res['seconds']:7.2f} s {res['peak_mb']:6.0f} MB"
+                print(f"  {side.name:6} {mode:7} {res['seconds']:7.2f} s {res['peak_mb']:6.0f} MB "
+                      f"(processes' PSS {res['pss_mb']:4.0f} MB)"
                       + (f"  exit {res['exit']}: {res['error']}" if res["exit"] else ""), flush=True)
     for side in sides:
         out = work / f"{side.name}-{name}-modules"
@@ -358,6 +391,7 @@ def rows_for(name: str, side: Side) -> dict[str, float]:
         ok = [r for r in runs if r["exit"] == 0]
         out[f"whole process, {mode} (s)"] = median([r["seconds"] for r in ok])
         out[f"peak memory, {mode} (MB)"] = median([r["peak_mb"] for r in ok])
+        out[f"peak memory of all processes (PSS), {mode} (MB)"] = median([r["pss_mb"] for r in ok])
     stages = side.stages.get(name, [])
     for key, label in STAGES:
         out[f"{label} (s)"] = median([s["stages"][key] for s in stages])
@@ -493,11 +527,13 @@ def main() -> None:
             f"Made by `{cmd}` on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
             f"load average {load0[0]:.1f} at the start and {load1[0]:.1f} at the end (other work was running: "
             "compare before and after within this table only). Whole process: `magcal fit LOG -o TMP --force -q`, "
-            f"median of {args.repeats}, before and after interleaved; peak memory: the child's ru_maxrss. Stages: "
+            f"median of {args.repeats}, before and after interleaved; peak memory: the largest process's ru_maxrss "
+            "(from wait4: the fit and the diagnosis workers it forked), and the peak of all its processes' summed "
+            "proportional set size, sampled every 25 ms (pages a worker shares with the fit counted once). Stages: "
             f"one fresh interpreter per package and log (median of {args.stage_repeats}), through the public API "
             "(see the script's docstring); 'whole default - sum of stages' is interpreter start-up, the command line and "
             "what no stage covers, from different processes (noisy: negative when the diagnosis ran slower in the stage run). Solver: wall time inside `models.solve.solve`/`iterate` (overlapping calls on "
-            "threads counted once); whole / solver is the issue's end-to-end-to-solver ratio.\n\n" + text)
+            "threads and in the diagnosis' forked workers counted once); whole / solver is the issue's end-to-end-to-solver ratio.\n\n" + text)
         print(f"wrote {args.out}")
 
 
