@@ -69,19 +69,19 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
         return fit_map(problem, mag, loss, dip_prior, effects=modelled, declination=declination,
                        warm=base.context.with_effects_of(est.context))
 
-    def fitted(est: MapEstimate) -> tuple[str, ...]:
+    def fitted_ids(est: MapEstimate) -> tuple[str, ...]:
         return tuple(f.id for f in est.effects if f.estimate is not None and f.id not in problem.base_effects)
 
     def ahead(est: MapEstimate) -> list[Callable[[], object]]:
         # what follows if the held-out check confirms the forward selection's model (nearly always): the fit on
         # every reading first, the longest item
-        ids = fitted(est)
+        ids = fitted_ids(est)
         return [*([partial(on_all, est, ids)] if step > 1 else []), partial(after_check, est, ids)]
 
     sel: Selection = select(problem, thin, start, candidates, declination, loss, dip_prior, hook, ahead)
     modelled = tuple(v.id for v in sel.verdicts if v.status in ("accepted", "ambiguous") and v.estimate is not None)
     made_for, outcomes = sel.ahead
-    ran = made_for is sel.estimate and fitted(made_for) == modelled       # the check confirmed that model
+    ran = made_for is sel.estimate and fitted_ids(made_for) == modelled       # the check confirmed that model
     with active(hook):
         after = (cast(ppc.Check, outcomes[-1].get()) if ran else after_check(sel.estimate, modelled)) \
             if modelled else before
