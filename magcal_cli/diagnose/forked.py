@@ -25,6 +25,7 @@ import signal
 import struct
 import sys
 import threading
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import suppress
 from typing import Any, TypeVar
@@ -96,7 +97,11 @@ def run(fn: Callable[[T], R], items: Sequence[T], jobs: int, hook_for: Callable[
     try:
         for _ in range(_take(jobs, min(jobs, len(items)) - 1)):
             out_r, out_w = os.pipe()
-            pid = os.fork()
+            with warnings.catch_warnings():
+                # Python >= 3.12 warns of a fork beside threads: here only this module's relays, whose locks no
+                # worker touches (`available` refuses to fork beside anyone else's)
+                warnings.simplefilter("ignore", DeprecationWarning)
+                pid = os.fork()
             if pid == 0:                                        # the worker: never returns
                 os.close(out_r)
                 _worker(fn, items, tokens_r, out_w)
