@@ -150,8 +150,8 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
 
     def item(k: int) -> tuple[MapEstimate, dict[str, Any] | None]:
         # later magnetometers start from the first one's IMU noise levels, as its fit found them before its
-        # diagnosis: then its diagnosis runs beside their fits and diagnoses (log171: 6.1 s one after the other,
-        # 4.5 s side by side), and the digits are the same either way
+        # diagnosis: then its diagnosis runs beside their fits and diagnoses (log171's whole fit: 8.7 s with only
+        # the folds and replicates side by side, 6.3 s with the magnetometers too), same digits either way
         est, own = (first, mine) if k == 0 else fitted(todo[k], first.noise)
         return _diagnosed(cfg, own, todo[k], est, declination, loss, dip_prior)
 
