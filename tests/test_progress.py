@@ -290,17 +290,31 @@ def test_parts_name_the_whole_and_its_time_left() -> None:
     assert seen == [("MAG[0]: joint MAP", 1, 2)]
 
 
-def test_a_fit_of_several_magnetometers_names_each(tmp_path: Path) -> None:
-    """Issue 30 item 5: the joint MAP method's stages say which magnetometer of how many they belong to."""
+def test_a_fit_of_several_magnetometers_names_each(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 30 item 5: the joint MAP method's stages say which magnetometer of how many they belong to, one after
+    the other; side by side (diagnose/forked.py), the first one's fit does and the rest is named as the whole."""
     from magcal_cli.config import Config
+    from magcal_cli.diagnose import parallel
+    from magcal_cli.methods import map_run
     from magcal_cli.pipeline import calibrate
 
-    calls: list[str] = []
     write_log(simulate("handheld", 4, rate=50.0, mag_rate=25.0, duration=40.0, n_mags=2), tmp_path / "two.mcap")
-    with active(lambda stage, done=None, total=None: calls.append(stage)):
-        calibrate(tmp_path / "two.mcap", Config(method="map", robust_loss="huber"))   # fitted one at a time
+
+    def stages() -> list[str]:
+        calls: list[str] = []
+        with active(lambda stage, done=None, total=None: calls.append(stage)):
+            calibrate(tmp_path / "two.mcap", Config(method="map", robust_loss="huber"))
+        return calls
+
+    monkeypatch.setattr(parallel, "JOBS", 1)                  # one at a time
+    calls = stages()
     assert any(c.startswith("magnetometer 1 of 2: /imu/mag: joint MAP") for c in calls), calls
     assert any(c.startswith("magnetometer 2 of 2") and "/imu/mag1: joint MAP" in c for c in calls), calls
+    monkeypatch.setattr(parallel, "JOBS", 2)
+    monkeypatch.setattr(map_run, "side_by_side", lambda count: True)
+    calls = stages()
+    assert any(c.startswith("magnetometer 1 of 2: /imu/mag: joint MAP") for c in calls), calls
+    assert "magnetometers 1-2 side by side" in calls, calls
 
 
 def test_threaded_items_move_their_stage_while_they_run() -> None:
