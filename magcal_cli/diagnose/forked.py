@@ -94,6 +94,7 @@ def run(fn: Callable[[T], R], items: Sequence[T], jobs: int, hook_for: Callable[
     lock = threading.Lock()
     readers: list[threading.Thread] = []
     finished = False
+    parent = os.getpid()
     try:
         for _ in range(_take(jobs, min(jobs, len(items)) - 1)):
             out_r, out_w = os.pipe()
@@ -104,7 +105,7 @@ def run(fn: Callable[[T], R], items: Sequence[T], jobs: int, hook_for: Callable[
                 pid = os.fork()
             if pid == 0:                                        # the worker: never returns
                 os.close(out_r)
-                _worker(fn, items, tokens_r, out_w)
+                _worker(fn, items, tokens_r, out_w, parent)
             os.close(out_w)
             kids.append((pid, out_r))
         readers = [threading.Thread(target=_relay, args=(fd, hook_for, ended, results, lock), daemon=True)
@@ -162,11 +163,12 @@ def _outcome(fn: Callable[[T], R], item: T) -> tuple[bool, Any]:
         return False, exc
 
 
-def _worker(fn: Callable[[T], R], items: Sequence[T], tokens: int, out: int) -> None:
+def _worker(fn: Callable[[T], R], items: Sequence[T], tokens: int, out: int, parent: int) -> None:
     """A forked worker: run the items it takes, send each report and result, give its core back and exit without
     running the parent's clean-up (atexit handlers, stdio buffers). Ctrl-C is the parent's to handle: it kills the
-    workers."""
+    workers; a parent killed outright (SIGKILL, a CI job's timeout) takes them with it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with(parent)
     with _LOCK:
         _RELAYS["running"] = 0                              # the parent's relay threads were not forked
     code = 1
@@ -187,6 +189,18 @@ def _worker(fn: Callable[[T], R], items: Sequence[T], tokens: int, out: int) -> 
         code = 1
     finally:
         os._exit(code)
+
+
+def _die_with(parent: int) -> None:
+    """Ask Linux to kill this process when its parent dies (prctl PR_SET_PDEATHSIG), and exit if it already has:
+    a worker left computing for nobody would hold a core for seconds. The signal follows the forking thread, which
+    is the parent's only one (`available`), so it ends only with the process."""
+    import ctypes
+
+    with suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)     # 1: PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def _send(fd: int, message: tuple[Any, ...]) -> None:

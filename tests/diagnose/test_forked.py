@@ -178,3 +178,32 @@ def test_magnetometers_side_by_side_give_the_same_digits() -> None:
     assert got["forked"] > 0
     assert got["sensors"] == ["/imu/mag", "/imu/mag1", "/imu/mag2"]
     assert got["same"]
+
+
+def test_workers_die_with_a_killed_parent(tmp_path: Path) -> None:
+    """A fit killed outright (SIGKILL: a CI job's timeout) leaves no worker computing for nobody."""
+    script = textwrap.dedent(f"""
+        import os, time
+        from pathlib import Path
+        from magcal_cli.diagnose import forked
+
+        def item(x):
+            Path({str(tmp_path)!r}, str(os.getpid())).touch()
+            time.sleep(30)
+            return x
+
+        forked.run(item, [0, 1], 2, lambda i: (lambda *a: None), lambda i: None)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script])
+    deadline = time.monotonic() + 60
+    while len(list(tmp_path.iterdir())) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    workers = [int(p.name) for p in tmp_path.iterdir() if int(p.name) != proc.pid]
+    assert len(workers) == 1
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while Path(f"/proc/{workers[0]}").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    status = Path(f"/proc/{workers[0]}/stat")
+    assert not status.exists() or status.read_text().split()[2] == "Z"      # gone, or a zombie awaiting its reaper
