@@ -38,12 +38,8 @@ def columns(t: FloatArray, ts: FloatArray, values: FloatArray, left: float | Non
 
 
 def _slerp(stream: Stream, t: FloatArray) -> FloatArray:
-    """Quaternions (w, x, y, z) at `t`: R = R_j Exp(u Log(R_j^T R_j+1)) between the neighbouring samples."""
-    j = np.clip(np.searchsorted(stream.t, t, side="right") - 1, 0, stream.t.size - 2)
-    u = (t - stream.t[j]) / (stream.t[j + 1] - stream.t[j])
-    r0, r1 = so3.from_quat(stream.values[j]), so3.from_quat(stream.values[j + 1])
-    step = so3.log(np.swapaxes(r0, -1, -2) @ r1)
-    return so3.as_quat(r0 @ so3.exp(u[:, None] * step))
+    """Quaternions (w, x, y, z) at `t`, along the geodesic between the neighbouring samples (`so3.slerp`)."""
+    return so3.as_quat(so3.slerp(so3.from_quat(stream.values), stream.t, t))
 
 
 def onto(stream: Stream, t: npt.ArrayLike, max_gap_s: float | None = None) -> tuple[BoolArray, FloatArray]:
