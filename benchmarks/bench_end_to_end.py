@@ -242,20 +242,24 @@ def tree_pss_mb(pid: int) -> float:
     return total
 
 
-def run_timed(cmd: list[str], package: Path, cwd: Path, timeout: float = TIMEOUT) -> dict[str, Any]:
-    """Run `cmd` with `package` first on the path: wall seconds, peak resident memory (MB), exit code, stderr tail."""
+def run_timed(cmd: list[str], package: Path, cwd: Path, timeout: float = TIMEOUT, pss: bool = False
+              ) -> dict[str, Any]:
+    """Run `cmd` with `package` first on the path: wall seconds, peak resident memory (MB), exit code, stderr tail;
+    with `pss`, also the peak summed PSS of its process tree, sampled every 25 ms. Reading smaps_rollup walks
+    the page tables under each process's mmap lock: on log171 it slowed the run it sampled by 0.4-0.5 s (6.3-6.7 s
+    against 5.7-6.1 s unsampled, 2 cores), so a timed run does not sample it (`measure` runs one more for it)."""
     with tempfile.TemporaryFile() as err:
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, env=_env(package), cwd=cwd, stdout=subprocess.DEVNULL, stderr=err)
         deadline = t0 + timeout
-        pss, polls = 0.0, 0
+        peak_pss, polls = 0.0, 0
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
             if pid:
                 break
             polls += 1
-            if polls % 5 == 0:                          # every 25 ms
-                pss = max(pss, tree_pss_mb(proc.pid))
+            if pss and polls % 5 == 0:                  # every 25 ms
+                peak_pss = max(peak_pss, tree_pss_mb(proc.pid))
             if time.perf_counter() > deadline:
                 proc.kill()
                 pid, status, usage = os.wait4(proc.pid, 0)
@@ -265,7 +269,8 @@ def run_timed(cmd: list[str], package: Path, cwd: Path, timeout: float = TIMEOUT
         proc.returncode = os.waitstatus_to_exitcode(status)
         err.seek(0)
         tail = err.read().decode(errors="replace").strip().splitlines()[-1:]
-    return {"seconds": seconds, "peak_mb": usage.ru_maxrss / 1024.0, "pss_mb": pss, "exit": proc.returncode,
+    return {"seconds": seconds, "peak_mb": usage.ru_maxrss / 1024.0, "pss_mb": peak_pss if pss else float("nan"),
+            "exit": proc.returncode,
             "error": tail[0] if tail and proc.returncode else None}
 
 
@@ -334,6 +339,7 @@ class Side:
         self.name, self.package = name, package
         self.modules: dict[str, list[str]] = {}
         self.whole: dict[tuple[str, str], list[dict[str, Any]]] = {}
+        self.memory: dict[tuple[str, str], list[dict[str, Any]]] = {}
         self.stages: dict[str, list[dict[str, Any]]] = {}
         self.help: list[float] = []
         self.errors: dict[str, str] = {}
@@ -352,9 +358,13 @@ def measure(name: str, log: Path, sides: list[Side], repeats: int, stage_repeats
                 out = work / f"{side.name}-{name}-{mode}"
                 res = run_timed(fit_cmd(log, out, *extra), side.package, work)
                 side.whole.setdefault((name, mode), []).append(res)
-                print(f"  {side.name:6} {mode:7} {res['seconds']:7.2f} s {res['peak_mb']:6.0f} MB "
-                      f"(processes' PSS {res['pss_mb']:4.0f} MB)"
+                print(f"  {side.name:6} {mode:7} {res['seconds']:7.2f} s {res['peak_mb']:6.0f} MB"
                       + (f"  exit {res['exit']}: {res['error']}" if res["exit"] else ""), flush=True)
+    for side in sides:                  # the processes' PSS in runs of their own: sampling it slows what it samples
+        for mode, extra in (("default", ()), ("none", ("--effects", "none"))):
+            res = run_timed(fit_cmd(log, work / f"{side.name}-{name}-{mode}", *extra), side.package, work, pss=True)
+            side.memory.setdefault((name, mode), []).append(res)
+            print(f"  {side.name:6} {mode:7} processes' PSS {res['pss_mb']:4.0f} MB (untimed)", flush=True)
     for side in sides:
         out = work / f"{side.name}-{name}-modules"
         try:
@@ -391,7 +401,8 @@ def rows_for(name: str, side: Side) -> dict[str, float]:
         ok = [r for r in runs if r["exit"] == 0]
         out[f"whole process, {mode} (s)"] = median([r["seconds"] for r in ok])
         out[f"peak memory, {mode} (MB)"] = median([r["peak_mb"] for r in ok])
-        out[f"peak memory of all processes (PSS), {mode} (MB)"] = median([r["pss_mb"] for r in ok])
+        out[f"peak memory of all processes (PSS), {mode} (MB)"] = median(
+            [r["pss_mb"] for r in side.memory.get((name, mode), []) if r["exit"] == 0])
     stages = side.stages.get(name, [])
     for key, label in STAGES:
         out[f"{label} (s)"] = median([s["stages"][key] for s in stages])

@@ -326,6 +326,35 @@ def test_the_step_zeroes_the_candidates_summed_score() -> None:
     assert np.linalg.norm(g) > 1e3 * np.linalg.norm(after[a])
 
 
+def test_per_cluster_scores_and_information_are_the_sums_over_their_rows() -> None:
+    """Each cluster's score and information (sandwich.py: one product per cluster, rows sorted by cluster) equal
+    the plain sums over its rows, with clusters in any order, of any size, and rows left out (id -1)."""
+    from magcal_cli.diagnose.score import _extend
+    from magcal_cli.models.map.effects import bind
+    from magcal_cli.models.sandwich import _eliminated, cluster_scores_and_information
+
+    _, problem, est = _fit("current", 3)
+    ctx = est.context
+    assert ctx is not None
+    bias = ctx.pre.bias + ctx.layout.get(ctx.theta, "gyroscope_bias")
+    bound, _ = bind(problem, problem.mags[0], ctx.ep.t, bias, ["current_interference"])
+    sol = _extend(problem, problem.mags[0], est, bound).sol
+    rng = np.random.default_rng(0)
+    clusters = [rng.integers(-1, 7, f.r.shape[0]) for f in sol.factors]
+    clusters[0][:5] = 9                                    # a cluster only one factor has rows in
+    p = sol.cov_theta.shape[0]
+    want_s, want_h = np.zeros((10, p)), np.zeros((10, p, p))
+    for f, c in zip(sol.factors, clusters, strict=True):
+        j = _eliminated(sol, f, p)
+        for m in np.flatnonzero(c >= 0):
+            want_s[c[m]] += j[m].T @ f.r[m]
+            want_h[c[m]] += j[m].T @ j[m]
+    got_s, got_h = cluster_scores_and_information(sol, clusters)
+    assert got_s.shape == want_s.shape and got_h.shape == want_h.shape
+    assert np.allclose(got_s, want_s, rtol=1e-12, atol=1e-12 * np.abs(want_s).max())
+    assert np.allclose(got_h, want_h, rtol=1e-12, atol=1e-12 * np.abs(want_h).max())
+
+
 def test_a_fold_that_cannot_be_fitted_is_left_out(monkeypatch: pytest.MonkeyPatch) -> None:
     """A weakly determined flight may not be determined without a tenth of its readings (2015-10-11_19-53-46
     MAG[1]): that training fold is left out and said so; the held-out check stands on the others. With no fold
