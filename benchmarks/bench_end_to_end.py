@@ -5,7 +5,8 @@ magnetometer, ArduPilot log171 and BROAD trial 06; a log whose file is absent is
 
 - the whole process `magcal fit LOG -o TMP --force -q`, default and `--effects none`: wall time (median of
   `--repeats`) and the child's peak memory (ru_maxrss from wait4: its largest process; and the peak of the summed
-  PSS of it and the diagnosis workers it forks, sampled every 25 ms);
+  PSS of it and the diagnosis workers it forks, sampled every 25 ms in one more run of each, which is not timed:
+  the sampling slowed log171 by 0.4-0.5 s);
 - per stage, in one fresh interpreter per package: import (everything a default `fit` of this log imports,
   found by running it once), read (`readers.open_recording`), detect/select (`pipeline.select_streams`: still
   segments, impacts, timing), fit (the method with `--effects none`), the rest of `calibrate_recording` (the
@@ -540,7 +541,8 @@ def main() -> None:
             "compare before and after within this table only). Whole process: `magcal fit LOG -o TMP --force -q`, "
             f"median of {args.repeats}, before and after interleaved; peak memory: the largest process's ru_maxrss "
             "(from wait4: the fit and the diagnosis workers it forked), and the peak of all its processes' summed "
-            "proportional set size, sampled every 25 ms (pages a worker shares with the fit counted once). Stages: "
+            "proportional set size, sampled every 25 ms in one more run that is not timed (pages a worker shares with the "
+            "fit counted once; reading them slowed log171's timed runs by 0.4-0.5 s). Stages: "
             f"one fresh interpreter per package and log (median of {args.stage_repeats}), through the public API "
             "(see the script's docstring); 'whole default - sum of stages' is interpreter start-up, the command line and "
             "what no stage covers, from different processes (noisy: negative when the diagnosis ran slower in the stage run). Solver: wall time inside `models.solve.solve`/`iterate` (overlapping calls on "
