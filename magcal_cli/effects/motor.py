@@ -104,7 +104,10 @@ class Motor(Effect):
         """sum_i s_i c_i and d/dc_i = s_i I3."""
         s = inp.channels["s"]
         c = beta.reshape(MOTORS, 3)
-        jac = np.einsum("mi,jk->mjik", s, np.eye(3)).reshape(s.shape[0], 3, 3 * MOTORS)
+        jac = np.zeros((s.shape[0], 3, MOTORS, 3))
+        for j in range(3):                                       # d/dc_i[j] of row j is s_i (a fill, not an einsum)
+            jac[:, j, :, j] = s
+        jac = jac.reshape(s.shape[0], 3, 3 * MOTORS)
         return Term(s @ c, jac)
 
     def correct(self, params: dict[str, Any], t: FloatArray, y: FloatArray,
