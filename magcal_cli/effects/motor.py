@@ -104,11 +104,10 @@ class Motor(Effect):
         """sum_i s_i c_i and d/dc_i = s_i I3."""
         s = inp.channels["s"]
         c = beta.reshape(MOTORS, 3)
-        jac = np.zeros((s.shape[0], 3, MOTORS, 3))
+        blocks = np.zeros((s.shape[0], 3, MOTORS, 3))
         for j in range(3):                                       # d/dc_i[j] of row j is s_i (a fill, not an einsum)
-            jac[:, j, :, j] = s
-        jac = jac.reshape(s.shape[0], 3, 3 * MOTORS)
-        return Term(s @ c, jac)
+            blocks[:, j, :, j] = s
+        return Term(s @ c, blocks.reshape(s.shape[0], 3, 3 * MOTORS))
 
     def correct(self, params: dict[str, Any], t: FloatArray, y: FloatArray,
                 channels: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
