@@ -18,9 +18,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from magcal_cli import so3
+from magcal_cli import so3, stacks
 from magcal_cli.errors import InsufficientDataError
-from magcal_cli.models import stacks
 from magcal_cli.models.factor import Factor
 from magcal_cli.streams import FloatArray
 
@@ -52,7 +51,7 @@ class Preintegrated:
     broken: npt.NDArray[np.bool_] | None = None
 
     def component_major(self) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """delta, l_inv and d_bias as component-major stacks (3, 3, K-1) (models/stacks.py), made once."""
+        """delta, l_inv and d_bias as component-major stacks (3, 3, K-1) (stacks.py), made once."""
         got = self.__dict__.get("_cm")
         if got is None:
             got = (stacks.cm(self.delta), stacks.cm(self.l_inv), stacks.cm(self.d_bias))
@@ -170,7 +169,7 @@ def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_
     g_db = pre.d_bias @ db
     if extra is not None:
         g_db = g_db + extra[0]
-    # component-major stacks (models/stacks.py): the diagnosis linearises this factor ~1500 times per log. The
+    # component-major stacks (stacks.py): the diagnosis linearises this factor ~1500 times per log. The
     # same Exp with or without Jacobians, so that a solver's cost does not depend on which it asked for
     delta, l_inv, d_bias = pre.component_major()
     s = stacks.cm(states)

@@ -13,7 +13,7 @@ from scipy import linalg
 from scipy.linalg import lapack
 from threadpoolctl import ThreadpoolController
 
-from magcal_cli.models import stacks
+from magcal_cli import stacks
 from magcal_cli.models.factor import Factor, IntArray, Linearize, run_start
 from magcal_cli.streams import FloatArray
 
@@ -72,7 +72,7 @@ def scatter(target: FloatArray, idx: IntArray, values: FloatArray, start: int | 
 
 
 def _gram(a: FloatArray, b: FloatArray) -> FloatArray:
-    """a^T b per row group of (M, k, 3) stacks, on component-major stacks (models/stacks.py): np.matmul loops over
+    """a^T b per row group of (M, k, 3) stacks, on component-major stacks (stacks.py): np.matmul loops over
     M tiny products, ~2.5x slower (the block-diagonal and off-diagonal trajectory blocks)."""
     sa = stacks.cm(a)
     out: FloatArray = stacks.tmul(sa, sa if b is a else stacks.cm(b)).transpose(2, 0, 1)

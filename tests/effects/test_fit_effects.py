@@ -3,7 +3,7 @@
 Modules it covers (the mirrored test file aside): magcal_cli.calibration.effects, magcal_cli.methods.choose,
 magcal_cli.methods.map_run, magcal_cli.models.map.cost, magcal_cli.models.map.effects,
 magcal_cli.models.map.estimate, magcal_cli.models.map.shared, magcal_cli.models.problem,
-magcal_cli.models.stacks, magcal_cli.params, magcal_cli.registry.
+magcal_cli.stacks, magcal_cli.params, magcal_cli.registry.
 """
 
 from __future__ import annotations

@@ -42,11 +42,23 @@ def mult(a: FloatArray, b: FloatArray) -> FloatArray:
     return out
 
 
-def _hat_and_square(v: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """[v]x and [v]x^2 of vectors v (3, M)."""
+def hat(v: FloatArray) -> FloatArray:
+    """[v]x of vectors v (M, 3), component-major (3, 3, M)."""
+    return _hat(np.ascontiguousarray(v.T))
+
+
+def _hat(v: FloatArray) -> FloatArray:
+    """[v]x of vectors v (3, M)."""
     x, y, z = v
     k = np.zeros((3, 3, v.shape[1]))
     k[0, 1], k[0, 2], k[1, 0], k[1, 2], k[2, 0], k[2, 1] = -z, y, z, -x, -y, x
+    return k
+
+
+def _hat_and_square(v: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """[v]x and [v]x^2 of vectors v (3, M)."""
+    x, y, z = v
+    k = _hat(v)
     xx, yy, zz = x * x, y * y, z * z
     k2 = np.empty_like(k)
     k2[0, 0], k2[1, 1], k2[2, 2] = -(yy + zz), -(xx + zz), -(xx + yy)
@@ -61,6 +73,21 @@ def _plus_identity(m: FloatArray) -> FloatArray:
     for i in range(3):
         m[i, i] += 1.0
     return m
+
+
+def exp(phi: FloatArray) -> FloatArray:
+    """so3.exp of rotation vectors phi (M, 3), component-major (3, 3, M)."""
+    a, b, _ = so3.exp_coefficients(phi)
+    k, k2 = _hat_and_square(np.ascontiguousarray(phi.T))
+    return _plus_identity(a * k + b * k2)
+
+
+def minus_identity(m: FloatArray) -> FloatArray:
+    """m - I per stack entry, as a new array."""
+    out = m.copy()
+    for i in range(3):
+        out[i, i] -= 1.0
+    return out
 
 
 def exp_and_right_jacobian(phi: FloatArray) -> tuple[FloatArray, FloatArray]:
