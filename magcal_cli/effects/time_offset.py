@@ -27,8 +27,16 @@ def attitude_at(t_gyr: FloatArray, q: FloatArray, w: FloatArray, t: FloatArray
                 ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
     """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample, Q_j Exp(w_j (t - t_j)) with t_j <= t, and
     the gyro sample j holding at each t."""
+    at, j = _attitude_cm(t_gyr, q, w, t)
+    return stacks.rm(at), j
+
+
+def _attitude_cm(t_gyr: FloatArray, q: FloatArray, w: FloatArray, t: FloatArray
+                 ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+    """`attitude_at` on component-major stacks (3, 3, M) (stacks.py): the term evaluates it at every
+    linearisation (~700 times on log171), where np.matmul would loop over its 2 383 tiny products."""
     j = np.clip(np.searchsorted(t_gyr, t, side="right") - 1, 0, t_gyr.size - 1)
-    return np.asarray(q[j] @ so3.exp(w[j] * (t - t_gyr[j])[:, None]), dtype=np.float64), j
+    return stacks.mul(stacks.cm(q[j]), stacks.exp(w[j] * (t - t_gyr[j])[:, None])), j
 
 
 class TimeOffset(Effect):
@@ -60,10 +68,7 @@ class TimeOffset(Effect):
         """D (E - I) m_b; d/dtau = D (omega(t - tau) x E m_b); d/dphi_k = D (E - I) [m_b]x."""
         c = inp.channels
         sensed = inp.t - float(beta[0])
-        j = np.clip(np.searchsorted(c["gyr_t"], sensed, side="right") - 1, 0, c["gyr_t"].size - 1)
-        # Q(t - tau) = Q_j Exp(w_j (t - tau - t_j)) as in `attitude_at`, on component-major stacks (stacks.py): a
-        # linearisation of log171 evaluates this term ~700 times, and np.matmul loops over its 2 383 tiny products
-        q_s = stacks.mul(stacks.cm(c["q"][j]), stacks.exp(c["gyr"][j] * (sensed - c["gyr_t"][j])[:, None]))
+        q_s, j = _attitude_cm(c["gyr_t"], c["q"], c["gyr"], sensed)
         e = stacks.tmul(q_s, stacks.cm(c["q_t"]))                      # R(t - tau)^T R(t), (3, 3, M)
         mb_s = np.einsum("ijn,nj->ni", e, at.m_b)
         v = mb_s - at.m_b                                                # (E - I) m_b
