@@ -167,9 +167,10 @@ def run(problem: Problem, cfg: Config) -> MethodResult:
             hook, count = current(), len(todo)
             results = pmap(item, range(count), guess=REPORTS_EACH,
                            done=lambda d, n: hook(f"magnetometers 1-{count} side by side", d, n))
-        for k in range(1, len(todo) if not together else 1):
-            with parts.part(k):
-                results.append(item(k))
+        else:
+            for k in range(1, len(todo)):
+                with parts.part(k):
+                    results.append(item(k))
     for est, block in results:
         ests.append(est)
         diagnoses.extend([block] if block is not None else [])
