@@ -139,12 +139,37 @@ def test_nested_sections_share_the_cores(tmp_path: Path) -> None:
     assert _free_cores() == 1
 
 
-def test_not_available_beside_other_threads(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Another library's threads (a Dask worker's) rule forking out: their locks would be copied mid-use."""
-    monkeypatch.setattr(threading, "active_count", lambda: 1)
+def test_not_available_beside_other_threads() -> None:
+    """Another library's threads (a Dask worker's) rule forking out: their locks would be copied mid-use. This
+    module's relays do not."""
     assert forked.available(2) and not forked.available(1)
-    monkeypatch.setattr(threading, "active_count", lambda: 2)
-    assert not forked.available(2)
+    stop = threading.Event()
+    for name, allowed in (("someone-elses", False), (forked.RELAY, True)):
+        other = threading.Thread(target=stop.wait, name=name, daemon=True)
+        other.start()
+        try:
+            assert forked.available(2) is allowed
+        finally:
+            stop.set()
+            other.join()
+        stop.clear()
+
+
+def test_a_section_in_this_process_forks_again_once_its_workers_have_ended() -> None:
+    """After the workers have taken the other items and ended, an item still running here may fork its own nested
+    section (it once could not, and ran the nested section on threads: log171's last folds 0.93 s, not 0.55 s)."""
+    parent = os.getpid()
+
+    def item(x: int) -> bool | None:
+        if os.getpid() != parent:
+            time.sleep(0.05)             # the worker takes the other items and ends
+            return None
+        time.sleep(0.4)
+        return forked.available(2)
+
+    out = forked.run(item, list(range(4)), 2, _none, lambda i: None)
+    here = [o for o in out if o is not None]
+    assert here and all(here)
 
 
 def test_magnetometers_side_by_side_give_the_same_digits() -> None:
