@@ -72,14 +72,19 @@ def exp(phi: npt.ArrayLike) -> FloatArray:
 def log(rot: npt.ArrayLike) -> FloatArray:
     """Log: rotation matrices (..., 3, 3) -> rotation vectors (..., 3) with norm in [0, pi].
 
-    Goes through the quaternion (Shepperd's method in scipy), which stays accurate near 0 and near pi.
+    Goes through the quaternion (`_quat_of`), which stays accurate near 0 and near pi.
     """
-    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
-
     rot = np.asarray(rot, dtype=np.float64)
-    flat = rot.reshape(-1, 3, 3)
-    out = Rotation.from_matrix(flat).as_rotvec()
-    result: FloatArray = out.reshape(rot.shape[:-2] + (3,))
+    q = _canonical(_quat_of(rot))
+    w, v = q[..., 0], q[..., 1:]
+    norm = np.sqrt(np.sum(v * v, axis=-1))
+    theta = 2.0 * np.arctan2(norm, w)
+    small = theta <= 1e-3
+    t2 = theta * theta
+    # theta / sin(theta / 2) and its series below 1e-3 rad (scipy's as_rotvec)
+    scale = np.where(small, 2.0 + t2 / 12.0 + 7.0 * t2 * t2 / 2880.0,
+                     theta / (np.sin(theta / 2.0) + small))
+    result: FloatArray = scale[..., None] * v
     return result
 
 
@@ -116,41 +121,113 @@ def left_jacobian(phi: npt.ArrayLike) -> FloatArray:
 
 def from_quat(q: npt.ArrayLike) -> FloatArray:
     """Rotation matrices from (..., 4) quaternions (w, x, y, z); they need not be normalised."""
-    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
+    return _matrix(_unit(np.asarray(q, dtype=np.float64)))
 
-    q = np.asarray(q, dtype=np.float64)
-    flat = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix()
-    result: FloatArray = flat.reshape(q.shape[:-1] + (3, 3))
+
+def _matrix(q: FloatArray) -> FloatArray:
+    """Rotation matrices of (..., 4) unit quaternions (w, x, y, z), by scipy's formula (same digits)."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    xx, yy, zz, ww = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    out = np.stack([xx - yy - zz + ww, 2 * (xy - zw), 2 * (xz + yw),
+                    2 * (xy + zw), -xx + yy - zz + ww, 2 * (yz - xw),
+                    2 * (xz - yw), 2 * (yz + xw), -xx - yy + zz + ww], axis=-1)
+    result: FloatArray = out.reshape(w.shape + (3, 3))
     return result
+
+
+def _unit(q: FloatArray) -> FloatArray:
+    """(w, x, y, z) quaternions divided by their norm, summed x, y, z, w as scipy does (same digits)."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    result: FloatArray = q / np.sqrt(x * x + y * y + z * z + w * w)[..., None]
+    return result
+
+
+def _compose(p: FloatArray, q: FloatArray) -> FloatArray:
+    """Quaternion products p q of (..., 4) (w, x, y, z) quaternions."""
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack([pw * qw - px * qx - py * qy - pz * qz, pw * qx + qw * px + (py * qz - pz * qy),
+                     pw * qy + qw * py + (pz * qx - px * qz), pw * qz + qw * pz + (px * qy - py * qx)], axis=-1)
 
 
 def as_quat(rot: npt.ArrayLike) -> FloatArray:
     """(..., 4) quaternions (w, x, y, z) with w >= 0 of rotation matrices."""
-    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
-
-    rot = np.asarray(rot, dtype=np.float64)
-    flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat(canonical=True, scalar_first=True)
-    result: FloatArray = flat.reshape(rot.shape[:-2] + (4,))
-    return result
+    return _canonical(_quat_of(np.asarray(rot, dtype=np.float64)))
 
 
 def from_rpy(rpy: npt.ArrayLike) -> FloatArray:
     """Rz(yaw) Ry(pitch) Rx(roll) from (..., 3) roll, pitch, yaw in radians (roll applied first)."""
-    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
-
     rpy = np.asarray(rpy, dtype=np.float64)
-    flat = Rotation.from_euler("ZYX", rpy.reshape(-1, 3)[:, ::-1]).as_matrix()
-    result: FloatArray = flat.reshape(rpy.shape[:-1] + (3, 3))
-    return result
+    half = rpy / 2.0
+    axes = np.zeros(rpy.shape + (4,))               # the three elementary quaternions, each about its axis
+    axes[..., 0] = np.cos(half)
+    for k in range(3):
+        axes[..., k, k + 1] = np.sin(half[..., k])
+    # composed yaw first and not normalised again, as scipy's from_euler("ZYX") does (same digits)
+    return _matrix(_compose(_compose(axes[..., 2, :], axes[..., 1, :]), axes[..., 0, :]))
 
 
 def as_rpy(rot: npt.ArrayLike) -> FloatArray:
-    """(..., 3) roll, pitch, yaw in radians with rot = Rz(yaw) Ry(pitch) Rx(roll)."""
-    from scipy.spatial.transform import Rotation  # on use: scipy.spatial costs ~0.2 s (issue 27)
+    """(..., 3) roll, pitch, yaw in radians with rot = Rz(yaw) Ry(pitch) Rx(roll), each in [-pi, pi].
 
-    rot = np.asarray(rot, dtype=np.float64)
-    flat = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_euler("ZYX")[:, ::-1]
-    result: FloatArray = flat.reshape(rot.shape[:-2] + (3,))
+    From the quaternion (Bernardes & Viollet 2022, the method of scipy's as_euler): accurate up to the gimbal
+    lock, where (pitch within 1e-7 rad of +-90 deg) roll and yaw are one angle; it is given to yaw, roll is 0.
+    """
+    w, x, y, z = np.moveaxis(_quat_of(np.asarray(rot, dtype=np.float64)), -1, 0)
+    # intrinsic Z-Y-X is extrinsic x-y-z; the quaternion permuted for the axes (i, j, k) = (x, y, z), sign +1
+    a, b, c, d = w - y, x + z, y + w, z - x
+    half_sum, half_diff = np.arctan2(b, a), np.arctan2(d, c)
+    middle = 2.0 * np.arctan2(np.hypot(c, d), np.hypot(a, b))
+    near0, near_pi = np.abs(middle) <= 1e-7, np.abs(middle - np.pi) <= 1e-7
+    free = ~(near0 | near_pi)
+    first = np.where(free, half_sum - half_diff, 0.0)                      # roll
+    third = np.where(free, half_sum + half_diff, np.where(near0, 2.0 * half_sum, 2.0 * half_diff))   # yaw
+    out = np.stack([first, middle - np.pi / 2.0, third], axis=-1)
+    result: FloatArray = np.where(out < -np.pi, out + 2.0 * np.pi, np.where(out > np.pi, out - 2.0 * np.pi, out))
+    return result
+
+
+def _quat_of(rot: FloatArray) -> FloatArray:
+    """Unit quaternions (w, x, y, z), either sign, of (..., 3, 3) matrices that are projected onto SO(3) first
+    unless orthogonal to 1e-12 (Shepperd's method as in scipy: the largest of w, x, y, z is solved for first, so
+    it stays accurate near 0 and pi); a matrix with det <= 0 is no rotation (ValueError)."""
+    det = np.linalg.det(rot)
+    if np.any(det <= 0):
+        msg = f"not a rotation: a matrix with determinant {float(np.min(det)):.3g}"
+        raise ValueError(msg)
+    gram = rot @ np.swapaxes(rot, -1, -2)
+    eye = np.eye(3)
+    off = ~np.all(np.abs(gram - eye) <= 1e-12 + 1e-5 * eye, axis=(-2, -1))      # np.isclose's test, faster
+    if np.any(off):
+        rot = rot.copy()
+        rot[off] = project(rot[off])
+    m = rot.reshape(-1, 3, 3)
+    trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    choice = np.argmax(np.stack([m[:, 0, 0], m[:, 1, 1], m[:, 2, 2], trace], axis=-1), axis=-1)
+    q = np.empty((m.shape[0], 4))                  # (x, y, z, w) while built, as in the method's statement
+    rows = np.arange(m.shape[0])
+    for i in range(3):
+        sel = rows[choice == i]
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[sel, i] = 1.0 - trace[sel] + 2.0 * m[sel, i, i]
+        q[sel, j] = m[sel, j, i] + m[sel, i, j]
+        q[sel, k] = m[sel, k, i] + m[sel, i, k]
+        q[sel, 3] = m[sel, k, j] - m[sel, j, k]
+    sel = rows[choice == 3]
+    q[sel, 0] = m[sel, 2, 1] - m[sel, 1, 2]
+    q[sel, 1] = m[sel, 0, 2] - m[sel, 2, 0]
+    q[sel, 2] = m[sel, 1, 0] - m[sel, 0, 1]
+    q[sel, 3] = 1.0 + trace[sel]
+    result: FloatArray = _unit(q[:, [3, 0, 1, 2]]).reshape(rot.shape[:-2] + (4,))
+    return result
+
+
+def _canonical(q: FloatArray) -> FloatArray:
+    """The sign of each (w, x, y, z) quaternion with w > 0, or the first nonzero of x, y, z > 0 when w = 0."""
+    lead = np.where(q[..., 0] != 0, q[..., 0], np.where(q[..., 1] != 0, q[..., 1],
+                                                        np.where(q[..., 2] != 0, q[..., 2], q[..., 3])))
+    result: FloatArray = np.where((lead < 0)[..., None], -q, q)
     return result
 
 

@@ -1,6 +1,7 @@
 """What importing the package and reading a log import: no heavy module a run does not need (issue 27).
 
-scipy.stats costs 0.3-1.2 s to import, matplotlib 0.3 s, scipy.spatial 0.2 s; the format libraries are each
+scipy.stats costs 0.3-1.2 s to import, matplotlib 0.3 s, scipy.spatial 0.2 s, scipy.interpolate and scipy.optimize
+0.1 s each (beyond the scipy.linalg every fit needs); the format libraries are each
 imported by their own reader only. Each case runs in a fresh interpreter, so the modules it finds are the ones
 that code path imported.
 """
@@ -17,7 +18,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "sample_logs"
 #: imported only by the code that needs them
-HEAVY = ("scipy.stats", "scipy.spatial", "scipy.signal", "matplotlib", "mcap", "rosbags", "pymavlink", "pyulog")
+HEAVY = ("scipy.stats", "scipy.spatial", "scipy.signal", "scipy.interpolate", "scipy.optimize", "matplotlib", "mcap",
+         "rosbags", "pymavlink", "pyulog")
 FORMATS = ("mcap", "rosbags", "pymavlink", "pyulog")
 
 
@@ -48,10 +50,11 @@ def test_reader_imports_only_its_format_library(log: str, own: set[str]) -> None
     assert found & {*FORMATS, "scipy.stats", "matplotlib"} <= own
 
 
-def test_a_default_fit_imports_no_scipy_stats(tmp_path: Path) -> None:
-    """A default fit (diagnosis on) of the sample log, and a flight log's GPS acceleration, need neither scipy.stats
-    nor scipy.signal (0.2-1.2 s): the p-values come from scipy.special, the Gumbel tail and the Savitzky-Golay
-    derivative are computed as scipy.stats and scipy.signal would (ppc.gumbel_fit, nongravity)."""
+def test_a_default_fit_imports_nothing_heavy(tmp_path: Path) -> None:
+    """A default fit (diagnosis on) of the sample log, and a flight log's GPS acceleration, need none of scipy.stats,
+    scipy.signal, scipy.spatial, scipy.interpolate, scipy.optimize or matplotlib (0.1-1.2 s each): the p-values come
+    from scipy.special; the Gumbel tail, the Savitzky-Golay derivative, the rotations and the spline are computed
+    as scipy would (ppc.gumbel_fit and brentq, nongravity, so3, spline), and the report draws its own SVG."""
     found = _imported("from magcal_cli.cli.main import cli\n"
                       f"cli(['fit', {str(SAMPLES / 'handheld.bin')!r}, '-o', {str(tmp_path)!r}, '-q'], "
                       "standalone_mode=False)\n"
@@ -61,5 +64,5 @@ def test_a_default_fit_imports_no_scipy_stats(tmp_path: Path) -> None:
                       "t = np.arange(0, 60, 0.2)\n"
                       "pos = np.stack([47 + 1e-5 * np.sin(t / 5), 8 + 1e-5 * np.cos(t / 5), 400 + 0 * t], axis=1)\n"
                       "acceleration_grid(Stream(Kind.POSITION, 'gps', t, pos, 'test', 'deg'))")
-    assert found & {"scipy.stats", "scipy.signal"} == set()
+    assert found & set(HEAVY) == set()
     assert (tmp_path / "calibration.json").is_file()

@@ -14,9 +14,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
-from scipy.interpolate import CubicSpline
 
 from magcal_cli import so3
+from magcal_cli.effects import spline
 from magcal_cli.effects.base import (
     Effect,
     Inputs,
@@ -63,7 +63,7 @@ def acceleration_grid(pos: Stream) -> tuple[FloatArray, FloatArray]:
     down = alt0 - pos.values[:, 2]
     keep = np.concatenate([[True], np.diff(pos.t) > 0])             # a spline needs increasing times
     grid = np.arange(pos.t[0], pos.t[-1], 1.0 / GRID_HZ)
-    ned = CubicSpline(pos.t[keep], np.stack([north, east, down], axis=1)[keep], axis=0)(grid)
+    ned = spline.cubic(pos.t[keep], np.stack([north, east, down], axis=1)[keep])(grid)
     window = max(POLY_ORDER + 2, int(WINDOW_S * GRID_HZ) | 1)
     if grid.size <= window:
         msg = f"the position ({pos.id}) is too short to differentiate"
@@ -106,12 +106,12 @@ def known(pos: Stream, t: FloatArray, margin: float) -> npt.NDArray[np.bool_]:
 
 def sample(grid: FloatArray, acc: FloatArray, t: FloatArray, deriv: int = 0) -> FloatArray:
     """The grid's acceleration (deriv 0) or jerk (deriv 1) at times t (K, 3) by a cubic spline; 0 off the grid."""
-    return _on(CubicSpline(grid, acc, axis=0), grid, t, deriv)
+    return _on(spline.cubic(grid, acc), grid, t, deriv)
 
 
-def _on(spline: CubicSpline, grid: FloatArray, t: FloatArray, deriv: int) -> FloatArray:
-    """`spline` (of the grid's acceleration) or its derivative at times t; 0 off the grid."""
-    out: FloatArray = spline(t, deriv)
+def _on(curve: spline.Spline, grid: FloatArray, t: FloatArray, deriv: int) -> FloatArray:
+    """`curve` (the grid's acceleration) or its derivative at times t; 0 off the grid."""
+    out: FloatArray = curve(t, deriv)
     out[(t < grid[0]) | (t > grid[-1])] = 0.0
     return out
 
@@ -165,8 +165,8 @@ class NonGravity(Effect):
         s = fixes(aux)
         grid, acc = acceleration_grid(s)
         acc = acc @ so3.exp([0.0, 0.0, declination])                     # true NED -> magnetic NED
-        spline = CubicSpline(grid, acc, axis=0)
-        sigma = rms(_on(spline, grid, kin.t + DELAY_PRIOR[0], 0))
+        curve = spline.cubic(grid, acc)
+        sigma = rms(_on(curve, grid, kin.t + DELAY_PRIOR[0], 0))
         if sigma < MIN_RMS:
             msg = f"the vehicle hardly accelerates (RMS {sigma:.2f} m/s^2 from {s.id})"
             raise NotTestable(msg)
@@ -181,7 +181,7 @@ class NonGravity(Effect):
         # "_" constants are the term's tables, not reported
         return Inputs(kin.t, kin.omega, kin.omega_dot, {"weight": weight}, (s.id,),
                       {"source": f"position ({s.id}), differentiated twice", "sigma_a": sigma,
-                       "_grid": grid, "_spline": spline})
+                       "_grid": grid, "_spline": curve})
 
     def weights(self, inp: Inputs) -> FloatArray | None:
         """The accelerometer rows where the fixes give the acceleration or the IMU shows the vehicle still."""

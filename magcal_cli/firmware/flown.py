@@ -8,7 +8,6 @@ firmware computed, in the firmware's unit (mGauss for ArduPilot, gauss for PX4, 
 from __future__ import annotations
 
 import re
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -131,9 +130,7 @@ def levelling(rec: Recording, t: FloatArray) -> tuple[BoolArray, FloatArray, str
     att = [s for s in rec.of_kind(Kind.ATTITUDE) if len(s) >= 2]
     if att:
         mask, q = onto(att[0], t, max_gap_s=1.0)
-        with warnings.catch_warnings():          # at pitch +-90 deg roll and yaw merge; yaw is dropped anyway
-            warnings.simplefilter("ignore", UserWarning)
-            rpy = so3.as_rpy(so3.from_quat(q))
+        rpy = so3.as_rpy(so3.from_quat(q))       # at pitch +-90 deg roll and yaw merge; yaw is dropped anyway
         rpy[:, 2] = 0.0
         return mask, so3.from_rpy(rpy), f"roll and pitch of {att[0].id}"
     acc = [s for s in rec.of_kind(Kind.ACCELEROMETER) if len(s) >= 2]

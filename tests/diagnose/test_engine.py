@@ -406,6 +406,27 @@ def test_the_gumbel_tail_is_scipys() -> None:
         assert ppc.gumbel_fit(x) == stats.gumbel_r.fit(x)
 
 
+def test_brentq_is_scipys_step_for_step() -> None:
+    """ppc.brentq gives scipy.optimize.root_scalar's root to the digit on functions with one or several sign changes,
+    and refuses a bracket without one."""
+    from scipy.optimize import root_scalar
+
+    rng = np.random.default_rng(3)
+    tried = 0
+    for _ in range(300):
+        c = rng.normal(size=4)
+
+        def f(x: float, c: np.ndarray = c) -> float:
+            return float(np.polyval(c, x) + np.sin(3.0 * x))
+        if f(-5.0) * f(5.0) < 0:
+            tried += 1
+            want = root_scalar(f, bracket=(-5.0, 5.0), rtol=1e-14, xtol=1e-14).root
+            assert ppc.brentq(f, -5.0, 5.0, xtol=1e-14, rtol=1e-14) == want
+    assert tried > 100
+    with pytest.raises(ValueError, match="no root is bracketed"):
+        ppc.brentq(lambda x: x * x + 1.0, -1.0, 1.0, xtol=1e-12, rtol=1e-12)
+
+
 def test_the_thinned_fit_starts_from_the_fit_on_every_reading() -> None:
     """engine: the diagnosis' fit on every k-th reading starts from the base fit (start_on: its trajectory slerped
     to the new epochs) and reaches the optimum a fit from scratch reaches, in fewer iterations. Within 0.25 std, not

@@ -11,7 +11,6 @@ numpy structured arrays and interleaved by time in one pass.
 from __future__ import annotations
 
 import struct
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -292,9 +291,7 @@ def _slow_records(sim: Simulation, t10: FloatArray, current: tuple[FloatArray, F
     rec = sim.recording
     acc_t = rec.select(Kind.ACCELEROMETER).t
     idx = np.clip(np.searchsorted(acc_t, t10), 0, len(sim.rotations) - 1)
-    with warnings.catch_warnings():                 # poses pointing straight up or down are gimbal-locked
-        warnings.simplefilter("ignore", UserWarning)
-        rpy = np.rad2deg(so3.as_rpy(sim.rotations[idx]))
+    rpy = np.rad2deg(so3.as_rpy(sim.rotations[idx]))        # gimbal-locked poses: all the turn in yaw
     att = _records("ATT", len(t10))
     att["TimeUS"] = _us(t10) + 300
     att["Roll"] = att["DesRoll"] = rpy[:, 0]
