@@ -120,8 +120,13 @@ def left_jacobian(phi: npt.ArrayLike) -> FloatArray:
 
 
 def from_quat(q: npt.ArrayLike) -> FloatArray:
-    """Rotation matrices from (..., 4) quaternions (w, x, y, z); they need not be normalised."""
-    return _matrix(_unit(np.asarray(q, dtype=np.float64)))
+    """Rotation matrices from (..., 4) quaternions (w, x, y, z); they need not be normalised, but a quaternion of
+    norm 0 is no rotation (ValueError, as scipy's from_quat)."""
+    q = np.asarray(q, dtype=np.float64)
+    if np.any(np.all(q == 0, axis=-1)):
+        msg = "not a rotation: a quaternion of norm 0"
+        raise ValueError(msg)
+    return _matrix(_unit(q))
 
 
 def _matrix(q: FloatArray) -> FloatArray:

@@ -188,7 +188,11 @@ def test_conversions_equal_scipys() -> None:
     assert np.array_equal(so3.from_rpy(rpy), Rotation.from_euler("ZYX", rpy[:, ::-1]).as_matrix())
 
 
-def test_a_reflection_is_no_rotation() -> None:
-    """det <= 0 has no rotation vector or quaternion: ValueError, as scipy's from_matrix."""
+def test_a_reflection_or_a_zero_quaternion_is_no_rotation() -> None:
+    """det <= 0 has no rotation vector or quaternion, and a zero quaternion no matrix: ValueError, as scipy's
+    from_matrix and from_quat raised (a NaN quaternion gives NaN, as there)."""
     with pytest.raises(ValueError, match="not a rotation"):
         so3.log(np.diag([1.0, 1.0, -1.0]))
+    with pytest.raises(ValueError, match="not a rotation"):
+        so3.from_quat([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    assert np.isnan(so3.from_quat([np.nan, 0.0, 0.0, 1.0])).all()
