@@ -54,6 +54,9 @@ def cubic(x: npt.ArrayLike, y: npt.ArrayLike) -> Spline:
     if n < 2 or y.shape[0] != n or not np.all(dx > 0):
         msg = f"a spline needs >= 2 strictly increasing knots and one sample per knot (got {n} knots, {y.shape[0]})"
         raise ValueError(msg)
+    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(y)):         # scipy's CubicSpline refuses them too
+        msg = "a spline needs finite knots and samples"
+        raise ValueError(msg)
     dxr = dx.reshape((n - 1,) + (1,) * (y.ndim - 1))
     slope = np.diff(y, axis=0) / dxr
     if n == 2:                                          # a line

@@ -34,11 +34,15 @@ def test_interpolates_a_cubic_exactly() -> None:
     np.testing.assert_allclose(curve(t, 1), 6.0 * t**2 - 2.0 * t + 0.5, rtol=1e-12, atol=1e-10)
 
 
-@pytest.mark.parametrize(("x", "y"), [([0.0], [1.0]), ([0.0, 1.0, 1.0], [1.0, 2.0, 3.0]), ([0.0, 1.0], [1.0])])
+@pytest.mark.parametrize(("x", "y"), [([0.0], [1.0]), ([0.0, 1.0, 1.0], [1.0, 2.0, 3.0]), ([0.0, 1.0], [1.0]),
+                                      ([0.0, np.inf], [1.0, 2.0]), ([0.0, 1.0, 2.0], [1.0, np.nan, 3.0])])
 def test_bad_knots_are_refused(x: list[float], y: list[float]) -> None:
-    """Fewer than two knots, a repeated knot, or a sample count that is not the knot count: ValueError."""
-    with pytest.raises(ValueError, match="strictly increasing"):
+    """Fewer than two knots, a repeated or infinite knot, a sample count that is not the knot count, or a NaN
+    sample: ValueError, where scipy's CubicSpline raised one too."""
+    with pytest.raises(ValueError, match="a spline needs"):
         spline.cubic(x, y)
+    with pytest.raises(ValueError):
+        CubicSpline(x, y)
 
 
 def test_only_values_and_slopes() -> None:
