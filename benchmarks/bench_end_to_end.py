@@ -537,8 +537,8 @@ def main() -> None:
         args.out.write_text(
             "# What `magcal fit` costs, end to end and by stage (issue 27)\n\n"
             f"Made by `{cmd}` on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, "
-            f"load average {load0[0]:.1f} at the start and {load1[0]:.1f} at the end (other work was running: "
-            "compare before and after within this table only). Whole process: `magcal fit LOG -o TMP --force -q`, "
+            f"load average {load0[0]:.1f} at the start and {load1[0]:.1f} at the end (this machine's speed drifts "
+            "by 10-15 % from hour to hour: compare before and after within this table only). Whole process: `magcal fit LOG -o TMP --force -q`, "
             f"median of {args.repeats}, before and after interleaved; peak memory: the largest process's ru_maxrss "
             "(from wait4: the fit and the diagnosis workers it forked), and the peak of all its processes' summed "
             "proportional set size, sampled every 25 ms in one more run that is not timed (pages a worker shares with the "
