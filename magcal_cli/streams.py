@@ -162,7 +162,8 @@ class Recording:
     `t0` is the absolute time (s, the log's clock) that stream times are relative to; `params` are
     firmware parameters (name -> value, last value in the log); `notes` are the reader's remarks
     (dropped samples, truncation) that the report repeats; `cut` says where a log that ends inside a record
-    was cut (None for a complete log).
+    was cut (None for a complete log); `info` is what the log says about the vehicle as text (an ArduPilot
+    boot message's `board` and `board_uid`), which the history keys a vehicle by.
     """
 
     path: Path
@@ -175,10 +176,12 @@ class Recording:
     #: the Unix time of t = 0 where the log states it (GPS week and time of week) although its clock is a boot
     #: clock; None where unknown (then `t0` is a Unix time or the date is not known)
     utc0: float | None = None
+    info: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "streams", tuple(self.streams))
         object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
+        object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
         object.__setattr__(self, "notes", tuple(self.notes))
 
     def of_kind(self, kind: Kind) -> list[Stream]:

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from magcal_cli.history.detect import SLACK, THRESHOLD, cusum, inflation, standardised_differences
+from magcal_cli.history.identity import SYSID_ONLY, identified_by
 from magcal_cli.streams import FloatArray
 
 #: the parameter groups change detection watches; `dip_deg` ("field") changes with the place and is only shown
@@ -56,6 +57,16 @@ class Compass:
     flights: list[dict[str, Any]]
     series: dict[str, tuple[FloatArray, FloatArray]]
     changes: list[Change] = field(default_factory=list)
+
+    @property
+    def identified_by(self) -> str:
+        """How its vehicle was identified, in words (each way its flights were, where they differ)."""
+        return ", ".join(sorted({identified_by(f.get("vehicle_source", "")) for f in self.flights}))
+
+    @property
+    def sysid_only(self) -> bool:
+        """Its vehicle is known by SYSID_THISMAV alone: other vehicles with that SYSID merge into its series."""
+        return any(f.get("vehicle_source") == SYSID_ONLY for f in self.flights)
 
     @property
     def state(self) -> str:
@@ -135,7 +146,8 @@ def to_json(fleet: Fleet) -> dict[str, Any]:
             "detector": {"method": "two-sided CUSUM on inverse-variance reference", "slack": fleet.slack,
                          "threshold": fleet.threshold, "watched": list(WATCHED)},
             "inflation": fleet.inflation,
-            "compasses": [{"vehicle": c.vehicle, "sensor": c.sensor, "unit": c.unit, "state": c.state,
+            "compasses": [{"vehicle": c.vehicle, "identified_by": c.identified_by, "sysid_only": c.sysid_only,
+                           "sensor": c.sensor, "unit": c.unit, "state": c.state,
                            "flights": [flight(f) for f in c.flights],
                            "changes": [{"param": ch.param, "category": ch.category, "alarm_flight": ch.at,
                                         "change_flight": ch.start, "alarm_log": c.flights[ch.at]["path"],
@@ -163,4 +175,18 @@ def text(fleet: Fleet) -> str:
             last = (f"{', '.join(cats)} at flight {start + 1} ({c.flights[start]['path']}), "
                     f"alarm at {at + 1}")
         lines.append(f"{c.vehicle:<{width}}  {c.sensor:<22} {len(c.flights):>7}  {c.state:<8} {last}")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _vehicles(fleet, width)) + "\n"
+
+
+def _vehicles(fleet: Fleet, width: int) -> list[str]:
+    """How each vehicle was identified, with a warning for those known by SYSID_THISMAV alone."""
+    how: dict[str, str] = {}
+    merged: set[str] = set()
+    for c in fleet.compasses:
+        how[c.vehicle] = c.identified_by
+        merged |= {c.vehicle} if c.sysid_only else set()
+    lines = ["", f"{'VEHICLE':<{width}}  IDENTIFIED BY", *(f"{v:<{width}}  {h}" for v, h in how.items())]
+    lines += [f"warning: {v} is identified by SYSID_THISMAV only: vehicles sharing it merge into one series, and a "
+              "compass change may be another vehicle's compass. Set BRD_SERIAL_NUM, or record with --vehicle"
+              for v in sorted(merged)]
+    return lines

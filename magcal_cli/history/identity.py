@@ -1,6 +1,8 @@
 """Which vehicle and which compass a recording comes from, as the log itself says (docs/fleet.md).
 
-- ArduPilot (.bin): SYSID_THISMAV, with BRD_SERIAL_NUM where set; a compass MAG[i] by COMPASS_DEV_ID(i+1).
+- ArduPilot (.bin): the board's processor unique id from its boot message (ChibiOS and NuttX boards), else
+  SYSID_THISMAV with BRD_SERIAL_NUM where set, else SYSID_THISMAV alone (vehicles sharing it merge); a compass
+  MAG[i] by COMPASS_DEV_ID(i+1).
 - PX4 (.ulg): the `sys_uuid` info message (pyulog reads the header only); a compass by CAL_MAGi_ID.
 - ROS and others: no vehicle id is logged. The first name of a namespaced topic (/uav3/imu/mag -> uav3), else
   the log's folder; a compass by its topic.
@@ -17,12 +19,27 @@ from typing import NamedTuple
 
 from magcal_cli.streams import Recording
 
+#: how a vehicle was found (the store's vehicle_source) -> the words `magcal fleet` says it with; "board uid"
+#: is followed by the board's name in parentheses
+HOW = {"board uid": "board unique id", "sys_uuid": "board unique id (PX4 sys_uuid)",
+       "SYSID_THISMAV + BRD_SERIAL_NUM": "serial number (BRD_SERIAL_NUM)", "SYSID_THISMAV": "SYSID only",
+       "--vehicle": "--vehicle", "topic": "topic namespace", "folder": "log folder"}
+#: the source that does not tell an ArduPilot fleet's vehicles apart: most leave SYSID_THISMAV at 1
+SYSID_ONLY = "SYSID_THISMAV"
+
 
 class Identity(NamedTuple):
-    """A vehicle (and how it was found: "SYSID_THISMAV", "sys_uuid", "--vehicle", "topic", "folder")."""
+    """A vehicle (and how it was found: "board uid (NAME)", "SYSID_THISMAV + BRD_SERIAL_NUM", "SYSID_THISMAV",
+    "sys_uuid", "--vehicle", "topic", "folder")."""
 
     vehicle: str
     source: str
+
+
+def identified_by(source: str) -> str:
+    """A stored vehicle_source in words: "board unique id (fmuv3)", "serial number (BRD_SERIAL_NUM)", ..."""
+    head, _, rest = source.partition(" (")
+    return HOW.get(head, source) + (f" ({rest}" if rest and head in HOW else "")
 
 
 def _int(params: object, name: str) -> int:
@@ -48,6 +65,9 @@ def vehicle_of(rec: Recording, override: str | None = None, mag_ids: tuple[str, 
     """The vehicle a recording comes from."""
     if override:
         return Identity(override, "--vehicle")
+    uid = rec.info.get("board_uid")
+    if uid:                                   # the processor's id: unique, and kept across firmware and SYSID
+        return Identity(f"uid {uid}", f"board uid ({rec.info.get('board') or 'board'})")
     if rec.format in ("dataflash", "px4log"):
         sysid = _int(rec.params, "SYSID_THISMAV")
         serial = _int(rec.params, "BRD_SERIAL_NUM")

@@ -41,6 +41,7 @@ class PreviousCalibration:
     (DEFAULT_MORE where not given). `motct` is COMPASS_MOTCT for all of them. `ofs_after` (with
     `change_at_s`) simulates a PARM change of compass 1's offsets during the log, e.g. set from a GCS.
     `current_swing_a` shapes the logged current when the simulation has none (0.8 A plus a 20 s swing).
+    `messages` are boot messages logged after the banner (MSG), e.g. a board's unique id.
     """
 
     ofs: Vec3 | None = None
@@ -54,6 +55,7 @@ class PreviousCalibration:
     current_swing_a: float = 0.0
     extra_params: dict[str, float] = field(default_factory=dict)
     more: tuple[CompassParams, ...] = ()
+    messages: tuple[str, ...] = ()
 
     def compass(self, i: int) -> CompassParams:
         """Compass i's parameters (0: the first fields; 1, 2: `more`, else DEFAULT_MORE)."""

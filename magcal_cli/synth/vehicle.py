@@ -4,6 +4,8 @@ A fleet simulation writes one small JSON file per flight, so a vehicle's hard ir
 interference can step between flights (benchmarks/fleet.py). Every key is optional:
 
     {"sysid": 7,                              SYSID_THISMAV in a .bin's parameter dump
+     "serial": 0,                             BRD_SERIAL_NUM there
+     "board_id": "fmuv3 002F001F 33375111 37353832",   the board's boot message: name and processor unique id
      "start_utc": 1763700000.0,               the log's start (Unix s): flights are ordered by it
      "hard_iron_uT": [1.2, -0.5, 0.3],        o
      "soft_iron": [[1.02, 0.01, 0], ...],     the symmetric factor of D over the field strength (3x3)
@@ -26,11 +28,13 @@ import numpy as np
 
 from magcal_cli import so3
 from magcal_cli.errors import MagcalError
+from magcal_cli.readers.dataflash.ardupilot import board_info
 from magcal_cli.streams import FloatArray
 from magcal_cli.synth.effects import EffectSpec
 from magcal_cli.synth.truth import PAPER_FIELD, Truth, at_home, draw_truth
 
-KEYS = ("sysid", "start_utc", "hard_iron_uT", "soft_iron", "orientation_deg", "interference_uT_per_A")
+KEYS = ("sysid", "serial", "board_id", "start_utc", "hard_iron_uT", "soft_iron", "orientation_deg",
+        "interference_uT_per_A")
 
 
 class VehicleFileError(MagcalError):
@@ -47,6 +51,8 @@ class Vehicle:
     soft_iron: FloatArray | None = None            # (3, 3) symmetric, unitless
     orientation_rad: FloatArray | None = None      # (3,) roll, pitch, yaw
     interference_t_per_a: FloatArray | None = None  # (3,) tesla per ampere
+    serial: int | None = None                      # BRD_SERIAL_NUM
+    board_id: str | None = None                    # a MSG line "NAME XXXXXXXX XXXXXXXX XXXXXXXX"
 
     def truth(self, seed: int, rate: float, mag_rate: float) -> Truth | None:
         """The seed's vehicle truth (as simulate draws it) with this file's D and o; None when it sets neither."""
@@ -70,8 +76,9 @@ class Vehicle:
         return (EffectSpec("current_interference", {"c": tuple(float(v) for v in self.interference_t_per_a)}),)
 
     def params(self) -> dict[str, float]:
-        """Firmware parameters the written log carries (SYSID_THISMAV)."""
-        return {} if self.sysid is None else {"SYSID_THISMAV": float(self.sysid)}
+        """Firmware parameters the written log carries (SYSID_THISMAV, BRD_SERIAL_NUM)."""
+        return ({} if self.sysid is None else {"SYSID_THISMAV": float(self.sysid)}) | (
+            {} if self.serial is None else {"BRD_SERIAL_NUM": float(self.serial)})
 
 
 def _vector(doc: dict[str, Any], key: str, where: str, scale: float = 1.0) -> FloatArray | None:
@@ -124,6 +131,14 @@ def load(path: Path) -> Vehicle:
     if sysid is not None and not (isinstance(sysid, int) and 1 <= sysid <= 255):
         msg = f"{where}: sysid must be an integer 1..255 (SYSID_THISMAV), got {sysid!r}"
         raise VehicleFileError(msg)
+    serial, board = doc.get("serial"), doc.get("board_id")
+    if serial is not None and not (isinstance(serial, int) and 0 <= serial < 2**31):
+        msg = f"{where}: serial must be an integer 0..2147483647 (BRD_SERIAL_NUM), got {serial!r}"
+        raise VehicleFileError(msg)
+    if board is not None and not (isinstance(board, str) and board_info([board])):
+        msg = (f"{where}: board_id must be a board's boot message, a name and three 8-digit hex words such as "
+               f"'fmuv3 002F001F 33375111 37353832', got {board!r}")
+        raise VehicleFileError(msg)
     start = doc.get("start_utc")
     if start is not None and not (isinstance(start, int | float) and np.isfinite(start) and start > 0):
         msg = f"{where}: start_utc must be a Unix time in seconds, got {start!r}"
@@ -131,16 +146,19 @@ def load(path: Path) -> Vehicle:
     orient = _vector(doc, "orientation_deg", where)
     return Vehicle(sysid, None if start is None else float(start), _vector(doc, "hard_iron_uT", where, 1e-6),
                    _soft(doc, where), None if orient is None else np.deg2rad(orient),
-                   _vector(doc, "interference_uT_per_A", where, 1e-6))
+                   _vector(doc, "interference_uT_per_A", where, 1e-6), serial, board)
 
 
 def flight(sim: Any, vehicle: Vehicle) -> Any:
-    """The Simulation as this vehicle logs it: its SYSID_THISMAV in the parameter dump, its start time."""
+    """The Simulation as this vehicle logs it: its SYSID_THISMAV and BRD_SERIAL_NUM in the parameter dump, its
+    board's boot message, its start time."""
     from magcal_cli.synth.firmware import PreviousCalibration
 
-    if vehicle.sysid is not None:
+    boot = (vehicle.board_id,) if vehicle.board_id else ()
+    if vehicle.params() or boot:
         prev = sim.previous or PreviousCalibration()
-        sim = replace(sim, previous=replace(prev, extra_params={**prev.extra_params, **vehicle.params()}))
+        sim = replace(sim, previous=replace(prev, extra_params={**prev.extra_params, **vehicle.params()},
+                                            messages=prev.messages + boot))
     if vehicle.start_utc is not None:
         sim = replace(sim, recording=replace(sim.recording, t0=vehicle.start_utc))
     return sim

@@ -39,6 +39,19 @@ MG_TO_T = 1e-7
 #: where each step of build_ardupilot ends in its share of the read: IMU streams, raw field, the other streams
 #: (then finish() checks every stream); measured on a 55 MB simulated .bin
 BUILD_STEPS = (0.15, 0.45, 0.55)
+#: a ChibiOS or NuttX board's boot message: its name and its processor's 96-bit unique id as three hex words,
+#: e.g. "fmuv3 002F001F 33375111 37353832" (hal.util's system id, logged at every log start)
+BOARD_ID = re.compile(r"(\S+) ([0-9A-Fa-f]{8}) ([0-9A-Fa-f]{8}) ([0-9A-Fa-f]{8})")
+
+
+def board_info(messages: list[str]) -> dict[str, str]:
+    """`board` and `board_uid` (24 upper-case hex digits) from the first boot message that names them, else {}."""
+    for text in messages:
+        m = BOARD_ID.fullmatch(text.strip())
+        uid = "".join(m.groups()[1:]).upper() if m else ""
+        if m and uid.strip("0") and uid.strip("F"):     # all zero or all one bits: no id read, not a vehicle's
+            return {"board": m.group(1), "board_uid": uid}
+    return {}
 
 
 def param_history(raw: RawLog, clock: Clock) -> ParamHistory:
@@ -233,4 +246,6 @@ def build_ardupilot(path: Path, raw: RawLog) -> Recording:
     with active(within(hook, BUILD_STEPS[2], 1.0)):
         rec = finish(path, "dataflash", pending, params, notes)
     boot = _utc_of_boot(raw, clock)
-    return rec if boot is None else replace(rec, utc0=boot + rec.t0)
+    msgs = raw.table("MSG")
+    info = board_info(msgs.text("Message") if msgs is not None and msgs.fmt.has("Message") else [])
+    return replace(rec, utc0=None if boot is None else boot + rec.t0, info=info)

@@ -131,8 +131,9 @@ def interleave(parts: list[tuple[npt.NDArray[np.int64], np.ndarray]]) -> npt.NDA
     return out
 
 
-def _metadata(params: dict[str, float], t_us: int, banner: str, rcou: bool = False) -> bytes:
-    """FMT for every type (RCOU only with `rcou`), UNIT, MULT, FMTU, the PARM dump, VER and MSG."""
+def _metadata(params: dict[str, float], t_us: int, banner: str, rcou: bool = False,
+              messages: tuple[str, ...] = ()) -> bytes:
+    """FMT for every type (RCOU only with `rcou`), UNIT, MULT, FMTU, the PARM dump, VER, MSG and `messages`."""
     records = [*RECORDS, RCOU] if rcou else RECORDS
     fmt_code = "<BB4s16s64s"
     out = [bytes([HEAD1, HEAD2, FMT_ID]) + struct.pack(fmt_code, FMT_ID, FMT_LENGTH, b"FMT", b"BBnNZ",
@@ -145,6 +146,7 @@ def _metadata(params: dict[str, float], t_us: int, banner: str, rcou: bool = Fal
     out += [_pack("FMTU", t_us, tid, u.encode(), m.encode()) for tid, _, _, _, u, m in records]
     out += [_pack("PARM", t_us, k.encode(), v, v) for k, v in params.items()]
     out += [_pack("VER", t_us, 3, 0, 4, 6, 2, 255, 0, banner.encode()), _pack("MSG", t_us, banner.encode())]
+    out += [_pack("MSG", t_us, m.encode()) for m in messages]
     return b"".join(out)
 
 
@@ -232,7 +234,7 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
         params |= {"MOT_PWM_MIN": PWM_RANGE[0], "MOT_PWM_MAX": PWM_RANGE[1]}
         params |= {f"SERVO{k}_FUNCTION": 32.0 + k for k in range(1, len(motors) + 1)}     # 33 = motor 1 [S7]
         params |= {"COMPASS_PMOT_EN": 0.0, "COMPASS_PMOT_EXP": 0.65}         # a 4.6 vehicle has them, off
-    meta = _metadata(params, int(_us(0.0)) - 50_000, banner, rcou=bool(motors))
+    meta = _metadata(params, int(_us(0.0)) - 50_000, banner, rcou=bool(motors), messages=prev.messages)
     head = np.frombuffer(meta, dtype=np.uint8)
     return np.concatenate([head, interleave(parts)])
 
