@@ -12,9 +12,9 @@ independently of magcal's own `heading_check`:
 Three calibrations: magcal's (`magcal fit LOG --outputs json`, defaults otherwise, applied with its carried current
 or throttle interference), the one the vehicle flew with (the log's parameters, `firmware/flown.py`) and
 magfit_WMM's (ArduPilot only, `vs_magfit.run_magfit`: `--elliptical --cmot`, `--reduce N`). Out of sample: the log is
-cut in two halves by time; magcal is also fitted on each half alone (`--start/--end`) and judged on the other.
-The flown calibration was made before the flight (out of sample by construction); magfit_WMM and magcal's whole-log
-fit are in sample. The paired difference magcal (out of sample) minus flown has a block-jackknife standard error
+cut in two halves by time; magcal is also fitted on each half alone (`--start/--end`) and magfit_WMM too (`--condition`
+on the compass message's time), and each is judged on the other half. The flown calibration was made before the flight
+(out of sample by construction); the whole-log fits of magcal and magfit_WMM are in sample. The paired difference magcal (out of sample) minus flown has a block-jackknife standard error
 (contiguous blocks of about 10 s), so "worse" means worse by more than twice that.
 
     python benchmarks/real_heading.py [--realdata ../shared/realdata] [--out docs/results/real_heading]
@@ -129,8 +129,8 @@ def log_context(log: Path) -> dict[str, Any] | None:
 
 
 def fields(ctx: dict[str, Any], mag_id: str, docs: dict[str, dict[str, Any] | None],
-           magfit: dict[str, Any] | None) -> dict[str, tuple[Array, Array]]:
-    """Each calibration's body-frame field of one compass: flown, magcal (whole log, and each half's fit), magfit."""
+           magfit: dict[str, dict[str, Any]]) -> dict[str, tuple[Array, Array]]:
+    """Each calibration's body-frame field of one compass: flown, magcal and magfit_WMM (whole log, each half)."""
     from magcal_cli.calibration.document import from_dict
     from magcal_cli.errors import MagcalError
     from magcal_cli.firmware.flown import flown_fields
@@ -150,10 +150,11 @@ def fields(ctx: dict[str, Any], mag_id: str, docs: dict[str, dict[str, Any] | No
         except MagcalError:
             continue
         out[name] = (f.t, f.field)
-    if magfit is not None and "error" not in magfit:
-        from vs_magfit import magfit_field
+    from vs_magfit import magfit_field
 
-        out["magfit_WMM"] = magfit_field(rec, mag_id, magfit)
+    for name, res in magfit.items():
+        if "error" not in res:
+            out[name] = magfit_field(rec, mag_id, res)
     return out
 
 
@@ -166,13 +167,14 @@ def compass_rows(ctx: dict[str, Any], mag_id: str, fld: dict[str, tuple[Array, A
     row: dict[str, Any] = {"id": mag_id, "halves": []}
     oos_t, oos_m, oos_f = [], [], []
     pooled: dict[str, list[Array]] = {}
+    oos_series: list[tuple[dict[str, tuple[Array, Array]], tuple[float, float]]] = []
     for k, (lo, hi) in enumerate(halves):
-        other = f"magcal_half{2 - k}"      # fitted on the other half
         series = dict(raw)
-        if other in raw:
-            series["magcal_oos"] = raw[other]
+        for tool in ("magcal", "magfit"):
+            if f"{tool}_half{2 - k}" in raw:       # fitted on the other half
+                series[f"{tool}_oos"] = raw[f"{tool}_half{2 - k}"]
         rms: dict[str, float | None] = {}
-        for name in ("flown", "magcal_oos", "magcal", "magfit_WMM"):
+        for name in ("flown", "magcal_oos", "magfit_oos", "magcal", "magfit_WMM"):
             if name in series:
                 t, e = series[name]
                 pooled.setdefault(name, []).append(demeaned(e[(t >= lo) & (t < hi)]))
@@ -185,12 +187,19 @@ def compass_rows(ctx: dict[str, Any], mag_id: str, fld: dict[str, tuple[Array, A
             oos_t.append(t)
             oos_m.append(a)
             oos_f.append(b)
-        if "magcal" in series and "magfit_WMM" in series:
-            t, a, b = on_common(series, ("magcal", "magfit_WMM"), lo, hi)
-            half["magcal_minus_magfit"] = paired(t, demeaned(a), demeaned(b))
+        if "magcal_oos" in series and "magfit_oos" in series:
+            t, a, b = on_common(series, ("magcal_oos", "magfit_oos"), lo, hi)
+            half["oos_minus_magfit"] = paired(t, demeaned(a), demeaned(b))
         row["halves"].append(half)
+        oos_series.append((series, (lo, hi)))
     if oos_t:
         row["oos_minus_flown"] = paired(np.concatenate(oos_t), np.concatenate(oos_m), np.concatenate(oos_f))
+    both = [on_common(series_k, ("magcal_oos", "magfit_oos"), lo, hi) for series_k, (lo, hi) in oos_series
+            if "magcal_oos" in series_k and "magfit_oos" in series_k]
+    if both:
+        row["oos_minus_magfit"] = paired(np.concatenate([b[0] for b in both]),
+                                         np.concatenate([demeaned(b[1]) for b in both]),
+                                         np.concatenate([demeaned(b[2]) for b in both]))
     # both halves: each half's errors demeaned on their own, as in the rows above, then pooled
     row["both_rms_deg"] = {k: rms_deg(np.concatenate(v)) for k, v in pooled.items()}
     return row
@@ -219,15 +228,14 @@ def run_log(log: Path, realdata: Path, args: argparse.Namespace) -> dict[str, An
                            "fit_s": {k: round(r["seconds"], 1) for k, r in runs.items()},
                            "not_calibrated": [m for m in all_mags if m not in calibrated], "compasses": []}
     for mag_id in calibrated:
-        magfit = None
+        magfit = {}
         if ctx["att"].id == "ATT" and not args.no_magfit:
-            from vs_magfit import run_magfit
-
-            run = run_magfit(str(log), all_mags.index(mag_id) + 1, args.magfit_reduce, args.timeout)
-            magfit = run["result"]
-            row.setdefault("magfit_s", {})[mag_id] = round(sum(a["seconds"] for a in run["attempts"]), 1)
-            if "error" in magfit:
-                row.setdefault("magfit_error", {})[mag_id] = magfit["error"]
+            magfit = run_magfits(log, ctx, all_mags.index(mag_id) + 1, args)
+            row.setdefault("magfit_s", {})[mag_id] = {k: r["seconds"] for k, r in magfit.items()}
+            row.setdefault("magfit_points", {})[mag_id] = {k: r.get("points") for k, r in magfit.items()}
+            for k, r in magfit.items():
+                if "error" in r:
+                    row.setdefault("magfit_error", {})[f"{mag_id} {k}"] = r["error"]
         comp = compass_rows(ctx, mag_id, fields(ctx, mag_id, docs, magfit))
         m = next(m for m in full["magnetometers"] if m["id"] == mag_id)
         comp["method"] = m.get("method") or full.get("method")
@@ -236,6 +244,22 @@ def run_log(log: Path, realdata: Path, args: argparse.Namespace) -> dict[str, An
     row["seconds"] = round(time.perf_counter() - t0, 1)
     print(f"{name}: {row['seconds']} s, {len(calibrated)} calibrated", flush=True)
     return row
+
+
+def run_magfits(log: Path, ctx: dict[str, Any], mag: int, args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """magfit_WMM on the whole log and on each half (`--condition` on the compass message's own clock, the
+    reader's t0 added back), as vs_magfit runs it (retried with --att-source ATT after a crash)."""
+    from vs_magfit import run_magfit
+
+    msg = "MAG" if mag == 1 else f"MAG{mag}"
+    clock = f"getattr({msg}, 'TimeUS', getattr({msg}, 'TimeMS', 0) * 1000) * 1e-6"
+    cut = ctx["rec"].t0 + ctx["half"]
+    out = {}
+    for name, more in (("magfit_WMM", ()), ("magfit_half1", ("--condition", f"{clock} < {cut:.3f}")),
+                       ("magfit_half2", ("--condition", f"{clock} >= {cut:.3f}"))):
+        run = run_magfit(str(log), mag, args.magfit_reduce, args.timeout, more)
+        out[name] = run["result"] | {"seconds": round(sum(a["seconds"] for a in run["attempts"]), 1)}
+    return out
 
 
 def _num(v: float | None) -> str:
@@ -267,11 +291,13 @@ def markdown(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
             f"tie on {len(comps) - worse - better - na}, n/a on {na}** (n/a: a half's fit did not calibrate the compass, "
             "or the log has no flown calibration).\n\n" + (__doc__ or "").split("\n\n", 1)[1].split("\n\n    python")[0]
             + "\n\nColumns: heading error RMS in degrees, mean removed per half. *magcal OOS*: the fit on the other half "
-            "alone. *magcal*: the default whole-log fit (in sample). Differences: RMS(first) - RMS(second) on the "
+            "alone; *magfit_WMM OOS* likewise. *magcal*, *magfit_WMM*: the whole-log fits (in sample); *both*: the two "
+            "halves pooled. Differences: RMS(first) - RMS(second) on the "
             "epochs both have, ± block-jackknife SE; worse/better when beyond 2 SE. *heading_check*: magcal's own "
             "block of the document, where present (to compare).\n\n")
-    lines = ["| log | compass | method | half (s) | flown | magcal OOS | magcal | magfit_WMM | magcal OOS - flown | "
-             "magcal - magfit_WMM | heading_check |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| log | compass | method | half (s) | flown | magcal OOS | magfit_WMM OOS | magcal | magfit_WMM | "
+             "magcal OOS - flown | magcal OOS - magfit_WMM OOS | heading_check |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         for i, c in enumerate(r["compasses"]):
             for k, h in enumerate(c["halves"]):
@@ -279,15 +305,17 @@ def markdown(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
                 hc = json.dumps(c["heading_check"])[:100] if c.get("heading_check") and k == 0 else ""
                 lines.append(f"| {r['log'] if i == 0 and k == 0 else ''} | {c['id'] if k == 0 else ''} | "
                              f"{c['method'] if k == 0 else ''} | {h['span_s'][0]:.0f}-{h['span_s'][1]:.0f} | "
-                             f"{_num(rms.get('flown'))} | {_num(rms.get('magcal_oos'))} | {_num(rms.get('magcal'))} | "
+                             f"{_num(rms.get('flown'))} | {_num(rms.get('magcal_oos'))} | "
+                             f"{_num(rms.get('magfit_oos'))} | {_num(rms.get('magcal'))} | "
                              f"{_num(rms.get('magfit_WMM'))} | {_diff(h.get('oos_minus_flown'))} | "
-                             f"{_diff(h.get('magcal_minus_magfit'))} | {hc} |")
+                             f"{_diff(h.get('oos_minus_magfit'))} | {hc} |")
             w = c.get("both_rms_deg", {})
-            lines.append(f"| | | | both | {_num(w.get('flown'))} | {_num(w.get('magcal_oos'))} | {_num(w.get('magcal'))} | "
-                         f"{_num(w.get('magfit_WMM'))} | {_diff(c.get('oos_minus_flown'))} | | |")
+            lines.append(f"| | | | both | {_num(w.get('flown'))} | {_num(w.get('magcal_oos'))} | "
+                         f"{_num(w.get('magfit_oos'))} | {_num(w.get('magcal'))} | {_num(w.get('magfit_WMM'))} | "
+                         f"{_diff(c.get('oos_minus_flown'))} | {_diff(c.get('oos_minus_magfit'))} | |")
         if r["not_calibrated"]:
             lines.append(f"| {r['log'] if not r['compasses'] else ''} | {', '.join(r['not_calibrated'])} | not "
-                         f"calibrated by the default fit (exit {r['exits']['magcal']}) | | | | | | | | |")
+                         f"calibrated by the default fit (exit {r['exits']['magcal']}) | | | | | | | | | |")
     errors = [f"- {r['log']} {m}: magfit_WMM failed: {e}" for r in rows for m, e in r.get("magfit_error", {}).items()]
     times = [f"- {r['log']}: {r['seconds']} s (magcal fits {r['fit_s']}; magfit_WMM {r.get('magfit_s', 'n/a')})"
              for r in rows]
