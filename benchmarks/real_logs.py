@@ -127,13 +127,20 @@ def fate(mag_id: str, res: dict[str, Any]) -> dict[str, Any]:
         return {"id": mag_id, "fate": REFUSED, "reason": ref.get("reason"), "advice": ref.get("advice"),
                 "source": "refused[]", "stderr_names_it": named}
     if res["exit"] != 0 and res.get("error") and (_names(res["error"], mag_id) or not _any_mag(res["error"])):
-        return {"id": mag_id, "fate": REFUSED, "reason": res["error"], "source": "error line (whole log)",
-                "stderr_names_it": named}
+        return {"id": mag_id, "fate": REFUSED, "reason": _about(res["error"], mag_id),
+                "source": "error line (whole log)", "error": res["error"], "stderr_names_it": named}
     notes = [n for n in doc.get("notes", []) if _names(n, mag_id) and re.search(
         r"not calibrated|no calibration|does not explain|dropped|refus|dead|stuck|unusable", n)]
     if notes:
         return {"id": mag_id, "fate": NOTES, "reason": notes[0], "source": "notes", "stderr_names_it": named}
     return {"id": mag_id, "fate": VANISHED, "reason": None, "stderr_names_it": named}
+
+
+def _about(error: str, mag_id: str) -> str:
+    """The part of a whole-log error line about one magnetometer: from its first mention within a parenthesised
+    list of reasons ("none of the 2 magnetometers can be used (MAG[0]: ...; MAG[1]: ...)"), else the whole line."""
+    m = re.search(r"[(;,]\s*" + re.escape(mag_id) + r"(?![\w\[\].]):", error)
+    return f"whole log refused; {error[m.start() + 1:].strip()}" if m else error
 
 
 def _any_mag(text: str) -> bool:
@@ -220,7 +227,7 @@ def held_text(f: dict[str, Any]) -> str:
     names = ["D" if all(f"D[{i}][{j}]" in held for i in range(3) for j in range(3)) else ""]
     names += [h for h in held if not (names[0] and h.startswith("D["))]
     src = f.get("held_sources") or []
-    return ", ".join(n for n in names if n) + (f" ({src[0]})" if src else "")
+    return ", ".join(n for n in names if n) + (f" ({src[0].split(';')[0]})" if src else "")
 
 
 def git_meta() -> dict[str, str]:
@@ -240,7 +247,13 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="logs at a time (the machine has 2 cores)")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per magcal command")
     ap.add_argument("--only", default="", help="comma-separated substrings: run only the logs whose path has one")
+    ap.add_argument("--render", action="store_true", help="only rewrite OUT.md (and print it) from OUT.json")
     args = ap.parse_args()
+    if args.render:
+        saved = json.loads(args.out.with_suffix(".json").read_text())
+        args.out.with_suffix(".md").write_text(page := markdown(saved["logs"], saved["meta"]))
+        print(page)
+        return
     if not args.realdata.is_dir():
         print(f"{args.realdata}: no real logs here; nothing to measure")
         return
