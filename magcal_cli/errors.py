@@ -35,6 +35,11 @@ class InsufficientDataError(MagcalError):
     """Too few stationary segments or too little orientation coverage to determine the calibration."""
 
 
+class UnexplainedError(InsufficientDataError):
+    """The model leaves the readings unexplained (the calibrated field strength still varies): a disturbance the
+    model lacks may dominate, where too little motion would be a plain InsufficientDataError."""
+
+
 class ConvergenceError(MagcalError):
     """The solver did not converge; carries the iteration log."""
 

@@ -29,10 +29,18 @@ from magcal_cli.detect import (
 )
 from magcal_cli.errors import InsufficientDataError, MagcalError, StreamError
 from magcal_cli.findings import Finding, Severity
-from magcal_cli.methods.choose import attitude_instead, choose, not_carried, run_method
+from magcal_cli.methods.choose import (
+    choose,
+    none_calibrated,
+    not_carried,
+    refusal,
+    refused_finding,
+    run_method,
+)
 from magcal_cli.methods.table import METHODS
 from magcal_cli.models.partial import MagPrior, flown_prior
 from magcal_cli.models.problem import Problem
+from magcal_cli.models.result import MethodResult, Refusal
 from magcal_cli.progress import Hook, active, current
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.registry import resolve
@@ -59,8 +67,9 @@ def select_problem(rec: Recording, cfg: Config) -> Problem:
     return select_streams(rec, cfg)[0]
 
 
-def select_streams(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]:
-    """The problem, and warnings for magnetometers left out because they cannot be used (while others can)."""
+def select_streams(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding], tuple[Refusal, ...]]:
+    """The problem, and the warnings and refusals of magnetometers left out because they cannot be used (while
+    others can)."""
     where = rec.path.name
     gyro_ids = set(rec.ids(Kind.GYROSCOPE))
     if cfg.imu is None:
@@ -98,10 +107,11 @@ def select_streams(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]
             if len(mags) == 1:
                 raise
             dropped.append((m, exc))
+    refused = [refusal(where, m.id, exc) for m, exc in dropped]
     if not good:
-        raise dropped[0][1]
-    findings = [Finding(Severity.WARNING, "not_calibrated", f"{m.id} was not calibrated: {exc}", {"sensor": m.id})
-                for m, exc in dropped]
+        raise dropped[0][1] if len(dropped) == 1 else InsufficientDataError(
+            none_calibrated(where, refused, "can be used"))
+    findings = [refused_finding(r) for r in refused]
     aux = tuple(st.between(cfg.start_s, cfg.end_s) for st in rec.streams if st.kind in AUX_KINDS)
     still = detect_still(acc, gyr, cfg.still, tuple(good))
     unmeasured = unmeasured_windows(acc, gyr)
@@ -118,7 +128,7 @@ def select_streams(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding]]
     scale = gyro_noise_scale(gyr, still)
     acc, gyr, mags_est, record = timing.for_estimator(acc, gyr, tuple(good), cfg.imu_timing, cfg.mag_timing)
     return Problem(where, acc.id, acc, gyr, mags_est, still, aux, onboard_priors(rec, good), unmeasured,
-                   _known_physics(cfg, aux), record, scale), findings
+                   _known_physics(cfg, aux), record, scale), findings, tuple(refused)
 
 
 def onboard_priors(rec: Recording, mags: list[Stream]) -> dict[str, MagPrior]:
@@ -177,6 +187,26 @@ def not_diagnosable(why: str) -> Finding:
                    f"not diagnosed: the mismatch diagnosis runs with the joint MAP method only, and {why}")
 
 
+def skipped_diagnoses(result: MethodResult, found: list[Finding]) -> list[Finding]:
+    """Which magnetometers the mismatch diagnosis did not run for, and why: those another method calibrated, and
+    those calibrated only with a disturbance modelled (methods/choose.py); each finding names its sensors, none
+    when the finding is about them all."""
+    other = [f.id for f in result.mags if f.method != "map"]
+    disturbed = {str(f.evidence["sensor"]): str(f.evidence["effect"]) for f in found
+                 if f.code == "disturbance_modelled"}
+    out = []
+    if other:
+        methods = " and ".join(dict.fromkeys(f.method for f in result.mags if f.method != "map"))
+        why = not_diagnosable(f"this log's own motion cannot determine the joint MAP calibration, so the {methods} "
+                              f"method calibrated it")
+        out.append(why if len(other) == len(result.mags) else replace(why, evidence={"sensors": other}))
+    for mag_id, eid in disturbed.items():
+        out.append(Finding(Severity.INFO, "diagnosis_skipped",
+                           f"not diagnosed: the base model left the readings unexplained, so {eid} was modelled "
+                           "without the diagnosis", {"sensors": [mag_id]}))
+    return out
+
+
 def not_diagnosed(result: RunResult) -> str | None:
     """Why the mismatch diagnosis did not run on a result fitted with the diagnosis asked for (`command_config`
     with effects None), in one sentence for `diagnose` to print as its result; None when it ran, or when the
@@ -198,19 +228,19 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Hook | None = Non
     """Calibrate every selected magnetometer of a recording already read (or built in code) against its IMU."""
     path = rec.path
     progress = progress or current()
-    problem, dropped = select_streams(rec, cfg)
+    problem, dropped, unusable = select_streams(rec, cfg)
     method, chosen = choose(problem, cfg)
     cfg = with_position(rec, cfg)
     if cfg.diagnose and method != "map":
         chosen.append(not_diagnosable(f"auto chose the {method} method for this log" if cfg.method == "auto" else
                                       f"--method {method} calibrated it"))
         cfg = replace(cfg, diagnose=False)
-    refused = not_carried(method, cfg.effects)
-    if refused:
+    uncarried = not_carried(method, cfg.effects)
+    if uncarried:
         from magcal_cli.models.ekf.effects import carried
 
         what = f"carries only {', '.join(carried(method))}" if method.startswith("ekf") else "has no effect terms"
-        msg = (f"{path.name}: --effects {','.join(refused)} is modelled by the joint MAP method only in magcal "
+        msg = (f"{path.name}: --effects {','.join(uncarried)} is modelled by the joint MAP method only in magcal "
                f"{__version__} (the {method} method {what}); use --method map, or --effects none")
         raise MagcalError(msg)
     target = METHODS.get(method)
@@ -220,14 +250,11 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Hook | None = Non
         raise MagcalError(msg)
     progress(f"{len(problem.still.segments)} still segments; fitting {method} "
              f"for {', '.join(m.id for m in problem.mags)}")
-    try:
-        with active(progress):          # the estimators and the diagnosis report through progress.current()
-            result, failed = run_method(resolve(target.run, f"the {method} method"), problem, cfg, method)
-    except InsufficientDataError as exc:
-        result, failed = attitude_instead(problem, cfg, exc, progress)
-        if cfg.diagnose:
-            failed.append(not_diagnosable(f"this log's own motion cannot determine the joint MAP calibration, so the "
-                                          f"{result.method} method calibrated it"))
+    with active(progress):              # the estimators and the diagnosis report through progress.current()
+        result, failed = run_method(resolve(target.run, f"the {method} method"), problem, cfg, method, progress)
+    result = replace(result, mags=tuple(replace(f, method=f.method or result.method) for f in result.mags))
+    if cfg.diagnose:
+        failed += skipped_diagnoses(result, failed)
     mags, series = [], {}
     ref = reference_for(cfg)
     streams = {m.id: m for m in problem.mags}
@@ -256,6 +283,8 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Hook | None = Non
                     dict(problem.timing))
     findings = chosen + dropped + failed + findings_for(rec, problem, result, mags) + dip_check(mags, ref)
     diagnosis = diagnosis_block(result.diagnosis, streams) if result.diagnosis else None
+    refused = tuple({"id": r.id, "status": "refused", "reason": r.reason, "advice": r.advice}
+                    for r in (*unusable, *result.refused))
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
-                      effects=entries, diagnosis=diagnosis, notes=tuple(f.message for f in findings))
+                      effects=entries, diagnosis=diagnosis, notes=tuple(f.message for f in findings), refused=refused)
     return RunResult(doc, rec, problem.still, tuple(findings), series)

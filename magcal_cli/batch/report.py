@@ -42,7 +42,13 @@ def _row(r: LogReport) -> tuple[str, ...]:
     """A table row."""
     return (r.name, STATUS_TEXT.get(r.status, r.status), str(r.exit_code), str(len(r.magnetometers) or "-"),
             _numbers(r, "field_norm_rms_pct", ".2f"), _numbers(r, "dip_deg", ".1f"),
-            "-" if r.status == "skipped" else f"{r.seconds:.1f}", f"Error: {r.error}" if r.error else "")
+            "-" if r.status == "skipped" else f"{r.seconds:.1f}", f"Error: {r.error}" if r.error else _refused(r))
+
+
+def _refused(r: LogReport) -> str:
+    """The compasses of a fitted log that were refused, by name."""
+    ids = [m["id"] for m in r.magnetometers if m.get("status") == "refused"]
+    return f"refused: {', '.join(ids)}" if ids else ""
 
 
 def counts(reports: list[LogReport]) -> dict[str, int]:

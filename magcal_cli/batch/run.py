@@ -96,11 +96,15 @@ def _mag_numbers(result: Any) -> list[dict[str, Any]]:
     out = []
     for m in result.calibration.magnetometers:
         q = m.quality
-        out.append({"id": m.id, "dip_deg": float(m.dip_deg),
+        out.append({"id": m.id, "status": "calibrated", "method": m.method, "dip_deg": float(m.dip_deg),
                     "field_norm_rms_pct": None if q is None else float(q.field_norm_rms_pct),
                     "coverage_pct": None if q is None else float(q.coverage_pct),
                     "misalignment_deg": float(np.rad2deg(so3.angle(m.misalignment))),
                     "heading_std_deg": heading_std_deg(m)})
+    # every compass of the log has a row: a refused one with its reason and no numbers (issue 38)
+    out += [{"id": r["id"], "status": "refused", "reason": r["reason"], "dip_deg": None, "field_norm_rms_pct": None,
+             "coverage_pct": None, "misalignment_deg": None, "heading_std_deg": None}
+            for r in result.calibration.refused]
     return out
 
 

@@ -51,7 +51,7 @@ def mag_calibration(fit: MagFit, stream: Stream, ref: ReferenceField | None = No
     strength, source = (float(np.cbrt(np.linalg.det(d))), "data") if ref is None else (ref.intensity * f, "wmm")
     cal = MagCalibration(stream.id, units.canonical(stream.native_unit), d, o, float(np.rad2deg(fit.dip)),
                          fit.cov * np.outer(scale, scale), strength, source, quality, held_document(fit, f),
-                         fit.reference)
+                         fit.reference, fit.method)
     return cal, MagSeries(t, raw, m_b)
 
 

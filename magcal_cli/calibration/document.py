@@ -34,7 +34,7 @@ def mag_to_dict(m: MagCalibration) -> dict[str, Any]:
     u = m.misalignment
     w_cov = m.misalignment_cov()
     out: dict[str, Any] = {
-        "id": m.id, "units": m.unit,
+        "id": m.id, "status": "calibrated", "method": m.method, "units": m.unit,
         "D": _list(m.D), "o": _list(m.o), "A": _list(m.A), "b": _list(m.b),
         "dip_deg": m.dip_deg,
         "field_strength": m.field_strength, "field_strength_source": m.field_strength_source,
@@ -66,14 +66,15 @@ def to_dict(cal: Calibration) -> dict[str, Any]:
         "source": {k: v for k, v in cal.source.__dict__.items() if v or k != "timing"},   # no timing: older
         "method": cal.method, "imu": imu_to_dict(cal.imu),
         "magnetometers": [mag_to_dict(m) for m in cal.magnetometers],
+        "refused": [dict(r) for r in cal.refused],
         "effects": list(cal.effects), "diagnosis": cal.diagnosis, "noise": cal.noise, "notes": list(cal.notes),
     }
     doc.update({k: v for k, v in cal.extra.items() if k not in doc})
     return doc
 
 
-_KNOWN = {"schema", "magcal_version", "created_utc", "source", "method", "imu", "magnetometers", "effects",
-          "diagnosis", "noise", "notes"}
+_KNOWN = {"schema", "magcal_version", "created_utc", "source", "method", "imu", "magnetometers", "refused",
+          "effects", "diagnosis", "noise", "notes"}
 
 
 def _arr(d: dict[str, Any], key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
@@ -132,7 +133,7 @@ def from_dict(doc: dict[str, Any], where: str = "calibration") -> Calibration:
                 field_strength=float(m["field_strength"]),
                 field_strength_source=str(m.get("field_strength_source", "data")),
                 quality=None if q is None else Quality(**q), held=tuple(m.get("held") or ()),
-                reference=str(m.get("reference", "motion"))))
+                reference=str(m.get("reference", "motion")), method=str(m.get("method", doc.get("method", "")))))
         imu_d = doc["imu"]
         std = imu_d.get("std", {})
         imu = ImuCalibration(str(imu_d["id"]), imu_d.get("accelerometer_bias"), imu_d.get("gyroscope_bias"),
@@ -141,7 +142,7 @@ def from_dict(doc: dict[str, Any], where: str = "calibration") -> Calibration:
         return Calibration(Source(**doc["source"]), str(doc["method"]), imu, tuple(mags),
                            str(doc["magcal_version"]), str(doc["created_utc"]), dict(doc.get("noise") or {}),
                            tuple(doc.get("effects") or ()), doc.get("diagnosis"), tuple(doc.get("notes") or ()),
-                           extra)
+                           extra, tuple(dict(r) for r in doc.get("refused") or ()))
     except CalibrationFileError:
         raise
     except (KeyError, TypeError, ValueError) as exc:

@@ -6,7 +6,7 @@ the calibrated unit field in the IMU body frame is m_b = A (y - b), A = D^-1, b 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -71,6 +71,8 @@ class MagCalibration:
     #: what fixed the orientation: "motion" (the log's accelerometer, gyro and magnetometer) or the vehicle's
     #: attitude estimate and the World Magnetic Model ("vehicle attitude (ATT) + WMM2025")
     reference: str = "motion"
+    #: the method that calibrated this magnetometer (each compass gets the strongest its data support)
+    method: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "held", tuple(self.held))
@@ -218,9 +220,14 @@ class Calibration:
     diagnosis: dict[str, Any] | None = None
     notes: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)   # further top-level keys, kept on round trips
+    #: the magnetometers of the log no method could calibrate: {"id", "status": "refused", "reason", "advice"}
+    refused: tuple[dict[str, str], ...] = ()
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "magnetometers", tuple(self.magnetometers))
+        # a magnetometer without its own method was calibrated by the document's
+        object.__setattr__(self, "magnetometers", tuple(m if m.method else replace(m, method=self.method)
+                                                        for m in self.magnetometers))
+        object.__setattr__(self, "refused", tuple(self.refused))
         object.__setattr__(self, "effects", tuple(self.effects))
         object.__setattr__(self, "notes", tuple(self.notes))
 

@@ -60,6 +60,9 @@ BRIEF = {
                               "calibrate from a recording with the vehicle moved by hand, or check the field near "
                               "the vehicle",
     "not_calibrated": "not calibrated{fix}",
+    "disturbance_modelled": "the base model could not explain the readings, and a disturbance the log records "
+                            "(current, throttle, motors or temperature) does, so it was calibrated with it; to fix: "
+                            "route power wiring away from the compass",
     "not_converged": "the solver stopped before converging, so the numbers are not final; do not use this "
                      "calibration, record again with more rotation",
     "normalised_field": "the log holds the field normalised to unit length, so hard iron and field strength are "
@@ -107,8 +110,12 @@ def warning_lines(findings: tuple[Any, ...], mag_ids: list[str], verbose: bool) 
     warnings = tuple(f for f in findings if f.severity is Severity.WARNING)
     if verbose:
         return [f.message for f in warnings]
-    out = []
+    out: list[str] = []
     for g in groups(warnings, mag_ids):
+        if g.code == "not_calibrated":      # each refused magnetometer by name, with its own reason and advice
+            out.extend(f.message if TO_FIX.search(f.message) else f"{f.message}; -v prints why"
+                       for f in warnings if f.code == g.code)
+            continue
         if len(g.messages) == 1 and len(g.messages[0]) <= FULL_CHARS:
             out.append(g.messages[0])
             continue

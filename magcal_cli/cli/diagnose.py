@@ -65,8 +65,10 @@ def diagnose_cmd(ctx: click.Context, log: Path, cal_path: Path | None, mags: tup
     if as_json:
         click.echo(text, nl=False)
         return
-    if skipped:
-        click.echo(f"{', '.join(m.id for m in result.calibration.magnetometers)}: {skipped}")
+    everyone = [m.id for m in result.calibration.magnetometers]
+    for f in result.findings:               # each magnetometer the diagnosis did not run for, by name
+        if f.code == "diagnosis_skipped":
+            click.echo(f"{', '.join(f.evidence.get('sensors', everyone))}: {f.message}")
     from magcal_cli.diagnose.summary import fold
 
     for text in fold([b["summary"] for b in (result.calibration.diagnosis or {}).get("sensors", [])]):

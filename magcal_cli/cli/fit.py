@@ -94,11 +94,13 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
         return
     for m in result.calibration.magnetometers:
         q = m.quality
-        click.echo(f"{m.id}: {result.calibration.method}, dip {m.dip_deg:.1f} deg, misalignment "
+        click.echo(f"{m.id}: {m.method or result.calibration.method}, dip {m.dip_deg:.1f} deg, misalignment "
                    f"{_angle_deg(m.misalignment):.2f} deg, field-norm error {q.field_norm_rms_pct:.2f} % RMS, "
                    f"coverage {q.coverage_pct:.0f} %" if q else m.id)
-    lines = warning_lines(result.findings, [m.id for m in result.calibration.magnetometers],
-                           bool(ctx.obj.get("verbose")))
+    for r in result.calibration.refused:
+        click.echo(f"{r['id']}: refused: {r['reason']}")
+    lines = warning_lines(result.findings, [m.id for m in result.calibration.magnetometers]
+                          + [r["id"] for r in result.calibration.refused], bool(ctx.obj.get("verbose")))
     for line in lines:
         say(ctx, f"warning: {line}")
     full = sum(f.severity.value == "warning" for f in result.findings)

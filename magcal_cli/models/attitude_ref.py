@@ -28,10 +28,12 @@ from magcal_cli import align, so3
 from magcal_cli.config import Config
 from magcal_cli.effects.base import NotTestable
 from magcal_cli.effects.current import Current, varying_current
-from magcal_cli.errors import InsufficientDataError
+from magcal_cli.errors import InsufficientDataError, UnexplainedError
 from magcal_cli.models import partial
 from magcal_cli.models.kok2012 import gyro_bias_from_still
 from magcal_cli.models.map.effects import ALPHA
+from magcal_cli.models.map.hold import PARTIAL_MAX_NORM_RMS as MAX_NORM_RMS
+from magcal_cli.models.observability import NONUNIFORM_ADVICE
 from magcal_cli.models.partial import MagPrior, sphere_prior
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit, HeldEntry, MagFit, MethodResult
@@ -195,6 +197,13 @@ def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField
         cov[np.ix_(cols, cols)] = cv
         names = [f"D.{i}{k}" for k in range(3)] + [f"o.{'xyz'[i]}"]
         held.extend(HeldEntry(names[j], float(mean[j]), sd, prior.source) for j in hold)
+    undisturbed = y if current is None else y - np.outer(current[0], c_i)
+    spread = float(np.sqrt(np.mean((np.linalg.norm((undisturbed - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
+    if spread > MAX_NORM_RMS:       # a compass that no calibration explains is refused, not passed on (issue 38)
+        msg = (f"{where}: no calibration against the vehicle's attitude explains these readings either (the "
+               f"calibrated field strength still varies {100 * spread:.0f} % RMS): the sensor is faulty, or the field "
+               f"around it changed during the log. To fix: {NONUNIFORM_ADVICE}")
+        raise UnexplainedError(msg)
     dip_col = MAG.cols("dip")[0]
     cov[dip_col, dip_col] = WMM_DIP_STD**2
     log = (f"{mag.id}: reference: the vehicle's attitude ({att.id}) and the {ref.model} field at "

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from magcal_cli.errors import InsufficientDataError
+from magcal_cli.errors import InsufficientDataError, UnexplainedError
 from magcal_cli.findings import Finding, Severity
 from magcal_cli.params import BASE
 from magcal_cli.streams import FloatArray
@@ -133,10 +133,10 @@ def check_useful(cov: FloatArray, field: float, held: IntArray, where: str, wide
                    f"{100 * spread:.0f} % RMS and the residuals drift together in time ({name}'s uncertainty "
                    f"widened {wide:.1f}x, to {100 * sd:.0f} % of the field), so the field around the sensor was "
                    f"not uniform or changed during the log. To fix: {NONUNIFORM_ADVICE} {ROTATE_ADVICE}")
-        else:
-            msg = (f"{where}: the log's motion determines too little for even a partial calibration ({name} is "
-                   f"uncertain to {100 * sd:.0f} % of the field once the held parameters' doubt and the correlated "
-                   f"residuals are counted). To fix: {ROTATE_ADVICE}")
+            raise UnexplainedError(msg)
+        msg = (f"{where}: the log's motion determines too little for even a partial calibration ({name} is "
+               f"uncertain to {100 * sd:.0f} % of the field once the held parameters' doubt and the correlated "
+               f"residuals are counted). To fix: {ROTATE_ADVICE}")
         raise InsufficientDataError(msg)
 
 

@@ -28,6 +28,17 @@ class MagFit:
     held: tuple[HeldEntry, ...] = ()
     #: what fixed the orientation: the log's own motion, or the vehicle's attitude estimate and the WMM
     reference: str = "motion"
+    #: the method that calibrated this magnetometer ("" = the result's); each compass gets its own (issue 38)
+    method: str = ""
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A magnetometer that no method could calibrate: its id, why (without advice) and what to record instead."""
+
+    id: str
+    reason: str
+    advice: str
 
 
 @dataclass(frozen=True)
@@ -86,3 +97,5 @@ class MethodResult:
     effects: tuple[EffectFit, ...] = ()
     #: the mismatch diagnosis per magnetometer (diagnose/engine.py), when it ran
     diagnosis: tuple[dict[str, Any], ...] = ()
+    #: the magnetometers no method could calibrate, each with its reason
+    refused: tuple[Refusal, ...] = ()

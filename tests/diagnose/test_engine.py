@@ -53,7 +53,7 @@ def _fit(case: str, seed: int) -> tuple[Simulation, Problem, MapEstimate]:
     """A 90-s paper-protocol log, its problem and the base fit."""
     effects, power = CASES[case]
     sim = simulate("paper", seed, duration=90.0, effects=effects, power_profile=power)
-    problem, _ = select_streams(sim.recording, Config(method="map"))
+    problem, _, _ = select_streams(sim.recording, Config(method="map"))
     return sim, problem, fit_map(problem, problem.mags[0])
 
 

@@ -22,7 +22,7 @@ from magcal_cli.models.gyro import Preintegrated, preintegrate_log
 from magcal_cli.models.map.cost import held_out, make_linearize
 from magcal_cli.models.map.effects import results
 from magcal_cli.models.map.estimate import FitContext, MapEstimate, Record, estimate
-from magcal_cli.models.map.hold import explains, rechoose
+from magcal_cli.models.map.hold import explains, rechoose, undisturbed
 from magcal_cli.models.map.noise import NOISE_ROUNDS, as_levels, noise_step, rescaled, variance_ratios
 from magcal_cli.models.map.start import FitSettings, Run, prepare, with_coverage
 from magcal_cli.models.normal import marginal_covariance, one_blas_thread
@@ -229,7 +229,8 @@ def _finish(problem: Problem, run: Run, sol: Solution, last_step: FloatArray | N
     widen = widening(sol, factor_clusters(sol.factors, ids))
     if held is not None:
         widen[held.theta_cols] = 1.0            # a held entry's std is its prior's doubt, not the data's
-        explains(run.ep, sol.theta, run.layout, run.where)
+        explains(run.ep, sol.theta, run.layout, run.where,
+                 undisturbed(run.ep, sol.theta, run.layout, run.bound, sol.states, run.pre))
     ctx = FitContext(run.ep, run.pre, run.noise, run.layout, run.bound, sol.states, sol.theta, run.hold, held,
                      held_out(run.ep.t, problem.unmeasured))
     record = Record(run.iters, tuple(run.log), tuple(run.notes) + run.ep.notes)

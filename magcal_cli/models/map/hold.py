@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
-from magcal_cli.errors import InsufficientDataError
+from magcal_cli.effects.base import Target
+from magcal_cli.errors import InsufficientDataError, UnexplainedError
 from magcal_cli.models import partial
 from magcal_cli.models.epochs import Epochs
 from magcal_cli.models.factor import Linearize
-from magcal_cli.models.map.cost import mag_layout
+from magcal_cli.models.gyro import Preintegrated
+from magcal_cli.models.map.cost import mag_layout, point_at
+from magcal_cli.models.map.effects import Bound, terms
 from magcal_cli.models.normal import information
 from magcal_cli.models.observability import ROTATE_ADVICE
 from magcal_cli.models.partial import Held
@@ -19,22 +24,36 @@ from magcal_cli.streams import FloatArray
 PARTIAL_MAX_NORM_RMS = 0.15
 
 
-def norm_spread(ep: Epochs, theta: FloatArray, layout: Layout) -> float:
-    """RMS of the calibrated field strength about 1 (relative): how far the calibration leaves the readings from a
-    sphere."""
+def norm_spread(ep: Epochs, theta: FloatArray, layout: Layout, mag: FloatArray | None = None) -> float:
+    """RMS of the calibrated field strength about 1 (relative): how far the calibration leaves the readings (`mag`,
+    default the epochs' own) from a sphere."""
     d, o, _ = mag_layout(layout).unpack(theta)
-    return float(np.sqrt(np.mean((np.linalg.norm((ep.mag - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
+    y = ep.mag if mag is None else mag
+    return float(np.sqrt(np.mean((np.linalg.norm((y - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
 
 
-def explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str) -> None:
-    """Refuse a partial calibration that does not explain the readings: the calibrated field strength must stay
-    within PARTIAL_MAX_NORM_RMS of constant (a full fit is judged by its quality numbers instead)."""
-    spread = norm_spread(ep, theta, layout)
+def undisturbed(ep: Epochs, theta: FloatArray, layout: Layout, bound: Sequence[Bound], states: FloatArray,
+                pre: Preintegrated) -> FloatArray:
+    """The readings with the fitted magnetometer effect terms taken out: a compass is judged after the disturbances
+    the fit models (issue 38: a field strength that follows the current is current interference, not a compass
+    no calibration explains)."""
+    if not any(b.effect.target is Target.MAG for b in bound):
+        return ep.mag
+    found = terms(bound, layout, theta, point_at(states, theta, layout, pre), Target.MAG)
+    out: FloatArray = ep.mag - np.sum([term.value for term, _ in found], axis=0)
+    return out
+
+
+def explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str, mag: FloatArray | None = None) -> None:
+    """Refuse a partial calibration that does not explain the readings (`mag`: with the modelled disturbances taken
+    out): the calibrated field strength must stay within PARTIAL_MAX_NORM_RMS of constant (a full fit is judged by
+    its quality numbers instead)."""
+    spread = norm_spread(ep, theta, layout, mag)
     if spread > PARTIAL_MAX_NORM_RMS:
         msg = (f"{where}: even a partial calibration does not explain the readings (the calibrated field strength "
                f"still varies {100 * spread:.0f} % RMS): the log's motion determines too little, or a disturbance "
                f"dominates. To fix: {ROTATE_ADVICE}")
-        raise InsufficientDataError(msg)
+        raise UnexplainedError(msg)
 
 
 def rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray, where: str,

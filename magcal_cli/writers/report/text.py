@@ -12,7 +12,7 @@ import numpy.typing as npt
 from magcal_cli import effects as registry
 from magcal_cli import so3, units
 from magcal_cli.atomic import write_text
-from magcal_cli.calibration.types import MagCalibration
+from magcal_cli.calibration.types import Calibration, MagCalibration
 from magcal_cli.diagnose.summary import fold, p_is, unit_suffix
 from magcal_cli.effects.correct import terms
 from magcal_cli.findings import Severity
@@ -69,7 +69,7 @@ def render(result: RunResult) -> str:
     src = cal.source
     lines = [f"magcal {cal.magcal_version} calibration report ({cal.created_utc})", "",
              f"Log:     {src.path} ({src.format}, {src.end_s - src.start_s:.1f} s used, sha256 {src.sha256[:12]})",
-             f"Method:  {title(cal.method)}"]
+             f"Method:  {methods_line(cal)}"]
     if src.timing:
         lines.append(f"Timing:  {sentence(src.timing)}")
     if result.outputs:
@@ -93,6 +93,10 @@ def render(result: RunResult) -> str:
         lines.append(f"         accelerometer bias: not estimated by {cal.method}")
     for mag in cal.magnetometers:
         lines += [""] + _render_mag(mag, result)
+    for r in cal.refused:
+        lines += ["", f"{r['id']}: refused (not calibrated)",
+                  *textwrap.wrap(f"why: {r['reason']}", 100, initial_indent="  ", subsequent_indent="    "),
+                  *textwrap.wrap(f"to fix: {r['advice']}", 100, initial_indent="  ", subsequent_indent="    ")]
     if cal.effects:
         lines += ["", "Effects beyond the base model", *render_effects(cal.effects)]
     notes = [f for f in result.findings if f.severity is Severity.WARNING] + \
@@ -100,6 +104,14 @@ def render(result: RunResult) -> str:
     if notes:
         lines += ["", "Notes"] + [f"  - [{f.severity.value}] {f.message}" for f in notes]
     return "\n".join(lines) + "\n"
+
+
+def methods_line(cal: Calibration) -> str:
+    """The method, or each magnetometer's where they differ (each compass gets the strongest its data support)."""
+    used = {m.method or cal.method for m in cal.magnetometers} or {cal.method}
+    if len(used) == 1:
+        return title(used.pop())
+    return "; ".join(f"{m.id}: {title(m.method or cal.method)}" for m in cal.magnetometers)
 
 
 def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
@@ -115,7 +127,8 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
         r = np.linalg.norm(series.raw, axis=1)
         before = float(100.0 * np.std(r) / np.mean(r))
     q = mag.quality
-    lines = [f"Magnetometer {mag.id} (log unit: {mag.unit})", "  What was found",
+    by = f"; calibrated by {title(mag.method)}" if mag.method not in ("", result.calibration.method) else ""
+    lines = [f"Magnetometer {mag.id} (log unit: {mag.unit}{by})", "  What was found",
              f"    hard iron b        {vec(mag.o * f)} +- {vec(mag.std_of('o') * f, '{:.3f}')} {sym}",
              f"    field strength     {mag.field_strength * f:.3f} {sym} (source: {mag.field_strength_source})",
              f"    dip                {mag.dip_deg:.2f} +- {float(mag.std_of('dip')):.2f} deg",

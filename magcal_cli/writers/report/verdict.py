@@ -25,6 +25,7 @@ TITLES = {
     "dip_disagrees_with_wmm": "Dip differs from the World Magnetic Model",
     "fisher_condition": "Confounded parameters",
     "not_calibrated": "Magnetometers not calibrated",
+    "disturbance_modelled": "Calibrated with a disturbance modelled",
     "reader_note": "Reading the log",
     "method_note": "Solver",
 }

@@ -8,7 +8,7 @@ from pathlib import Path
 from magcal_cli import units
 from magcal_cli.writers.report.sections.base import Context
 from magcal_cli.writers.report.sections.markup import anchor, badge, num
-from magcal_cli.writers.report.text import DISPLAY
+from magcal_cli.writers.report.text import DISPLAY, methods_line
 from magcal_cli.writers.report.verdict import LEVELS, next_steps, overall
 
 
@@ -23,7 +23,10 @@ def render(ctx: Context) -> str:
              for lv, ids in by_level.items() if ids]
     n = len(verdicts)
     head = (f"{n} magnetometer{'s' if n != 1 else ''} calibrated from {Path(cal.source.path).name} with "
-            f"{cal.method}: {'; '.join(parts)}.")
+            f"{methods_line(cal)}: {'; '.join(parts)}.")
+    if cal.refused:
+        head += (f" {len(cal.refused)} refused ({', '.join(r['id'] for r in cal.refused)}): no method could "
+                 "calibrate {}.".format("it" if len(cal.refused) == 1 else "them"))
     rows = []
     for v in verdicts:
         m = v.metrics
@@ -40,6 +43,8 @@ def render(ctx: Context) -> str:
             f"<td>{num(m.get('misalignment_deg'), '{:.2f}')} &plusmn; {num(m.get('misalignment_std_deg'), '{:.2f}')}"
             f"</td><td>{num(m.get('heading_std_deg'), '{:.2f}')}</td>"
             f"<td>{'; '.join(escape(r) for r in v.reasons) or 'no caveats'}</td></tr>")
+    rows += [f"<tr><td>{escape(r['id'])}</td><td>{badge('poor', 'refused')}</td><td colspan='5'>not calibrated"
+             f"</td><td>{escape(r['reason'])}; to fix: {escape(r['advice'])}</td></tr>" for r in cal.refused]
     table = ("<table class='grid'><thead><tr><th>magnetometer</th><th>verdict</th><th>field strength error "
              "raw &rarr; calibrated [% RMS]</th><th>residual RMS</th><th>coverage</th><th>misalignment [deg]</th>"
              "<th>heading 1&sigma; [deg]</th><th>why</th></tr></thead><tbody>" + "".join(rows) + "</tbody></table>")
