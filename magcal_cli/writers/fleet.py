@@ -99,9 +99,13 @@ def html(fleet: Fleet, title: str = "magcal fleet report") -> str:
            "flight; bands are ±2 inflated std; red spans mark the first flight after a change. See docs/fleet.md.</p>",
            "<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>",
            *(_row(c, k) for k, c in enumerate(compasses)), "</table>"]
+    out += [f"<p class='note'>Warning: {escape(v)} is identified by SYSID_THISMAV only: vehicles sharing it merge "
+            "into one series, and a compass change may be another vehicle's compass.</p>"
+            for v in sorted({c.vehicle for c in compasses if c.sysid_only})]
     for k, c in enumerate(compasses):
         fig = trend_figure(c, fleet.inflation)
         out.append(f"<h2 id='c{k}'>{escape(c.vehicle)} · {escape(c.sensor)} · {c.state}</h2>")
+        out.append(f"<p class='note'>Vehicle identified by {escape(c.identified_by)}.</p>")
         if fig is not None:
             out.append(f"<img alt='{escape(c.vehicle)} {escape(c.sensor)} trends' width='{fig.width:.0f}' "
                        f"height='{fig.height:.0f}' src='{fig.uri()}'>")

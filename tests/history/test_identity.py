@@ -67,6 +67,7 @@ def test_same_sysid_different_boards_are_two_vehicles(tmp_path: Path) -> None:
     assert text.exit_code == 0, text.output
     assert "2 compasses on 2 vehicles: 0 changed, 0 settled, 2 new" in text.output
     assert "board unique id (fmuv3)" in text.output and "warning" not in text.output
+    assert "Vehicle identified by board unique id (PH4-mini)" in runner.invoke(cli, ["fleet", str(apart), "-o", "-"]).stdout
     doc = json.loads(runner.invoke(cli, ["fleet", str(apart), "--json"]).output)
     assert {c["identified_by"] for c in doc["compasses"]} == {"board unique id (fmuv3)", "board unique id (PH4-mini)"}
 
@@ -79,6 +80,8 @@ def test_same_sysid_different_boards_are_two_vehicles(tmp_path: Path) -> None:
     assert "warning: sysid 1 is identified by SYSID_THISMAV only" in text.output
     doc = json.loads(runner.invoke(cli, ["fleet", str(merged), "--json"]).output)
     assert [(c["identified_by"], c["sysid_only"]) for c in doc["compasses"]] == [("SYSID only", True)]
+    page = runner.invoke(cli, ["fleet", str(merged), "-o", "-"]).stdout          # the HTML report says it too
+    assert "Warning: sysid 1 is identified by SYSID_THISMAV only" in page and "identified by SYSID only" in page
 
 
 def test_board_info_reads_the_boot_message() -> None:
