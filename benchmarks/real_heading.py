@@ -11,7 +11,8 @@ independently of magcal's own `heading_check`:
 
 Three calibrations: magcal's (`magcal fit LOG --outputs json`, defaults otherwise, applied with its carried current
 or throttle interference), the one the vehicle flew with (the log's parameters, `firmware/flown.py`) and
-magfit_WMM's (ArduPilot only, `vs_magfit.run_magfit`: `--elliptical --cmot`, `--reduce N`). Out of sample: the log is
+magfit_WMM's (ArduPilot only, `vs_magfit.run_magfit`: `--elliptical --cmot`, `--reduce N`, rerun with `--iter 1000`
+when it stops at its iteration limit). Out of sample: the log is
 cut in two halves by time; magcal is also fitted on each half alone (`--start/--end`) and magfit_WMM too (`--condition`
 on the compass message's time), and each is judged on the other half. The flown calibration was made before the flight
 (out of sample by construction); the whole-log fits of magcal and magfit_WMM are in sample. The paired difference magcal (out of sample) minus flown has a block-jackknife standard error
@@ -41,6 +42,8 @@ Array = npt.NDArray[np.float64]
 ATTITUDE = ("ATT", "vehicle_attitude")
 TRIMS = ("AHRS_TRIM_X", "AHRS_TRIM_Y")
 BLOCK_S = 10.0
+#: magfit_WMM --iter after "Iteration limit reached" with its default 100
+MAGFIT_ITER = 1000
 
 
 def heading_error(t: Array, field: Array, att_t: Array, att_q: Array, decl: float, trim: Array) -> tuple[Array, Array]:
@@ -123,7 +126,7 @@ def log_context(log: Path) -> dict[str, Any] | None:
     except MagcalError:
         ref = None
     end = max(float(s.t[-1]) for s in rec.streams if len(s))
-    trim = np.array([rec.params.get(k, 0.0) for k in TRIMS]) if att[0].id == "ATT" else np.zeros(2)
+    trim = np.array([rec.params.get(k, 0.0) for k in TRIMS]) if rec.format == "dataflash" else np.zeros(2)
     return {"rec": rec, "att": att[0], "decl": ref.declination if ref else 0.0, "wmm": ref is not None,
             "trim": trim, "end": end, "half": end / 2.0}
 
@@ -229,16 +232,21 @@ def run_log(log: Path, realdata: Path, args: argparse.Namespace) -> dict[str, An
                            "not_calibrated": [m for m in all_mags if m not in calibrated], "compasses": []}
     for mag_id in calibrated:
         magfit = {}
-        if ctx["att"].id == "ATT" and not args.no_magfit:
+        if ctx["rec"].format == "dataflash" and not args.no_magfit:      # magfit_WMM reads ArduPilot logs only
             magfit = run_magfits(log, ctx, all_mags.index(mag_id) + 1, args)
             row.setdefault("magfit_s", {})[mag_id] = {k: r["seconds"] for k, r in magfit.items()}
             row.setdefault("magfit_points", {})[mag_id] = {k: r.get("points") for k, r in magfit.items()}
             for k, r in magfit.items():
-                if "error" in r:
-                    row.setdefault("magfit_error", {})[f"{mag_id} {k}"] = r["error"]
+                if "error" in r or r.get("retried_iter"):
+                    row.setdefault("magfit_error", {})[f"{mag_id} {k}"] = (
+                        f"{r['error']} (also with --iter {MAGFIT_ITER})" if "error" in r
+                        else f"converged only with --iter {MAGFIT_ITER}")
         comp = compass_rows(ctx, mag_id, fields(ctx, mag_id, docs, magfit))
         m = next(m for m in full["magnetometers"] if m["id"] == mag_id)
         comp["method"] = m.get("method") or full.get("method")
+        # the EKF steers by the primary compass, so ATT's yaw leans towards the flown calibration there
+        comp["role"] = ("primary" if int(ctx["rec"].params.get("COMPASS_PRIMARY", 0)) == all_mags.index(mag_id)
+                        else "secondary") if ctx["rec"].format == "dataflash" else None
         comp["heading_check"] = m.get("heading_check")
         row["compasses"].append(comp)
     row["seconds"] = round(time.perf_counter() - t0, 1)
@@ -258,8 +266,19 @@ def run_magfits(log: Path, ctx: dict[str, Any], mag: int, args: argparse.Namespa
     for name, more in (("magfit_WMM", ()), ("magfit_half1", ("--condition", f"{clock} < {cut:.3f}")),
                        ("magfit_half2", ("--condition", f"{clock} >= {cut:.3f}"))):
         run = run_magfit(str(log), mag, args.magfit_reduce, args.timeout, more)
-        out[name] = run["result"] | {"seconds": round(sum(a["seconds"] for a in run["attempts"]), 1)}
+        seconds = sum(a["seconds"] for a in run["attempts"])
+        if "Iteration limit" in run["result"].get("error", ""):
+            # what a user does next: more SLSQP iterations than magfit_WMM's 100
+            retry = run_magfit(str(log), mag, args.magfit_reduce, args.timeout, (*more, "--iter", str(MAGFIT_ITER)))
+            seconds += sum(a["seconds"] for a in retry["attempts"])
+            run = retry | {"first_error": run["result"]["error"]}
+        out[name] = run["result"] | {"seconds": round(seconds, 1), "retried_iter": "first_error" in run}
     return out
+
+
+def _method(c: dict[str, Any]) -> str:
+    """The method that calibrated a compass, and whether the vehicle's EKF steered by it (ArduPilot)."""
+    return str(c["method"]) + (f" ({c['role']})" if c.get("role") else "")
 
 
 def _num(v: float | None) -> str:
@@ -304,7 +323,7 @@ def markdown(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
                 rms = h["rms_deg"]
                 hc = json.dumps(c["heading_check"])[:100] if c.get("heading_check") and k == 0 else ""
                 lines.append(f"| {r['log'] if i == 0 and k == 0 else ''} | {c['id'] if k == 0 else ''} | "
-                             f"{c['method'] if k == 0 else ''} | {h['span_s'][0]:.0f}-{h['span_s'][1]:.0f} | "
+                             f"{_method(c) if k == 0 else ''} | {h['span_s'][0]:.0f}-{h['span_s'][1]:.0f} | "
                              f"{_num(rms.get('flown'))} | {_num(rms.get('magcal_oos'))} | "
                              f"{_num(rms.get('magfit_oos'))} | {_num(rms.get('magcal'))} | "
                              f"{_num(rms.get('magfit_WMM'))} | {_diff(h.get('oos_minus_flown'))} | "
@@ -316,11 +335,11 @@ def markdown(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
         if r["not_calibrated"]:
             lines.append(f"| {r['log'] if not r['compasses'] else ''} | {', '.join(r['not_calibrated'])} | not "
                          f"calibrated by the default fit (exit {r['exits']['magcal']}) | | | | | | | | | |")
-    errors = [f"- {r['log']} {m}: magfit_WMM failed: {e}" for r in rows for m, e in r.get("magfit_error", {}).items()]
+    errors = [f"- {r['log']} {m}: {e}" for r in rows for m, e in r.get("magfit_error", {}).items()]
     times = [f"- {r['log']}: {r['seconds']} s (magcal fits {r['fit_s']}; magfit_WMM {r.get('magfit_s', 'n/a')})"
              for r in rows]
     return head + "\n".join(lines) + "\n\n## Times\n\n" + "\n".join(times) + "\n" + \
-        ("\n## magfit_WMM failures\n\n" + "\n".join(errors) + "\n" if errors else "")
+        ("\n## magfit_WMM failures and retries\n\n" + "\n".join(errors) + "\n" if errors else "")
 
 
 def main() -> None:
