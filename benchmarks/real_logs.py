@@ -138,8 +138,9 @@ def fate(mag_id: str, res: dict[str, Any]) -> dict[str, Any]:
 
 def _about(error: str, mag_id: str) -> str:
     """The part of a whole-log error line about one magnetometer: from its first mention within a parenthesised
-    list of reasons ("none of the 2 magnetometers can be used (MAG[0]: ...; MAG[1]: ...)"), else the whole line."""
-    m = re.search(r"[(;,]\s*" + re.escape(mag_id) + r"(?![\w\[\].]):", error)
+    list of reasons ("none of the 2 magnetometers can be used (MAG[0]: ...; MAG[1]: ...)", or ": MAG[0], ...;
+    MAG[1], ..."), else the whole line."""
+    m = re.search(r"[(;:,]\s*" + re.escape(mag_id) + r"(?![\w\[\].])\s*[:,]", error)
     return f"whole log refused; {error[m.start() + 1:].strip()}" if m else error
 
 
