@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcal_cli.errors import LogReadError
+from magcal_cli.errors import LogReadError, StreamError
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.synth.logs import write_log
@@ -152,10 +152,9 @@ def test_channels_magcal_cannot_decode_are_listed(tmp_path: Path) -> None:
         writer.add_message(writer.register_channel("/imu/pb", "protobuf", pb), log_time=1, data=b"", publish_time=1)
         writer.add_message(writer.register_channel("/tf", "cdr", other), log_time=2, data=b"", publish_time=2)
         writer.finish()  # type: ignore[no-untyped-call]
-    rec = open_recording(tmp_path / "p.mcap")
-    assert rec.streams == ()
-    assert rec.notes == ("ignored 2 topics of types magcal does not read: /imu/pb (sensor_msgs/msg/Imu in "
-                         "protobuf encoding), /tf (tf2_msgs/msg/TFMessage)",)
+    with pytest.raises(StreamError, match=r"p.mcap: no stream magcal reads; its topics are /imu/pb "
+                                          r"\(sensor_msgs/msg/Imu in protobuf encoding\), /tf \(tf2_msgs/msg/TFMessage\); looked for"):
+        open_recording(tmp_path / "p.mcap")
 
 
 def test_truncated_mcap(tmp_path: Path, sim: Simulation) -> None:

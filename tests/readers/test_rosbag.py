@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from magcal_cli.errors import LogReadError, UnsupportedFormatError
+from magcal_cli.errors import LogReadError, StreamError, UnsupportedFormatError
 from magcal_cli.readers import ReadOptions, open_recording
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.synth.logs import write_log
@@ -161,12 +161,13 @@ def test_vector3stamped_field_units_follow_the_magnitude(tmp_path: Path, sim: Si
 
 
 def test_vector3stamped_elsewhere_is_ignored(tmp_path: Path, sim: Simulation) -> None:
-    """A Vector3Stamped on a topic not named like a magnetometer is not taken for the field."""
+    """A Vector3Stamped on a topic not named like a magnetometer is not taken for the field: the bag has no
+    stream magcal reads, and the error names its topic and type (issue 38 item 5)."""
     _vector3_bag(tmp_path / "v.bag", sim, 1e4, topic="/cmd/velocity")
-    rec = open_recording(tmp_path / "v.bag")
-    assert rec.streams == ()
-    assert rec.notes == ("ignored 1 topics of types magcal does not read: /cmd/velocity "
-                         "(geometry_msgs/msg/Vector3Stamped)",)
+    with pytest.raises(StreamError, match=r"v.bag: no stream magcal reads; its topics are /cmd/velocity "
+                                          r"\(geometry_msgs/msg/Vector3Stamped\); looked for .*"
+                                          r"geometry_msgs/msg/Vector3Stamped \(vector; on a topic named \*mag\*\)"):
+        open_recording(tmp_path / "v.bag")
 
 
 def test_nan_field_samples_are_dropped_and_counted(tmp_path: Path, sim: Simulation) -> None:

@@ -17,6 +17,7 @@ from magcal_cli.readers.ros.bag1_fast import read_indexed_bag1
 from magcal_cli.readers.ros.bag2_direct import read_direct
 from magcal_cli.readers.ros.bag_batch import Batcher, read_ros2_storage
 from magcal_cli.readers.ros.msg import Collector, ignored_note, wanted
+from magcal_cli.readers.ros.nested import nested_of, read_nested
 from magcal_cli.streams import Cut, Recording
 
 #: first step (ns) past a corrupt chunk when resuming; it doubles until a message reads (1 ms .. ~18 min)
@@ -75,7 +76,9 @@ class RosbagReader:
             return rec
         try:
             conns = [c for c in reader.connections if wanted(c.topic, c.msgtype)]
-            ignored = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections if c not in conns})
+            nested = nested_of(reader, [c for c in reader.connections if c not in conns])
+            ignored = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections
+                              if c not in conns and c.id not in nested})
             if ignored:
                 notes.append(ignored_note(ignored))
             done, cut = _fast(bag, reader, conns, fast := Collector(), options, notes) if conns else (False, None)
@@ -85,6 +88,9 @@ class RosbagReader:
             cut = _db3_cut(bag) or cut
             if why:                 # damage that reaches the end of the bag is a cut (its index was whole)
                 cut = Cut(None, _size(bag), f"the data are unreadable from a chunk on to the end ({why})")
+            read_nested(reader, nested, collector, notes)
+            for c in reader.connections:
+                collector.saw(c.topic, c.msgtype, c in conns or c.id in nested)
             refuse_if_strict(path, options, cut)
         finally:
             with contextlib.suppress(*errors):

@@ -18,6 +18,7 @@ from typing import Any
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.ros.bag_batch import Decoded, add_decoded, batch_decoder, read_db3, storage_files
 from magcal_cli.readers.ros.msg import Collector, wanted
+from magcal_cli.readers.ros.nested import may_hold
 from magcal_cli.readers.ros.types2 import humble_subset
 from magcal_cli.streams import Cut
 
@@ -62,7 +63,9 @@ def read_direct(bag: Path, collector: Collector, options: ReadOptions, notes: li
         cut = None
         for f in files:
             cut = collect(f, collector, options, notes, note_ignored=False) or cut
-        return sorted({f"{n} ({t})" for n, t in topics if not wanted(n, t)}), cut
+        # a topic whose fields were read (`/imu.mag_field`) is not ignored; Collector is no dict (SIM118)
+        nested = {k[0].split(".", 1)[0] for k in collector.keys() if "." in k[0]}  # noqa: SIM118
+        return sorted({f"{n} ({t})" for n, t in topics if not wanted(n, t) and n not in nested}), cut
     ignored = _read_db3s(files, collector, notes)
     return None if ignored is None else (ignored, None)
 
@@ -77,6 +80,8 @@ def _read_db3s(dbs: list[Path], collector: Collector, notes: list[str]) -> list[
             con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
             try:
                 topics = con.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
+                if _holds_nested(con, {str(t) for _, n, t, _ in topics if not wanted(str(n), str(t))}):
+                    return None             # custom types holding standard ones: AnyReader registers them
             finally:
                 con.close()
         except (sqlite3.Error, ValueError):             # a damaged database, a name that is not UTF-8
@@ -84,6 +89,8 @@ def _read_db3s(dbs: list[Path], collector: Collector, notes: list[str]) -> list[
         ids = {int(i): SimpleNamespace(topic=str(n), msgtype=str(t)) for i, n, t, _ in topics
                if wanted(str(n), str(t))}
         ignored |= {f"{n} ({t})" for _, n, t, _ in topics if not wanted(str(n), str(t))}
+        for _, n, t, _ in topics:
+            collector.saw(str(n), str(t), wanted(str(n), str(t)))
         if any(str(f) != "cdr" for i, _, _, f in topics if int(i) in ids) \
                 or any(c.msgtype not in reader.typestore.fielddefs for c in ids.values()):
             return None
@@ -96,3 +103,12 @@ def _read_db3s(dbs: list[Path], collector: Collector, notes: list[str]) -> list[
     if bad:
         notes.append(f"corrupt data: skipped {bad} messages that did not decode")
     return sorted(ignored)
+
+
+def _holds_nested(con: sqlite3.Connection, types: set[str]) -> bool:
+    """Whether the embedded definition (Iron and later) of one of `types` names a standard sensor type."""
+    if not types or not con.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = "
+                                    "'message_definitions'").fetchone():
+        return False
+    rows = con.execute("SELECT topic_type, encoded_message_definition FROM message_definitions").fetchall()
+    return any(str(t) in types and may_hold(str(d)) for t, d in rows)

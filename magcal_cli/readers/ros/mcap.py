@@ -22,6 +22,7 @@ from magcal_cli.readers.cut import mark_cut, refuse_if_strict
 from magcal_cli.readers.ros.mcap_chunk import Batch
 from magcal_cli.readers.ros.mcap_stream import Damage, iter_batches
 from magcal_cli.readers.ros.msg import Collector, ignored_note, normalise_type, wanted
+from magcal_cli.readers.ros.nested import Nested, may_hold
 from magcal_cli.readers.ros.vec import BatchDecoder
 from magcal_cli.streams import Cut, Recording
 
@@ -38,8 +39,8 @@ def decode_json(data: bytes) -> Any:
     return json.loads(data, object_hook=_namespace)
 
 
-def ros_decoder(schema: Any, encoding: str) -> BatchDecoder:
-    """Batch decoder of `schema` (ros2msg/ros2idl with cdr, ros1msg with ros1) from its own definition."""
+def schema_store(schema: Any) -> tuple[Any, str]:
+    """A typestore of `schema`'s own definition (ros2msg, ros2idl or ros1msg) and its normalised type name."""
     from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
     text = schema.data.decode()
@@ -53,21 +54,47 @@ def ros_decoder(schema: Any, encoding: str) -> BatchDecoder:
         types = get_types_from_msg(text, name)
     store = get_typestore(Stores.EMPTY)          # one store per schema: two schemas may define a type differently
     store.register(types)
+    return store, name
+
+
+def ros_decoder(schema: Any, encoding: str) -> BatchDecoder:
+    """Batch decoder of `schema` (ros2msg/ros2idl with cdr, ros1msg with ros1) from its own definition."""
+    store, name = schema_store(schema)
     if encoding == "ros1":
         return BatchDecoder(store.fielddefs, name, True, lambda data: store.deserialize_ros1(data, name))
     return BatchDecoder(store.fielddefs, name, False, lambda data: store.deserialize_cdr(data, name))
 
 
-def decoder(schema: Any, channel: Any) -> tuple[Decode | BatchDecoder | None, str]:
+def nested_decoder(schema: Any, channel: Any) -> Nested | None:
+    """The standard messages a custom type holds as fields (nested.py), or None when it holds none."""
+    if not may_hold(schema.data.decode(errors="replace")):
+        return None
+    store, name = schema_store(schema)
+    if channel.message_encoding == "ros1":
+        return Nested(channel.topic, store.fielddefs, name, lambda data: store.deserialize_ros1(data, name)) or None
+    return Nested(channel.topic, store.fielddefs, name, lambda data: store.deserialize_cdr(data, name)) or None
+
+
+def decoder(schema: Any, channel: Any) -> tuple[Decode | BatchDecoder | Nested | None, str]:
     """How to decode a channel magcal reads, or None and why it is skipped."""
     if schema is None:
         return None, f"{channel.topic} (no schema)"
     enc, sch = channel.message_encoding, schema.encoding
+    ros = (enc, sch) in {("cdr", "ros2msg"), ("cdr", "ros2idl"), ("ros1", "ros1msg")}
     if not wanted(channel.topic, schema.name):
+        if ros:
+            from rosbags.typesys import TypesysError
+
+            try:
+                found = nested_decoder(schema, channel)
+            except (TypesysError, ValueError, IndexError, UnicodeDecodeError, KeyError):
+                found = None             # a definition that does not parse holds nothing magcal can read
+            if found is not None:
+                return found, ""
         return None, f"{channel.topic} ({schema.name})"
     if enc == "json":
         return decode_json, ""
-    if (enc, sch) in {("cdr", "ros2msg"), ("cdr", "ros2idl"), ("ros1", "ros1msg")}:
+    if ros:
         from rosbags.typesys import TypesysError
 
         try:
@@ -95,7 +122,7 @@ def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[
 
     Returns where the file is cut (None when it is complete); --strict refuses a cut file. A ROS 2 bag's
     reader names the ignored topics itself (`note_ignored` False)."""
-    decoders: dict[int, Decode | BatchDecoder | None] = {}
+    decoders: dict[int, Decode | BatchDecoder | Nested | None] = {}
     skipped: list[str] = []
     damage = Damage()
     bad = 0
@@ -110,6 +137,9 @@ def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[
                     if cid not in decoders:
                         decoders[cid], why = decoder(schema, channel)
                         skipped += [why] if why else []
+                        # a skipped channel's type with why it is skipped ("... in protobuf encoding")
+                        kind = why[len(channel.topic) + 2:-1] if why or schema is None else schema.name
+                        collector.saw(channel.topic, kind, decoders[cid] is not None)
                     if decoders[cid] is not None and schema is not None:
                         topics.setdefault((channel.topic, normalise_type(schema.name)), []).append((channel, schema))
                 for chans in topics.values():
@@ -132,7 +162,7 @@ def collect(path: Path, collector: Collector, options: ReadOptions, notes: list[
 
 
 def _add_topic(path: Path, collector: Collector, batch: Batch, chans: list[tuple[Any, Any]],
-               decoders: dict[int, Decode | BatchDecoder | None]) -> int:
+               decoders: dict[int, Decode | BatchDecoder | Nested | None]) -> int:
     """Decode the messages of one topic in a batch; how many are corrupt.
 
     Several ROS channels on one topic (two publishers) are merged back into file order, as one stream."""
@@ -162,8 +192,15 @@ def _add_topic(path: Path, collector: Collector, batch: Batch, chans: list[tuple
 
 
 def _add(path: Path, collector: Collector, msgtype: str, channel: Any, batch: Batch,
-         decode: Decode | BatchDecoder) -> int:
+         decode: Decode | BatchDecoder | Nested) -> int:
     """Decode one channel's messages of a batch; how many are corrupt. A JSON one without the ROS fields is an error."""
+    if isinstance(decode, Nested):
+        for at, length, log_time in zip(batch.start.tolist(), batch.length.tolist(), batch.log_time.tolist(),
+                                        strict=True):
+            decode.add(log_time, bytes(batch.data[at:at + length]))
+        decode.flush(collector)
+        bad, decode.bad = decode.bad, 0
+        return bad
     if isinstance(decode, BatchDecoder):
         ok, stamps, values = decode(batch.data, batch.start, batch.length)
         collector.add_batch(channel.topic, msgtype, batch.log_time[ok], stamps[ok], values[ok])

@@ -16,6 +16,7 @@ import numpy.typing as npt
 
 from magcal_cli import units
 from magcal_cli.align import clean_time
+from magcal_cli.errors import StreamError
 from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.checks import (
     drop_held,
@@ -54,6 +55,8 @@ VEC3_TESLA_BELOW = 1e-2
 CLOCK_MISMATCH_S = 1.0
 #: how many ignored topics a note names before it says "and N more"
 IGNORED_LISTED = 5
+#: how many topics the error for a log without any stream magcal reads names
+TOPICS_LISTED = 12
 
 
 def normalise_type(name: str) -> str:
@@ -75,6 +78,18 @@ def ignored_note(topics: list[str]) -> str:
     return f"ignored {len(topics)} topics of types magcal does not read: {shown}{more}"
 
 
+def no_stream_error(path: Path, topics: dict[str, str]) -> StreamError:
+    """The error for a log none of whose topics is, or holds as a field, a type magcal reads."""
+    names = [f"{t} ({ty})" for t, ty in topics.items()]
+    more = f" and {len(names) - TOPICS_LISTED} more" if len(names) > TOPICS_LISTED else ""
+    looked = ", ".join(f"{ty} ({fields}{'; on a topic named *mag*' if group == 'vec3' else ''})"
+                       for ty, (group, fields, _) in ROS_TYPES.items())
+    msg = (f"{path}: no stream magcal reads; its topics are {', '.join(names[:TOPICS_LISTED])}{more}; looked for "
+           f"these types as topics or as fields of any message at any depth: {looked}. Publish the sensors as "
+           "these standard messages, or export them to CSV (docs/readers-ros-csv.md)")
+    return StreamError(msg)
+
+
 def stamp_ns(msg: Any) -> int:
     """Header stamp in integer ns (exact; a float of 1.7e9 s only resolves 0.24 us); JSON spellings too."""
     st = msg.header.stamp
@@ -94,6 +109,14 @@ class Collector:
         self.stamps: dict[tuple[str, str], list[int]] = defaultdict(list)
         self.recv: dict[tuple[str, str], list[int]] = defaultdict(list)
         self.values: dict[tuple[str, str], list[tuple[float, ...]]] = defaultdict(list)
+        #: every topic of the log -> its type, and whether one is read (the error for a log with none)
+        self.topics: dict[str, str] = {}
+        self.used = False
+
+    def saw(self, topic: str, msgtype: str, used: bool) -> None:
+        """Note a topic of the log, and whether it is read (itself or fields nested in it)."""
+        self.topics.setdefault(topic, msgtype)
+        self.used |= used
 
     def clear(self) -> None:
         """Forget everything collected (a read that failed midway starts again another way)."""
@@ -145,7 +168,10 @@ class Collector:
     def recording(self, path: Path, fmt: str, options: ReadOptions, notes: list[str]) -> Recording:
         """Streams relative to the earliest sample, cleaned, in SI, with every remark in `notes`.
 
-        Empties the collector: each topic's arrays are freed once its streams are built (peak memory)."""
+        Empties the collector: each topic's arrays are freed once its streams are built (peak memory). A log
+        whose topics were listed (`saw`) but none of which is read is refused, naming them."""
+        if self.topics and not self.used and not len(self):
+            raise no_stream_error(path, self.topics)
         keys = sorted(self.keys(), key=lambda k: (ROS_TYPES[k[1]][0] != "imu", k[0]))
         arrays = {k: self.arrays(k) for k in keys}
         times = _time_bases(arrays, options, notes)
@@ -221,6 +247,13 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
     if group == "throttle":
         return [Stream(Kind.THROTTLE, topic, t, values, src, "1")]
     unit = "tesla"
+    if group == "mag" and (median := field_spread(values)[0]) >= VEC3_TESLA_BELOW:
+        # MagneticField is tesla by definition, but some drivers (VectorNav's) publish gauss: 0.3 T is no Earth
+        # field, 0.3 G is; docs/decisions.md "Standard messages wherever a bag holds them"
+        unit = "gauss"
+        notes.append(f"{topic}: sensor_msgs/msg/MagneticField read as the field in gauss, not the tesla it is "
+                     f"defined in (median magnitude {median:.4g}: 1e4 times the Earth's field in tesla)")
+        values = values * units.to_si(unit)
     if group == "vec3":
         median = field_spread(values)[0]
         unit = "tesla" if median < VEC3_TESLA_BELOW else "gauss"
