@@ -182,6 +182,19 @@ def test_nested_messages_are_read_as_topic_dot_field(tmp_path: Path, sim: Simula
     assert any("/gps (test_msgs" in n for n in rec.notes)
 
 
+def test_a_cut_ros1_bag_keeps_its_nested_messages(tmp_path: Path, sim: Simulation) -> None:
+    """A ROS 1 bag cut before its index (read record by record) still yields /w.imu and /w.mag_field."""
+    write_bag1(sim, tmp_path / "full.bag", topics=("/w",))
+    data = (tmp_path / "full.bag").read_bytes()
+    (tmp_path / "cut.bag").write_bytes(data[:len(data) * 7 // 10])
+    rec = open_recording(tmp_path / "cut.bag")
+    got = rec.select(Kind.MAGNETOMETER, "/w.mag_field")
+    assert 0 < len(got) < len(sim.recording.select(Kind.MAGNETOMETER))
+    assert len(rec.select(Kind.ACCELEROMETER, "/w.imu")) == len(got)
+    want = sim.recording.select(Kind.MAGNETOMETER).values[:len(got)]
+    np.testing.assert_allclose(got.values, want, rtol=1e-15, atol=0)
+
+
 def test_gauss_in_a_magneticfield_is_read_as_gauss(tmp_path: Path, sim: Simulation) -> None:
     """VectorNav's ROS 1 driver fills MagneticField with gauss: a magnitude 1e4 times the Earth's field in tesla
     is read as gauss, with a note (docs/decisions.md)."""

@@ -16,6 +16,7 @@ from typing import IO, NamedTuple
 from magcal_cli.errors import LogReadError
 from magcal_cli.readers.cut import a_record
 from magcal_cli.readers.ros.msg import Collector, wanted
+from magcal_cli.readers.ros.nested import Nested, may_hold
 from magcal_cli.readers.ros.partial import decompress_prefix
 from magcal_cli.streams import Cut
 
@@ -43,6 +44,7 @@ class _Scan:
         self.collector = collector
         self.store = get_typestore(Stores.EMPTY)
         self.conns: dict[int, tuple[str, str] | None] = {}
+        self.nested: dict[int, Nested] = {}         # connections of custom types holding standard ones
         self.bad = 0
         self.last_op = 0
 
@@ -57,6 +59,7 @@ class _Scan:
         msgtype = normalize_msgtype(inner["type"].decode())
         if not wanted(topic, msgtype):
             self.conns[conn] = None
+            self._nested(conn, topic, msgtype, inner["message_definition"].decode())
             return
         try:
             self.store.register(get_types_from_msg(inner["message_definition"].decode(), msgtype))
@@ -65,12 +68,30 @@ class _Scan:
             return
         self.conns[conn] = (topic, msgtype)
 
+    def _nested(self, conn: int, topic: str, msgtype: str, definition: str) -> None:
+        """Register a custom type that holds standard messages as fields (nested.py)."""
+        from rosbags.typesys import get_types_from_msg
+
+        if not may_hold(definition):
+            return
+        try:
+            self.store.register(get_types_from_msg(definition, msgtype))
+        except Exception:  # noqa: BLE001 - a definition rosbags cannot parse holds nothing magcal can read
+            return
+        store = self.store
+        found = Nested(topic, store.fielddefs, msgtype, lambda data: store.deserialize_ros1(data, msgtype))
+        if found:
+            self.nested[conn] = found
+
     def message(self, rec: Record) -> None:
         """Decode one message of a connection magcal reads (a corrupt one is counted)."""
-        conn = self.conns.get(struct.unpack("<I", rec.fields["conn"])[0])
+        cid = struct.unpack("<I", rec.fields["conn"])[0]
+        conn = self.conns.get(cid)
+        sec, nsec = struct.unpack("<II", rec.fields["time"])
+        if cid in self.nested:
+            self.nested[cid].add(sec * 1_000_000_000 + nsec, rec.data)
         if conn is None:
             return
-        sec, nsec = struct.unpack("<II", rec.fields["time"])
         try:
             self.collector.add(conn[0], conn[1], sec * 1_000_000_000 + nsec,
                                self.store.deserialize_ros1(rec.data, conn[1]))
@@ -160,6 +181,9 @@ def scan_bag1(path: Path, collector: Collector, notes: list[str]) -> Cut | None:
                 scan.handle(rec)
             except (ValueError, KeyError, UnicodeDecodeError, struct.error, IndexError):
                 scan.bad += 1
+    for found in scan.nested.values():
+        found.flush(collector)
+        scan.bad += found.bad
     if scan.bad:
         notes.append(f"corrupt data: skipped {scan.bad} records or messages that did not decode")
     return cut
