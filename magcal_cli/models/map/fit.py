@@ -22,7 +22,7 @@ from magcal_cli.models.gyro import Preintegrated, preintegrate_log
 from magcal_cli.models.map.cost import held_out, make_linearize
 from magcal_cli.models.map.effects import results
 from magcal_cli.models.map.estimate import FitContext, MapEstimate, Record, estimate
-from magcal_cli.models.map.hold import explains, rechoose, undisturbed
+from magcal_cli.models.map.hold import explains, rechoose, undisturbed, with_prior_doubt
 from magcal_cli.models.map.noise import NOISE_ROUNDS, as_levels, noise_step, rescaled, variance_ratios
 from magcal_cli.models.map.start import FitSettings, Run, prepare, with_coverage
 from magcal_cli.models.normal import marginal_covariance, one_blas_thread
@@ -223,14 +223,17 @@ def _finish(problem: Problem, run: Run, sol: Solution, last_step: FloatArray | N
         # held entries are pinned during the fit; the covariance carries their prior's doubt (a soft prior)
         cov = marginal_covariance(run.cost(held and held.soft()), sol.states, sol.theta,
                                   0.0 if held is None else TRAJECTORY_DAMPING)
+        if held is not None:
+            cov = with_prior_doubt(cov, held)
     # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
     # or disturbances) make the information overstate what the data know: widen where the data say so
     ids = time_clusters(run.ep.t)
     widen = widening(sol, factor_clusters(sol.factors, ids))
     if held is not None:
         widen[held.theta_cols] = 1.0            # a held entry's std is its prior's doubt, not the data's
-        explains(run.ep, sol.theta, run.layout, run.where,
-                 undisturbed(run.ep, sol.theta, run.layout, run.bound, sol.states, run.pre))
+    # a full fit too: one that leaves the field strength varying by 30 % calibrated a failing sensor (issue 38)
+    explains(run.ep, sol.theta, run.layout, run.where,
+             undisturbed(run.ep, sol.theta, run.layout, run.bound, sol.states, run.pre))
     ctx = FitContext(run.ep, run.pre, run.noise, run.layout, run.bound, sol.states, sol.theta, run.hold, held,
                      held_out(run.ep.t, problem.unmeasured))
     record = Record(run.iters, tuple(run.log), tuple(run.notes) + run.ep.notes)

@@ -45,12 +45,11 @@ def undisturbed(ep: Epochs, theta: FloatArray, layout: Layout, bound: Sequence[B
 
 
 def explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str, mag: FloatArray | None = None) -> None:
-    """Refuse a partial calibration that does not explain the readings (`mag`: with the modelled disturbances taken
-    out): the calibrated field strength must stay within PARTIAL_MAX_NORM_RMS of constant (a full fit is judged by
-    its quality numbers instead)."""
+    """Refuse a calibration that does not explain the readings (`mag`: with the modelled disturbances taken out):
+    the calibrated field strength must stay within PARTIAL_MAX_NORM_RMS of constant."""
     spread = norm_spread(ep, theta, layout, mag)
     if spread > PARTIAL_MAX_NORM_RMS:
-        msg = (f"{where}: even a partial calibration does not explain the readings (the calibrated field strength "
+        msg = (f"{where}: no calibration explains the readings (the calibrated field strength "
                f"still varies {100 * spread:.0f} % RMS): the log's motion determines too little, or a disturbance "
                f"dominates. To fix: {ROTATE_ADVICE}")
         raise UnexplainedError(msg)
@@ -70,10 +69,11 @@ def rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray,
         # `choose` wants the base entries first: accelerometer effect blocks come before them in the layout
         order = np.concatenate([held.at, np.setdiff1d(np.arange(theta.size), held.at)])
         info = info[np.ix_(order, order)]
-        more = held.holding(partial.choose(info, held.prior_std, np.union1d(pinned, held.cols) if keep else pinned),
-                            pinned)
+        # the horizontal offsets of a vehicle that turned through a half circle are never held (`turned_offsets`)
+        more = held.holding(partial.choose(info, held.choosable_std(),
+                                           np.union1d(pinned, held.cols) if keep else pinned), pinned)
     except np.linalg.LinAlgError:
-        more = held.holding(BASE.cols(*BASE.names), pinned)
+        more = held.holding(np.setdiff1d(BASE.cols(*BASE.names), held.free), pinned)
     if more.undetermined():
         # why the offsets could not be pinned down, else what the motion left of D: one clause, not a bracket
         prior, d_why = partial.source_parts(held.prior_sources[BASE.slice("D").start])
@@ -83,3 +83,20 @@ def rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray,
                f"To fix: {ROTATE_ADVICE}")
         raise InsufficientDataError(msg)
     return more
+
+
+def with_prior_doubt(cov: FloatArray, held: Held) -> FloatArray:
+    """The covariance with each held entry's std set to its prior's (issue 38: "held ... with its doubt as their
+    std"). The soft prior's marginal is the data's information plus the prior's, smaller than the prior whenever the
+    white-noise information knows anything of the entry, though `choose` found the data (widened) know it no better
+    than the prior. The held rows and columns are scaled, which keeps every correlation and the matrix positive
+    semi-definite; the free entries' block, which carries the held entries' doubt, is unchanged."""
+    cols = held.theta_cols
+    if cols.size == 0:
+        return cov
+    sd = np.sqrt(np.clip(np.diag(cov)[cols], 0.0, None))
+    factor = np.ones(cov.shape[0])
+    factor[cols] = np.where(sd > 0, held.std / np.where(sd > 0, sd, 1.0), 1.0)
+    out: FloatArray = cov * np.outer(factor, factor)
+    out[cols, cols] = held.std**2                       # exact, and where the marginal was zero
+    return out
