@@ -43,3 +43,4 @@ class Config:
     diagnose: bool = False           # --effects auto: the mismatch diagnosis chooses the effects (diagnose/)
     imu_timing: Sampling | None = None   # what an IMU sample stands for (None: what the log's format says)
     mag_timing: Sampling | None = None   # the same for the magnetometers (timing.py, docs/timing.md)
+    export_worse: bool = False       # write a compass the heading check finds worse than the flown one anyway

@@ -48,6 +48,8 @@ def mag_to_dict(m: MagCalibration) -> dict[str, Any]:
         "reference": m.reference,
         "covariance": {"order": MAG_PARAMS.to_order(), "matrix": _list(m.cov)},
     }
+    if m.heading_check is not None:         # only where measured: documents without it stay as they were
+        out["heading_check"] = m.heading_check
     return out
 
 
@@ -133,7 +135,8 @@ def from_dict(doc: dict[str, Any], where: str = "calibration") -> Calibration:
                 field_strength=float(m["field_strength"]),
                 field_strength_source=str(m.get("field_strength_source", "data")),
                 quality=None if q is None else Quality(**q), held=tuple(m.get("held") or ()),
-                reference=str(m.get("reference", "motion")), method=str(m.get("method", doc.get("method", "")))))
+                reference=str(m.get("reference", "motion")), method=str(m.get("method", doc.get("method", ""))),
+                heading_check=m.get("heading_check")))
         imu_d = doc["imu"]
         std = imu_d.get("std", {})
         imu = ImuCalibration(str(imu_d["id"]), imu_d.get("accelerometer_bias"), imu_d.get("gyroscope_bias"),

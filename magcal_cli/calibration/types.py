@@ -73,6 +73,9 @@ class MagCalibration:
     reference: str = "motion"
     #: the method that calibrated this magnetometer (each compass gets the strongest its data support)
     method: str = ""
+    #: heading against the vehicle's attitude, magcal's vs the flown calibration (firmware/heading.py); None: not
+    #: measured (no attitude or no flown calibration in the log)
+    heading_check: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "held", tuple(self.held))

@@ -51,6 +51,9 @@ if TYPE_CHECKING:
 @options.option("fail-on", callback=options.fail_on("fit"),
                 help="Exit 3 when a magnetometer meets a condition, e.g. 'heading_std_deg>1,field_norm_rms_pct>2' "
                      "(METRIC OP NUMBER, comma-separated; see docs/firmware-export.md).")
+@click.option("--export-worse", is_flag=True, default=False,
+              help="Write a compass to the firmware parameter file even when its heading against the vehicle's "
+                   "attitude is worse than the calibration it flew with [default: left out, with a warning].")
 @options.option("history")
 @options.option("vehicle", " the log")
 @options.timing
@@ -61,7 +64,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
         outputs: tuple[str, ...], start_s: float | None, end_s: float | None, fmt: str | None, strict: bool,
         as_json: bool, force: bool, location: tuple[float, float, float] | None, date: str | None,
         robust_loss: str, effects: tuple[str, ...], fail_on: tuple[Any, ...], history: Path | None,
-        vehicle: str | None, imu_timing: Sampling | None, mag_timing: Sampling | None) -> None:
+        vehicle: str | None, imu_timing: Sampling | None, mag_timing: Sampling | None, export_worse: bool) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
     from magcal_cli.calibration.document import dumps_json
     from magcal_cli.pipeline import calibrate
@@ -78,7 +81,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
                  allow_truncated=not strict, location=location, date=date, robust_loss=robust_loss,
                  effects=() if effects == options.AUTO else effects, diagnose=effects == options.AUTO,
                  imu_timing=imu_timing,
-                 mag_timing=mag_timing)
+                 mag_timing=mag_timing, export_worse=export_worse)
     with progress_line(ctx) as progress:        # the writing too: its files are part of the run's time
         result = calibrate(log, cfg, fmt, progress)
         if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:

@@ -27,7 +27,8 @@ from magcal_cli.errors import MagcalError
 from magcal_cli.firmware import FirmwareError, gates
 from magcal_cli.firmware.common import Options
 from magcal_cli.firmware.export import export
-from magcal_cli.firmware.flown import Flown, flown_fields, levelling, signal_at, slow
+from magcal_cli.firmware.flown import Flown, flown_fields, heading_gap_deg, levelling, signal_at, slow
+from magcal_cli.firmware.flown import headings as _headings
 from magcal_cli.firmware.residual import MIN_SAMPLES, fit_residual
 from magcal_cli.streams import FloatArray, Kind, Recording
 
@@ -180,25 +181,6 @@ def _describe(c: CompassCheck) -> list[str]:
     else:
         out.append(f"no new calibration ({c.missing.get('heading_change_deg', '')})")
     return out + [f"note: {n}" for n in c.notes]
-
-
-def _headings(v: FloatArray, lev: FloatArray) -> FloatArray:
-    """Heading (rad) of body-frame field vectors after levelling: atan2(-g_y, g_x)."""
-    g = np.einsum("nij,nj->ni", lev, v)
-    out: FloatArray = np.arctan2(-g[:, 1], g[:, 0])
-    return out
-
-
-def heading_gap_deg(headings: FloatArray, bin_deg: float = 10.0, min_count: int = 3) -> float:
-    """The widest run of heading bins (deg) with fewer than `min_count` samples, around the circle."""
-    bins = int(round(360.0 / bin_deg))
-    counts = np.bincount((np.mod(np.rad2deg(headings), 360.0) // bin_deg).astype(int) % bins, minlength=bins)
-    empty = np.concatenate([counts, counts]) < min_count
-    run = best = 0
-    for e in empty:
-        run = run + 1 if e else 0
-        best = max(best, run)
-    return float(min(best, bins) * bin_deg)
 
 
 def _residual_metrics(c: CompassCheck, f: Flown, rec: Recording, mask: npt.NDArray[np.bool_], lev: FloatArray

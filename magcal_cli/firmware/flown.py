@@ -164,6 +164,25 @@ def slow(rec: Recording, t: FloatArray, max_rate_dps: float) -> BoolArray:
     return out
 
 
+def headings(v: FloatArray, lev: FloatArray) -> FloatArray:
+    """Heading (rad) of body-frame field vectors after levelling: atan2(-g_y, g_x)."""
+    g = np.einsum("nij,nj->ni", lev, v)
+    out: FloatArray = np.arctan2(-g[:, 1], g[:, 0])
+    return out
+
+
+def heading_gap_deg(headings: FloatArray, bin_deg: float = 10.0, min_count: int = 3) -> float:
+    """The widest run of heading bins (deg) with fewer than `min_count` samples, around the circle."""
+    bins = int(round(360.0 / bin_deg))
+    counts = np.bincount((np.mod(np.rad2deg(headings), 360.0) // bin_deg).astype(int) % bins, minlength=bins)
+    empty = np.concatenate([counts, counts]) < min_count
+    run = best = 0
+    for e in empty:
+        run = run + 1 if e else 0
+        best = max(best, run)
+    return float(min(best, bins) * bin_deg)
+
+
 def load_params(path: Path) -> dict[str, float]:
     """A parameter file, or the parameters of a log (any format the readers open)."""
     from magcal_cli.firmware import paramfile

@@ -6,9 +6,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 from magcal_cli.atomic import write_text
-from magcal_cli.firmware.common import Options
-from magcal_cli.firmware.export import export
-from magcal_cli.firmware.paramfile import render
+from magcal_cli.firmware.heading import parameter_file
 
 if TYPE_CHECKING:
     from magcal_cli.calibration.run import RunResult
@@ -21,7 +19,6 @@ class ArduPilotWriter:
     files: ClassVar[tuple[str, ...]] = ("ardupilot.param",)
 
     def write(self, result: RunResult, outdir: Path) -> list[Path]:
-        """Export every magnetometer and write the file."""
-        exp = export(result.calibration, "ardupilot", dict(result.recording.params), Options(skip_refused=True))
-        text = render(exp.params, "mission-planner", exp.header(), exp.integers)
+        """Export every magnetometer the heading check passes on and write the file."""
+        text = parameter_file(result.calibration, "ardupilot", dict(result.recording.params), "mission-planner")
         return [write_text(outdir / self.files[0], text)]

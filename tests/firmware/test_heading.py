@@ -1,0 +1,99 @@
+"""Never silently worse (issue 38 item 6): heading against the vehicle's attitude, magcal's vs the flown calibration.
+
+A simulated ArduPilot flight (flightsim: full turns, +-20 deg of tilt, an ATT stream) flown with a known
+calibration; magcal's document is the truth or the truth perturbed, so which is better for heading is known.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from magcal_cli.calibration.document import from_dict, to_dict
+from magcal_cli.calibration.types import Calibration
+from magcal_cli.config import Config
+from magcal_cli.firmware.heading import heading_checks
+from magcal_cli.pipeline import calibrate_recording
+from magcal_cli.writers import get_writer
+
+from .flightsim import flight
+
+#: magcal's hard iron moved by this much (mG; the horizontal field is 550 cos 65 deg = 232 mG): about 20 deg of
+#: heading error at the worst heading
+PERTURB_MG = (90.0, -60.0, 0.0)
+
+
+def _perturbed(cal: Calibration) -> Calibration:
+    """The truth with its hard iron off by PERTURB_MG."""
+    m = cal.magnetometers[0]
+    return replace(cal, magnetometers=(replace(m, o=m.o + np.asarray(PERTURB_MG)),))
+
+
+def _param_file(cal: Calibration, rec: object, tmp_path: Path) -> str:
+    """ardupilot.param as `fit` writes it for this document and recording."""
+    result = SimpleNamespace(calibration=cal, recording=rec)
+    (path,) = get_writer("ardupilot").write(result, tmp_path)  # type: ignore[arg-type]
+    return path.read_text()
+
+
+def test_worse_than_flown_is_said_and_left_out(tmp_path: Path) -> None:
+    """Flown = truth, magcal's hard iron 108 mG off: verdict worse, a warning that says the flown calibration is
+    better for heading, and MAG[0] absent from ardupilot.param, whose header names it and says why."""
+    fl = flight(0, ofs_miss=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    cal, found = heading_checks(fl.recording, _perturbed(fl.truth()), [], None)
+    block = cal.magnetometers[0].heading_check
+    assert block is not None and block["verdict"] == "worse" and block["exported"] is False
+    assert block["rms_deg"]["magcal"] > block["rms_deg"]["flown"] + 5.0
+    assert block["difference_deg"] > 1.96 * block["difference_std_deg"]
+    assert [f.code for f in found] == ["flown_calibration_better"]
+    assert "the calibration the vehicle flew with is better for heading" in found[0].message
+    assert "left out of the firmware parameter file" in found[0].message
+    text = _param_file(cal, fl.recording, tmp_path)
+    assert "COMPASS_OFS_X" not in text and "COMPASS_DIA_X" not in text
+    assert "# left out: MAG[0]" in text and "worse by more than the comparison's uncertainty" in text
+    again = from_dict(to_dict(cal))                        # the block survives the document's round trip
+    assert again.magnetometers[0].heading_check == block
+
+
+def test_export_worse_writes_it_anyway(tmp_path: Path) -> None:
+    """--export-worse (Config.export_worse): the same verdict and warning, and MAG[0] is in ardupilot.param."""
+    fl = flight(0, ofs_miss=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    cal, found = heading_checks(fl.recording, _perturbed(fl.truth()), [], None, export_worse=True)
+    block = cal.magnetometers[0].heading_check
+    assert block is not None and block["verdict"] == "worse" and block["exported"] is True
+    assert "written to the firmware parameter file anyway (--export-worse)" in found[0].message
+    text = _param_file(cal, fl.recording, tmp_path)
+    assert "COMPASS_OFS_X," in text and "left out" not in text
+
+
+def test_better_than_a_bad_flown_calibration_is_exported(tmp_path: Path) -> None:
+    """Flown offsets 100 mG off, magcal's = truth: verdict better, no warning, MAG[0] exported."""
+    fl = flight(1, ofs_miss=(80.0, -60.0, 30.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    cal, found = heading_checks(fl.recording, fl.truth(), [], None)
+    block = cal.magnetometers[0].heading_check
+    assert block is not None and block["verdict"] == "better" and block["exported"] is True
+    assert block["rms_deg"]["magcal"] < 1.0 < 5.0 < block["rms_deg"]["flown"]
+    assert found == []
+    text = _param_file(cal, fl.recording, tmp_path)
+    assert "COMPASS_OFS_X," in text and "left out" not in text
+
+
+def test_no_attitude_no_block() -> None:
+    """Without an attitude stream nothing is measured and the document is unchanged (no new key)."""
+    fl = flight(0)
+    rec = replace(fl.recording, streams=tuple(s for s in fl.recording.streams if s.id != "ATT"))
+    cal, found = heading_checks(rec, fl.truth(), [], None)
+    assert cal.magnetometers[0].heading_check is None and found == []
+    assert "heading_check" not in to_dict(cal)["magnetometers"][0]
+
+
+def test_fit_attaches_the_heading_check() -> None:
+    """calibrate_recording runs the check: a flight whose flown offsets are 100 mG off gets a block saying
+    magcal's calibration is better."""
+    fl = flight(1, ofs_miss=(80.0, -60.0, 30.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    doc = calibrate_recording(fl.recording, Config()).calibration
+    block = doc.magnetometers[0].heading_check
+    assert block is not None and block["verdict"] == "better", block
