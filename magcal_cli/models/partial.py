@@ -106,6 +106,9 @@ class Held:
     stiffness: float = PIN
     #: where each base entry sits in the fitted theta (`placed`): effect blocks may come before the base ones
     at: IntArray = field(default_factory=lambda: BASE.cols(*BASE.names))
+    #: entries never held whatever the information says: the horizontal offsets of a vehicle that turned through
+    #: OFFSETS_YAW_DEG of heading (`turned_offsets`)
+    free: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def placed(self, layout: Layout) -> Held:
         """The same hold for a theta in `layout` (cols stay base indices; `theta_cols` follow the layout)."""
@@ -144,6 +147,12 @@ class Held:
     def undetermined(self) -> bool:
         """True when nothing useful is left to estimate: every entry of D and of o is held."""
         return bool(np.isin(BASE.cols("D", "o"), self.cols).all())
+
+    def choosable_std(self) -> FloatArray:
+        """The prior stds `choose` judges by: infinite for the entries never held (their ratio is then 0)."""
+        out = self.prior_std.copy()
+        out[self.free] = np.inf
+        return out
 
     def factor(self, theta: FloatArray, jacobians: bool) -> Factor:
         """(theta_c - mean) / (std x stiffness) for the held columns."""
@@ -302,6 +311,18 @@ def cap_pins(prior: MagPrior) -> tuple[IntArray, str]:
     return np.zeros(0, np.int64), ""
 
 
+def turned_offsets(prior: MagPrior) -> IntArray:
+    """The base columns of the horizontal offsets (those off the body axis nearest the vertical) when the vehicle
+    turned through at least OFFSETS_YAW_DEG of heading, else none: the horizontal field then swept at least half a
+    circle about that axis, whose centre they are (issue 25 item 5, issue 38 item 3). The information may still say
+    the data know them worse than their prior (residuals correlated in time widen it): they are then estimated with
+    that larger std, not pinned at a prior that the turn itself contradicts."""
+    if prior.yaw_deg is None or prior.yaw_deg < OFFSETS_YAW_DEG:
+        return np.zeros(0, np.int64)
+    vertical = 2 if prior.flat_axis is None else prior.flat_axis
+    return np.array([c for i, c in enumerate(BASE.cols("o")) if i != vertical], np.int64)
+
+
 def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, dip_ref: float | None) -> Held:
     """Prior mean, std and source of every base entry in internal units (D and o divided by `scale`, tesla),
     holding nothing yet but pinning what the cap of field directions cannot determine (`cap_pins`)."""
@@ -328,7 +349,8 @@ def prior_of(layout: Layout, theta: FloatArray, prior: MagPrior, scale: float, d
         # an offsets-only fit: what goes stale in a flown calibration is the offsets (a new payload, wiring), so they
         # are estimated unless the data know them worse than an undetermined offset, D's doubt included
         std[o] = np.maximum(std[o], OFFSET_FATAL)
-    return Held(np.zeros(0, np.int64), mean, std, tuple(src), pins).placed(layout)
+    return replace(Held(np.zeros(0, np.int64), mean, std, tuple(src), pins).placed(layout),
+                   free=np.setdiff1d(turned_offsets(prior), pins).astype(np.int64))
 
 
 def implausible(theta: FloatArray, held: Held) -> IntArray:
