@@ -223,16 +223,26 @@ def pooled_std(stream: Stream, segments: tuple[Segment, ...] | list[Segment]) ->
     return np.sqrt(ss / dof) if dof else np.full(stream.values.shape[1], np.nan)
 
 
+#: what every dead-sensor error ends with: why, and what to do
+DEAD_ADVICE = ("the sensor is stuck, disconnected or not enabled (or the column is a placeholder). Check the sensor "
+               "and its logging, and record again")
+
+
 def check_signal(stream: Stream) -> None:
     """Refuse a sensor that reads one value throughout (stuck, disconnected, not enabled, or zero-filled)."""
     x = stream.values
     if len(x) < 2 or not np.all(x == x[0]):
         return
     what = "zero" if not np.any(x[0]) else "the same value"
-    msg = (f"{stream.source}: the {stream.kind.value} {stream.id} reads {what} in all {len(x)} samples; the sensor is stuck, "
-           "disconnected or not enabled (or the column is a placeholder). Check the sensor and its logging, and "
-           "record again")
+    msg = f"{stream.source}: the {stream.kind.value} {stream.id} reads {what} in all {len(x)} samples; {DEAD_ADVICE}"
     raise InsufficientDataError(msg)
+
+
+def check_dead(stream: Stream, why: str | None, where: str) -> None:
+    """Refuse a magnetometer its reader judged dead or stuck on the readings as logged (`Recording.dead`), by name."""
+    if why:
+        msg = f"{where}: {stream.id}: the {stream.kind.value} measures no field as logged ({why}); {DEAD_ADVICE}"
+        raise InsufficientDataError(msg)
 
 
 #: an acceleration beyond this (m/s^2, 6 g) is an impact: no vehicle or hand motion a calibration uses reaches it

@@ -21,6 +21,7 @@ from magcal_cli.calibration.types import Calibration, ImuCalibration, Source
 from magcal_cli.config import Config
 from magcal_cli.detect import (
     IMPACT,
+    check_dead,
     check_signal,
     detect_still,
     gyro_noise_scale,
@@ -29,7 +30,6 @@ from magcal_cli.detect import (
 )
 from magcal_cli.errors import InsufficientDataError, MagcalError, StreamError
 from magcal_cli.findings import Finding, Severity
-from magcal_cli.firmware.heading import heading_checks
 from magcal_cli.methods.choose import (
     choose,
     none_calibrated,
@@ -88,6 +88,7 @@ def select_streams(rec: Recording, cfg: Config) -> tuple[Problem, list[Finding],
     windowed = cfg.start_s is not None or cfg.end_s is not None
 
     def usable(s: Stream) -> None:
+        check_dead(s, rec.dead.get(s.id) if s.kind is Kind.MAGNETOMETER else None, where)
         if len(s) < 10:
             span = f" ({s.t[-1] - s.t[0]:.1f} s)" if len(s) > 1 else ""
             msg = (f"{where}: {s.kind.value} {s.id} has only {len(s)} samples between --start and --end; "
@@ -288,6 +289,4 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Hook | None = Non
                     for r in (*unusable, *result.refused))
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
                       effects=entries, diagnosis=diagnosis, notes=tuple(f.message for f in findings), refused=refused)
-    doc, worse = heading_checks(rec, doc, findings, ref, cfg.export_worse)     # never silently worse (issue 38)
-    doc, findings = replace(doc, notes=(*doc.notes, *(f.message for f in worse))), findings + worse
     return RunResult(doc, rec, problem.still, tuple(findings), series)

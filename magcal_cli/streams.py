@@ -177,9 +177,13 @@ class Recording:
     #: clock; None where unknown (then `t0` is a Unix time or the date is not known)
     utc0: float | None = None
     info: Mapping[str, str] = field(default_factory=dict)
+    #: magnetometers judged dead or stuck on their readings as logged, before any correction was undone (id -> why,
+    #: e.g. "all readings are zero"): their streams hold the readings as logged, and the pipeline refuses them
+    dead: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "streams", tuple(self.streams))
+        object.__setattr__(self, "dead", MappingProxyType(dict(self.dead)))
         object.__setattr__(self, "params", MappingProxyType(dict(self.params)))
         object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
         object.__setattr__(self, "notes", tuple(self.notes))

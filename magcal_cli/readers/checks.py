@@ -1,4 +1,5 @@
-"""Checks every reader applies to decoded magnetometer samples: unit-length field, held (repeated) readings."""
+"""Checks every reader applies to decoded magnetometer samples: unit-length field, held (repeated) readings, a dead
+or stuck sensor."""
 
 from __future__ import annotations
 
@@ -53,6 +54,51 @@ def drop_held(t: FloatArray, xyz: FloatArray, where: str) -> tuple[FloatArray, F
     note = (f"{where}: {int(same.sum())} of {len(t)} readings repeat the previous one exactly (the source holds "
             f"its last value between updates); kept the {int(keep.sum())} that changed")
     return t[keep], xyz[keep], [note]
+
+
+#: a turn is the IMU rotating faster than this (rad/s, 20 deg/s): above vibration and any gyro bias, so a stuck
+#: field is judged against real motion
+TURN_RATE = np.deg2rad(20.0)
+#: ... through at least this angle in all (rad, 90 deg): a live sensor's field then changes by tens of percent
+TURN_ANGLE = np.deg2rad(90.0)
+#: a field whose every axis spans at most this many counts while the vehicle turns is stuck, not measuring
+STUCK_COUNTS = 2.0
+
+
+def rotates(t: npt.ArrayLike, gyro: npt.ArrayLike) -> bool:
+    """Whether a gyro (N, 3) rad/s at times t (N,) s shows the vehicle turning: TURN_ANGLE at rates above
+    TURN_RATE."""
+    tt, w = np.asarray(t, dtype=np.float64), np.linalg.norm(np.asarray(gyro, dtype=np.float64), axis=1)
+    if tt.size < 2:
+        return False
+    dt = np.clip(np.diff(tt), 0.0, 1.0)                 # a gap in the log is no turn
+    fast = np.nan_to_num(w[:-1]) > TURN_RATE
+    return bool(np.sum(w[:-1][fast] * dt[fast]) >= TURN_ANGLE)
+
+
+def dead_field(xyz: npt.ArrayLike, unit: str, quantum: float | None = None, rotated: bool = False) -> str | None:
+    """Why a magnetometer's readings (N, 3) as logged, before any correction, measure no field, or None.
+
+    Every reading NaN (or inf), all zero, every reading identical, or, with the sensor's count `quantum` known
+    and the IMU showing the vehicle turning (`rotated`), every axis within STUCK_COUNTS counts: a live sensor's
+    field swings by tens of percent when the vehicle turns through 90 degrees.
+    """
+    x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    if not len(x):
+        return None
+    x = x[np.isfinite(x).all(axis=1)]
+    if not len(x):
+        return "every reading is NaN"
+    if not np.any(x):
+        return "all readings are zero"
+    if np.all(x == x[0]):
+        return f"constant at ({', '.join(f'{v:.6g}' for v in x[0])}) {unit}"
+    if rotated and quantum and float(np.ptp(x, axis=0).max()) <= STUCK_COUNTS * quantum:
+        mid = 0.5 * (x.min(axis=0) + x.max(axis=0))
+        spread = float(np.ptp(x, axis=0).max() / quantum)
+        return (f"constant at ({', '.join(f'{v:.6g}' for v in mid)}) {unit} within {spread:.0f} "
+                f"count{'s' * (spread != 1)} while the IMU shows the vehicle turning")
+    return None
 
 
 #: readings beyond these magnitudes (SI) are not physical, so they are corrupt (e.g. a bit flip in a float's

@@ -424,7 +424,8 @@ def test_fit_on_real_logs_writes_results_or_one_clean_line(realdata: Path, tmp_p
 
 def test_dead_compass_with_all_fields_zero_is_the_dead_sensor_error(tmp_path: Path) -> None:
     """Issue 12: MAG records whose fields are all zero (Health too) exited 123 with `cannot reshape array of
-    size 0`; the firmware's 'unhealthy' marks no longer empty the stream, so fit names the dead sensor."""
+    size 0`; the firmware's 'unhealthy' marks no longer empty the stream, so fit names the dead sensor, judged on
+    the field as logged (issue 38)."""
     path = DeadSensor("magnetometer", "zero").write("bin", tmp_path)
     rec = open_recording(path)
     mag = rec.select(Kind.MAGNETOMETER, "MAG[0]")
@@ -433,8 +434,8 @@ def test_dead_compass_with_all_fields_zero_is_the_dead_sensor_error(tmp_path: Pa
     result = CliRunner().invoke(cli, ["fit", str(path), "-o", str(tmp_path / "o"), "--outputs", "json", "-q"])
     assert result.exit_code == 1, result.stderr
     assert result.stderr.strip() == (
-        f"Error: {path.name}#MAG[I=0].MagX/MagY/MagZ (raw, reconstructed): the magnetometer MAG[0] reads zero in "
-        f"all {len(mag)} samples; the sensor is stuck, disconnected or not enabled (or the column is a "
+        f"Error: {path.name}: MAG[0]: the magnetometer measures no field as logged (all readings are zero and "
+        "Health 0 throughout); the sensor is stuck, disconnected or not enabled (or the column is a "
         "placeholder). Check the sensor and its logging, and record again")
     assert not (tmp_path / "o").exists()
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from magcal_cli.errors import LogReadError, StreamError
 from magcal_cli.progress import active, current, within
+from magcal_cli.readers.checks import rotates
 from magcal_cli.readers.dataflash.compass import ParamHistory
 from magcal_cli.readers.dataflash.format import RawLog
 from magcal_cli.readers.dataflash.load import IMU_NAMES, MAG_NAMES, load
@@ -235,8 +236,13 @@ def build_ardupilot(path: Path, raw: RawLog) -> Recording:
     battery = _battery(path, raw, clock)
     pending = _imu_streams(path, raw, clock, notes)
     hook("reading", BUILD_STEPS[0], 1.0)
-    for m in reconstruct(path, raw, clock, hist, *_motor_signals(throttle, battery)):
+    imu = next((p for p in pending if Kind.GYROSCOPE in p.kinds), None)
+    turned = imu is not None and rotates(imu.t, imu.values[:, 3:6])
+    dead: dict[str, str] = {}
+    for m in reconstruct(path, raw, clock, hist, *_motor_signals(throttle, battery), rotated=turned):
         notes += m.notes
+        if m.dead is not None:
+            dead[f"MAG[{m.instance}]"] = m.dead
         pending.append(Pending((Kind.MAGNETOMETER,), f"MAG[{m.instance}]", m.t, m.raw * MG_TO_T, m.source,
                                ("milligauss",), None if m.resolution is None else m.resolution * MG_TO_T))
     hook("reading", BUILD_STEPS[1], 1.0)
@@ -244,7 +250,7 @@ def build_ardupilot(path: Path, raw: RawLog) -> Recording:
                 + _motors(path, raw, clock, params))
     hook("reading", BUILD_STEPS[2], 1.0)
     with active(within(hook, BUILD_STEPS[2], 1.0)):
-        rec = finish(path, "dataflash", pending, params, notes)
+        rec = finish(path, "dataflash", pending, params, notes, dead)
     boot = _utc_of_boot(raw, clock)
     msgs = raw.table("MSG")
     info = board_info(msgs.text("Message") if msgs is not None and msgs.fmt.has("Message") else [])

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from magcal_cli.readers.checks import dead_field
 from magcal_cli.readers.dataflash.compass import (
     ROUNDED_EVIDENCE,
     Correction,
@@ -90,11 +91,14 @@ class MagReconstruction:
     correction: Correction
     notes: tuple[str, ...]
     resolution: FloatArray | None = None      # per-axis quantisation std of `raw` (mG), integer fields only
+    #: why the compass measures no field as logged (checks.dead_field, Health 0 throughout); then `raw` is `logged`
+    dead: str | None = None
 
 
 def reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
-                throttle: Series | None, current: Series | None) -> list[MagReconstruction]:
-    """Every logged compass with the firmware correction in force at each sample undone."""
+                throttle: Series | None, current: Series | None, rotated: bool = False) -> list[MagReconstruction]:
+    """Every logged compass with the firmware correction in force at each sample undone; a dead or stuck one
+    (judged on the field as logged; `rotated`: the IMU shows the vehicle turning) as logged, with why."""
     version = firmware_version(raw)
     after = version is None or version >= (3, 6)
     params = hist.last()
@@ -102,9 +106,19 @@ def reconstruct(path: Path, raw: RawLog, clock: Clock, hist: ParamHistory,
     bad_instances: list[str] = []
     found = [(i, tb) for i, tb in instances(raw, MAG_NAMES, notes=bad_instances, limit=3)
              if tb.fmt.has("MagX", "MagY", "MagZ")]
-    compasses = [_compass(inst, table, clock) for inst, table in found]
-    truncated, cast = _int16_cast(compasses, hist, throttle, current)
+    compasses = [_compass(inst, table, clock, rotated) for inst, table in found]
+    # a dead compass's zeros would read as a pile-up in the zero bin: its cast is not evidence
+    truncated, cast = _int16_cast([c for c in compasses if c.dead is None], hist, throttle, current)
     for c in compasses:
+        if c.dead is not None:
+            # undoing the correction would add COMPASS_MOT x current and the offsets back to a field that is not
+            # there, and turn a dead sensor into a varying one the pipeline would calibrate (issue 38)
+            src = f"{path.name}#{c.table.fmt.name}{instance_tag(c.table.fmt, c.inst)}.MagX/MagY/MagZ (as logged)"
+            notes = [*c.notes, f"MAG[{c.inst}]: dead or stuck as logged ({c.dead}); the firmware correction was "
+                     "not undone"]
+            out.append(MagReconstruction(c.inst, src, c.t, c.logged, c.logged, _no_correction(len(c.t)),
+                                         tuple(bad_instances * (not out) + notes), None, c.dead))
+            continue
         inst, table, t, notes = c.inst, c.table, c.t, list(c.notes)
         f, k, logged = table.fmt, c.factor, c.logged
         field = logged
@@ -152,28 +166,41 @@ class _Compass:
     integer: bool
     notes: tuple[str, ...]
     ofs: FloatArray | None = None
+    dead: str | None = None
 
 
-def _compass(inst: int, table: Table, clock: Clock) -> _Compass:
-    """The healthy records of one compass (all of them, with a note, when the firmware marked none healthy)."""
+def _no_correction(n: int) -> Correction:
+    """The identity correction of n samples: what a dead compass's readings are kept with."""
+    return Correction(np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), np.ones(n), np.zeros((n, 3)))
+
+
+def _compass(inst: int, table: Table, clock: Clock, rotated: bool = False) -> _Compass:
+    """The healthy records of one compass (all of them, with a note, when the firmware marked none healthy), and
+    whether it is dead or stuck as logged."""
     f = table.fmt
     notes: list[str] = []
     t = time_of(table, clock)
     if f.has("S", "TimeUS"):          # 4.x: S (uint32 us, wraps) is when the sample was taken
         t = sample_time(table.num("TimeUS"), table.num("S"))
     keep = table.num("Health") != 0 if f.has("Health") else np.ones(len(table), dtype=bool)
-    if not keep.any():          # a compass that never worked (e.g. all fields zero): the dead-sensor check
-        notes.append(f"MAG[{inst}]: the firmware marked all {len(keep)} samples unhealthy")   # judges it
+    unhealthy = not keep.any()
+    if unhealthy:               # a compass that never worked: kept whole, to be refused by name
+        notes.append(f"MAG[{inst}]: the firmware marked all {len(keep)} samples unhealthy")
         keep[:] = True
     elif not keep.all():
         notes.append(f"MAG[{inst}]: dropped {int((~keep).sum())} samples the firmware marked unhealthy")
     table, t = table.where(keep), t[keep]
     k = _mag_factor(table)
     mo_cols = next((c for c in (("MOfsX", "MOfsY", "MOfsZ"), ("MOX", "MOY", "MOZ")) if f.has(*c)), None)
-    return _Compass(inst, table, t, k, stack_columns(table, ("MagX", "MagY", "MagZ"), k),
-                    stack_columns(table, mo_cols, k) if mo_cols else None, f.char("MagX") in "bBhHiIqQ",
+    logged = stack_columns(table, ("MagX", "MagY", "MagZ"), k)
+    integer = f.char("MagX") in "bBhHiIqQ"
+    dead = dead_field(logged, "milligauss", k if integer else None, rotated)
+    if unhealthy:
+        dead = f"{dead} and Health 0 throughout" if dead else "Health 0 throughout"
+    return _Compass(inst, table, t, k, logged, stack_columns(table, mo_cols, k) if mo_cols else None, integer,
                     tuple(notes),
-                    stack_columns(table, ("OfsX", "OfsY", "OfsZ"), k) if f.has("OfsX", "OfsY", "OfsZ") else None)
+                    stack_columns(table, ("OfsX", "OfsY", "OfsZ"), k) if f.has("OfsX", "OfsY", "OfsZ") else None,
+                    dead)
 
 
 def _int16_cast(compasses: list[_Compass], hist: ParamHistory, throttle: Series | None,

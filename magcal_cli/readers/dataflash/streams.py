@@ -10,7 +10,7 @@ import numpy as np
 from magcal_cli import so3
 from magcal_cli.align import clean_time
 from magcal_cli.progress import current
-from magcal_cli.readers.checks import drop_held, sensor_checks
+from magcal_cli.readers.checks import dead_field, drop_held, sensor_checks
 from magcal_cli.readers.dataflash.format import IntArray, MessageFormat, RawLog, Table
 from magcal_cli.streams import FloatArray, Kind, Recording, Sampling, Stream
 
@@ -152,8 +152,12 @@ class Pending:
 
 
 def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float],
-           notes: list[str]) -> Recording:
+           notes: list[str], dead: dict[str, str] | None = None) -> Recording:
     """Recording with times relative to the first IMU or magnetometer sample, cleaned and noted.
+
+    A magnetometer in `dead` (id -> why, judged by the caller on the field as logged), or one whose readings
+    `dead_field` finds no field in, is kept as logged, uncleaned, and listed in `Recording.dead` for the pipeline
+    to refuse by name (cleaning would drop an all-NaN one, and the compass would vanish).
 
     `pending` is emptied as its streams are built, so each one's arrays are freed once copied (memory); the
     samples done are reported per stream as the "reading" fraction of `progress.current()`."""
@@ -161,6 +165,7 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
     t0 = min((float(np.nanmin(t)) for t in (anchor or [p.t for p in pending]) if np.isfinite(t).any()), default=0.0)
     del anchor
     streams: list[Stream] = []
+    dead = dict(dead or {})
     hook, done, total = current(), 0, sum(len(p.t) for p in pending)
     pending.reverse()
     while pending:
@@ -170,6 +175,14 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
         where = p.id if len(p.kinds) > 1 else f"{p.id} {p.kinds[0].value}"
         if not len(p.t):                # every record dropped before (unhealthy, no time): nothing to clean
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
+            continue
+        why = dead.get(p.id) or dead_field(p.values, "tesla") if p.kinds == (Kind.MAGNETOMETER,) else None
+        if why:
+            dead[p.id] = why
+            ok = np.isfinite(p.t)
+            order = np.argsort(p.t[ok], kind="stable")
+            streams.append(Stream(Kind.MAGNETOMETER, p.id, p.t[ok][order] - t0, p.values[ok][order], p.source,
+                                  p.units[0], None, Sampling.INSTANT))
             continue
         t, values, cleaned = clean_time(p.t - t0, p.values, where)
         if p.kinds == (Kind.MAGNETOMETER,):
@@ -187,4 +200,4 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
             streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit, p.resolution,
                                   Sampling.INSTANT))
             col += kind.width
-    return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes))
+    return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes), dead=dead)
