@@ -197,11 +197,12 @@ def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField
         cov[np.ix_(cols, cols)] = cv
         names = [f"D.{i}{k}" for k in range(3)] + [f"o.{'xyz'[i]}"]
         held.extend(HeldEntry(names[j], float(mean[j]), sd, prior.source) for j in hold)
-    undisturbed = y if current is None else y - np.outer(current[0], c_i)
-    spread = float(np.sqrt(np.mean((np.linalg.norm((undisturbed - o) @ np.linalg.inv(d).T, axis=1) - 1.0) ** 2)))
-    if spread > MAX_NORM_RMS:       # a compass that no calibration explains is refused, not passed on (issue 38)
-        msg = (f"{where}: no calibration against the vehicle's attitude explains these readings either (the "
-               f"calibrated field strength still varies {100 * spread:.0f} % RMS): the sensor is faulty, or the field "
+    # a compass no calibration explains is refused, not passed on (issue 38): judged by the residual against the
+    # reference field, which a held column of D cannot inflate as it can the calibrated field strength
+    misfit = float(np.sqrt(np.sum(np.square(rms)))) / scale
+    if misfit > MAX_NORM_RMS:
+        msg = (f"{where}: no calibration against the vehicle's attitude explains these readings either (they miss "
+               f"the reference field by {100 * misfit:.0f} % of its strength RMS): the sensor is faulty, or the field "
                f"around it changed during the log. To fix: {NONUNIFORM_ADVICE}")
         raise UnexplainedError(msg)
     dip_col = MAG.cols("dip")[0]
