@@ -30,6 +30,7 @@ from magcal_cli.detect import (
 )
 from magcal_cli.errors import InsufficientDataError, MagcalError, StreamError
 from magcal_cli.findings import Finding, Severity
+from magcal_cli.firmware.heading import heading_checks
 from magcal_cli.methods.choose import (
     choose,
     none_calibrated,
@@ -289,4 +290,6 @@ def calibrate_recording(rec: Recording, cfg: Config, progress: Hook | None = Non
                     for r in (*unusable, *result.refused))
     doc = Calibration(source, result.method, imu, tuple(mags), __version__, utc_now(), noise,
                       effects=entries, diagnosis=diagnosis, notes=tuple(f.message for f in findings), refused=refused)
+    doc, worse = heading_checks(rec, doc, findings, ref, cfg.export_worse)     # never silently worse (issue 38)
+    doc, findings = replace(doc, notes=(*doc.notes, *(f.message for f in worse))), findings + worse
     return RunResult(doc, rec, problem.still, tuple(findings), series)
