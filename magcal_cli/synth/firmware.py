@@ -41,7 +41,10 @@ class PreviousCalibration:
     (DEFAULT_MORE where not given). `motct` is COMPASS_MOTCT for all of them. `ofs_after` (with
     `change_at_s`) simulates a PARM change of compass 1's offsets during the log, e.g. set from a GCS.
     `current_swing_a` shapes the logged current when the simulation has none (0.8 A plus a 20 s swing).
-    `messages` are boot messages logged after the banner (MSG), e.g. a board's unique id.
+    `messages` are boot messages logged after the banner (MSG), e.g. a board's unique id. `firmware` is the
+    ArduCopter version the vehicle runs (major, minor, patch): its banner, a VER record from 4.0 on (3.x logs have
+    none, the reader then reads the version from the banner) and, before 3.6, the motor offsets added before the
+    iron matrix instead of after it (`correct_field`).
     """
 
     ofs: Vec3 | None = None
@@ -56,6 +59,12 @@ class PreviousCalibration:
     extra_params: dict[str, float] = field(default_factory=dict)
     more: tuple[CompassParams, ...] = ()
     messages: tuple[str, ...] = ()
+    firmware: tuple[int, int, int] = (4, 6, 2)
+
+    @property
+    def motor_after_matrix(self) -> bool:
+        """Whether this firmware adds the motor offsets after the iron matrix (3.6 and newer)."""
+        return self.firmware[:2] >= (3, 6)
 
     def compass(self, i: int) -> CompassParams:
         """Compass i's parameters (0: the first fields; 1, 2: `more`, else DEFAULT_MORE)."""

@@ -132,8 +132,9 @@ def interleave(parts: list[tuple[npt.NDArray[np.int64], np.ndarray]]) -> npt.NDA
 
 
 def _metadata(params: dict[str, float], t_us: int, banner: str, rcou: bool = False,
-              messages: tuple[str, ...] = ()) -> bytes:
-    """FMT for every type (RCOU only with `rcou`), UNIT, MULT, FMTU, the PARM dump, VER, MSG and `messages`."""
+              messages: tuple[str, ...] = (), version: tuple[int, int, int] = (4, 6, 2)) -> bytes:
+    """FMT for every type (RCOU only with `rcou`), UNIT, MULT, FMTU, the PARM dump, VER (firmware 4.0 on, as
+    ArduPilot logs it), MSG and `messages`."""
     records = [*RECORDS, RCOU] if rcou else RECORDS
     fmt_code = "<BB4s16s64s"
     out = [bytes([HEAD1, HEAD2, FMT_ID]) + struct.pack(fmt_code, FMT_ID, FMT_LENGTH, b"FMT", b"BBnNZ",
@@ -145,7 +146,8 @@ def _metadata(params: dict[str, float], t_us: int, banner: str, rcou: bool = Fal
     out += [_pack("MULT", t_us, ord(k), v) for k, v in MULTS.items()]
     out += [_pack("FMTU", t_us, tid, u.encode(), m.encode()) for tid, _, _, _, u, m in records]
     out += [_pack("PARM", t_us, k.encode(), v, v) for k, v in params.items()]
-    out += [_pack("VER", t_us, 3, 0, 4, 6, 2, 255, 0, banner.encode()), _pack("MSG", t_us, banner.encode())]
+    out += [_pack("VER", t_us, 3, 0, *version, 255, 0, banner.encode())] if version >= (4, 0, 0) else []
+    out += [_pack("MSG", t_us, banner.encode())]
     out += [_pack("MSG", t_us, m.encode()) for m in messages]
     return b"".join(out)
 
@@ -217,7 +219,7 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
         if k == 0 and prev.change_at_s is not None and prev.ofs_after is not None:
             ofs[mag.t >= prev.change_at_s] = f32(prev.ofs_after)
         more_ofs += [ofs_k] if k else []
-        m = _mag_records(mag, k, cp, ofs, motor)
+        m = _mag_records(mag, k, cp, ofs, motor, prev.motor_after_matrix)
         parts.append((m["TimeUS"], m))
     parts += _slow_records(sim, t10, (t_bat, current), (t_thr, throttle))
     if prev.change_at_s is not None and prev.ofs_after is not None:
@@ -226,7 +228,8 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
         change["Name"] = [f"COMPASS_OFS_{a}".encode() for a in "XYZ"]
         change["Value"] = change["Default"] = f32(prev.ofs_after)
         parts.append((change["TimeUS"], change))
-    banner = f"ArduCopter V4.6.2 (magcal simulate {sim.scenario} seed={sim.seed})"
+    name = "ArduCopter" if prev.firmware >= (3, 6, 0) else "APM:Copter"        # renamed with 3.6
+    banner = f"{name} V{'.'.join(map(str, prev.firmware))} (magcal simulate {sim.scenario} seed={sim.seed})"
     params = compass_params(prev, ofs0, tuple(more_ofs))
     motors = rec.of_kind(Kind.MOTOR_OUTPUT)
     if motors:
@@ -234,7 +237,8 @@ def build(sim: Simulation, prev: PreviousCalibration | None = None) -> npt.NDArr
         params |= {"MOT_PWM_MIN": PWM_RANGE[0], "MOT_PWM_MAX": PWM_RANGE[1]}
         params |= {f"SERVO{k}_FUNCTION": 32.0 + k for k in range(1, len(motors) + 1)}     # 33 = motor 1 [S7]
         params |= {"COMPASS_PMOT_EN": 0.0, "COMPASS_PMOT_EXP": 0.65}         # a 4.6 vehicle has them, off
-    meta = _metadata(params, int(_us(0.0)) - 50_000, banner, rcou=bool(motors), messages=prev.messages)
+    meta = _metadata(params, int(_us(0.0)) - 50_000, banner, rcou=bool(motors), messages=prev.messages,
+                     version=prev.firmware)
     head = np.frombuffer(meta, dtype=np.uint8)
     return np.concatenate([head, interleave(parts)])
 
@@ -251,13 +255,14 @@ def _rcou(motors: list[Stream]) -> tuple[npt.NDArray[np.int64], np.ndarray]:
 
 
 def _mag_records(mag: Stream, k: int, cp: CompassParams, ofs: FloatArray,
-                 motor: tuple[FloatArray, FloatArray] | None) -> np.ndarray:
+                 motor: tuple[FloatArray, FloatArray] | None, motor_after_matrix: bool = True) -> np.ndarray:
     """MAG records of instance k: the raw field (tesla) corrected with the offsets `ofs` (N, 3) mG and `cp`, plus
-    MOT times the motor signal (t, throttle or current) at the readings' stamps, as AP_Compass logs it."""
+    MOT times the motor signal (t, throttle or current) at the readings' stamps (after the iron matrix, or before
+    it as firmware 3.5 and older did), as AP_Compass logs it."""
     n = len(mag)
     signal = np.zeros(n) if motor is None else np.interp(mag.t, *motor)
     corr = Correction(ofs, iron_matrix(np.tile(f32(cp.dia), (n, 1)), np.tile(f32(cp.odi), (n, 1))),
-                      effective_scale(np.full(n, f32(cp.scale))), signal[:, None] * f32(cp.mot))
+                      effective_scale(np.full(n, f32(cp.scale))), signal[:, None] * f32(cp.mot), motor_after_matrix)
     logged = apply_correction(mag.values * 1e7, corr)
     m = _records("MAG", n)
     m["I"] = k
