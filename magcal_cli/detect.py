@@ -229,8 +229,11 @@ DEAD_ADVICE = ("the sensor is stuck, disconnected or not enabled (or the column 
 
 
 def check_signal(stream: Stream) -> None:
-    """Refuse a sensor that reads one value throughout (stuck, disconnected, not enabled, or zero-filled)."""
+    """Refuse a sensor that reads one value, or NaN, throughout (stuck, disconnected, not enabled, or zero-filled)."""
     x = stream.values
+    if len(x) and not np.isfinite(x).all(axis=1).any():
+        msg = f"{stream.source}: the {stream.kind.value} {stream.id} reads NaN in all {len(x)} samples; {DEAD_ADVICE}"
+        raise InsufficientDataError(msg)
     if len(x) < 2 or not np.all(x == x[0]):
         return
     what = "zero" if not np.any(x[0]) else "the same value"

@@ -101,6 +101,19 @@ def dead_field(xyz: npt.ArrayLike, unit: str, quantum: float | None = None, rota
     return None
 
 
+def nan_throughout(t: npt.ArrayLike, values: npt.ArrayLike, where: str) -> tuple[FloatArray, FloatArray, list[str]] | None:
+    """A magnetometer with no finite reading, as logged: its finitely stamped samples in time order and a note, to
+    keep it for the pipeline to refuse by name (cleaning drops every sample, and the compass vanished); None when
+    any reading is finite."""
+    x = np.asarray(values, dtype=np.float64)
+    if not len(x) or np.isfinite(x).all(axis=1).any():
+        return None
+    tt = np.asarray(t, dtype=np.float64)
+    ok = np.isfinite(tt)
+    order = np.argsort(tt[ok], kind="stable")
+    return tt[ok][order], x[ok][order], [f"{where}: every reading is NaN; kept as logged, to be refused by name"]
+
+
 #: readings beyond these magnitudes (SI) are not physical, so they are corrupt (e.g. a bit flip in a float's
 #: exponent): 10 T keeps fields normalised to 1 "tesla"; 2000 m/s^2 is 200 g; 200 rad/s is 11,000 deg/s
 PLAUSIBLE_SI = {Kind.MAGNETOMETER: 10.0, Kind.ACCELEROMETER: 2000.0, Kind.GYROSCOPE: 200.0}

@@ -3,6 +3,7 @@ correction, refused by name, and the log's other compasses are still calibrated.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import struct
@@ -19,6 +20,7 @@ from magcal_cli.readers.checks import dead_field, rotates
 from magcal_cli.readers.dataflash.binary import parse_binary
 from magcal_cli.streams import Kind
 from magcal_cli.synth.firmware import CompassParams, PreviousCalibration
+from magcal_cli.synth.logs import imu_sampling, write_log
 from magcal_cli.synth.logs.dataflash import build
 from magcal_cli.synth.simulate import Simulation, simulate
 from tests.fuzzing import text_log
@@ -174,3 +176,21 @@ def test_dead_field_reasons() -> None:
     t = np.arange(0.0, 10.0, 0.01)
     assert rotates(t, np.tile([0.0, 0.0, 0.5], (t.size, 1)))                 # 0.5 rad/s for 10 s: 286 deg
     assert not rotates(t, np.tile([0.0, 0.0, 0.02], (t.size, 1)))            # drift, not a turn
+
+
+@pytest.mark.parametrize("ext", [".mcap", ".bag", ".ulg"])
+def test_a_nan_magnetometer_of_a_bag_or_ulog_is_refused_by_name(tmp_path: Path, ext: str) -> None:
+    """ROS bags, MCAP and ULog pass the field as logged: a second magnetometer reading NaN throughout used to
+    vanish (its every sample dropped); it is kept, refused by name, and the first one calibrated."""
+    path = tmp_path / f"nan{ext}"
+    sim = simulate("handheld", 0, rate=10.0, mag_rate=5.0, mag_phase_s=0.0, n_mags=2, imu_sampling=imu_sampling(path))
+    second = sim.recording.of_kind(Kind.MAGNETOMETER)[1].id
+    streams = tuple(dataclasses.replace(s, values=np.full_like(s.values, np.nan))
+                    if s.kind is Kind.MAGNETOMETER and s.id == second else s for s in sim.recording.streams)
+    write_log(dataclasses.replace(sim, recording=dataclasses.replace(sim.recording, streams=streams)), path)
+    ids = open_recording(path).ids(Kind.MAGNETOMETER)
+    assert len(ids) == 2
+    code, err, doc = fit(path, tmp_path / "o")
+    assert code == 0, err
+    assert calibrated_ids(doc) == ids[:1]
+    assert re.search(re.escape(ids[1]) + r" reads NaN in all \d+ samples", refused_text(doc)), refused_text(doc)

@@ -21,6 +21,7 @@ from magcal_cli.readers import ReadOptions
 from magcal_cli.readers.checks import (
     drop_held,
     field_spread,
+    nan_throughout,
     normalised_field,
     normalised_note,
     sensor_checks,
@@ -229,6 +230,10 @@ def _streams(path: Path, key: tuple[str, str], t: FloatArray, values: FloatArray
     if group == "battery":
         return [s for s in (_one(Kind.BATTERY_CURRENT, topic, t, values[:, 0], src, "A", notes),
                             _one(Kind.BATTERY_VOLTAGE, topic, t, values[:, 1], src, "V", notes)) if s]
+    dead = nan_throughout(t, values, topic) if group in ("mag", "vec3") else None
+    if dead is not None:
+        notes += dead[2]
+        return [Stream(Kind.MAGNETOMETER, topic, dead[0], dead[1], src, "tesla", sampling=Sampling.INSTANT)]
     t, values, cleaned = clean_time(t, values, topic)
     notes += cleaned
     if not len(t):

@@ -16,7 +16,7 @@ from magcal_cli import units
 from magcal_cli.align import clean_time, onto
 from magcal_cli.errors import LogReadError, StreamError
 from magcal_cli.readers import ReadOptions
-from magcal_cli.readers.checks import normalised_field, normalised_note, sensor_checks
+from magcal_cli.readers.checks import nan_throughout, normalised_field, normalised_note, sensor_checks
 from magcal_cli.readers.cut import mark_cut, refuse_if_strict
 from magcal_cli.readers.ulog.load import Loaded, load_ulog
 from magcal_cli.readers.ulog.sensors import imu_pieces, mag_pieces
@@ -131,6 +131,10 @@ def _cut(loaded: Loaded) -> Cut | None:
 def _stream(p: Piece, t0_us: int, notes: list[str]) -> Stream | None:
     """Sort, de-duplicate and clean one piece into a Stream relative to t0; None when nothing is left."""
     label = p.source.split("#", 1)[-1].split(":", 1)[0]
+    dead = nan_throughout((p.t_us - t0_us) * 1e-6, p.values, label) if p.kind is Kind.MAGNETOMETER else None
+    if dead is not None:
+        notes.extend(dead[2])
+        return Stream(p.kind, p.id, dead[0], dead[1], p.source, p.unit, sampling=p.sampling, window_s=p.window_s)
     t, values, cleaned = clean_time((p.t_us - t0_us) * 1e-6, p.values, label)
     t, values, checked = sensor_checks((p.kind,), t, values, label)
     notes.extend(cleaned + checked)
