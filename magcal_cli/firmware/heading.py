@@ -82,6 +82,9 @@ def compare(flown: Flown, mine: Flown, att: Stream, rec: Recording, declination:
     rpy = so3.as_rpy(so3.from_quat(q))
     yaw = rpy[:, 2].copy()
     rpy[:, 2] = 0.0
+    if rec.format == "dataflash":           # ATT is the vehicle's attitude, the board's plus AHRS_TRIM (as magfit_WMM)
+        rpy[:, 0] += rec.params.get("AHRS_TRIM_X", 0.0)
+        rpy[:, 1] += rec.params.get("AHRS_TRIM_Y", 0.0)
     lev = so3.from_rpy(rpy)
     g = np.einsum("nij,nj->ni", lev, flown.field[mask])
     h = np.hypot(g[:, 0], g[:, 1])

@@ -2,6 +2,7 @@
 
 A simulated ArduPilot flight (flightsim: full turns, +-20 deg of tilt, an ATT stream) flown with a known
 calibration; magcal's document is the truth or the truth perturbed, so which is better for heading is known.
+Also the report's view of it: magcal_cli.writers.report.sections.heading and report.txt's lines.
 """
 
 from __future__ import annotations
@@ -12,12 +13,17 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from magcal_cli import so3
 from magcal_cli.calibration.document import from_dict, to_dict
 from magcal_cli.calibration.types import Calibration
 from magcal_cli.config import Config
 from magcal_cli.firmware.heading import heading_checks
 from magcal_cli.pipeline import calibrate_recording
 from magcal_cli.writers import get_writer
+from magcal_cli.writers.report.html import render_html
+from magcal_cli.writers.report.sections.heading import render as heading_section
+from magcal_cli.writers.report.text import heading_lines
+from magcal_cli.writers.report.text import render as render_text
 
 from .flightsim import flight
 
@@ -92,8 +98,42 @@ def test_no_attitude_no_block() -> None:
 
 def test_fit_attaches_the_heading_check() -> None:
     """calibrate_recording runs the check: a flight whose flown offsets are 100 mG off gets a block saying
-    magcal's calibration is better."""
+    magcal's calibration is better, shown in report.txt and report.html."""
     fl = flight(1, ofs_miss=(80.0, -60.0, 30.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
-    doc = calibrate_recording(fl.recording, Config()).calibration
-    block = doc.magnetometers[0].heading_check
+    result = calibrate_recording(fl.recording, Config())
+    block = result.calibration.magnetometers[0].heading_check
     assert block is not None and block["verdict"] == "better", block
+    text = render_text(result)
+    assert "Heading against the vehicle's attitude" in text and "time folds: better" in text
+    page = render_html(result)
+    assert "<section id='heading'>" in page and "badge good'>better" in page
+
+
+def test_report_says_what_was_left_out() -> None:
+    """report.txt's lines for a compass left out name the reason and --export-worse; the HTML row says so."""
+    fl = flight(0, ofs_miss=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    cal, _ = heading_checks(fl.recording, _perturbed(fl.truth()), [], None)
+    lines = " ".join(heading_lines(cal.magnetometers[0]))
+    assert "time folds: worse" in lines and "left out of the firmware parameter file" in lines
+    assert "--export-worse" in lines
+    ctx = SimpleNamespace(result=SimpleNamespace(calibration=cal), anchor="heading")
+    assert "left out (the vehicle keeps its own)" in str(heading_section(ctx))  # type: ignore[arg-type]
+
+
+def test_ardupilot_trim_levels_the_board() -> None:
+    """ATT is the vehicle's attitude, the board's less AHRS_TRIM_X/Y (as magfit_WMM reads it): with the trim
+    added back the true calibration's heading error vanishes; read without it, 3 deg of pitch trim at dip 65 deg
+    would show as several degrees of heading error."""
+    fl = flight(0, ofs_miss=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    trim = (0.02, 0.05)
+    att = next(s for s in fl.recording.streams if s.id == "ATT")
+    rpy = so3.as_rpy(so3.from_quat(att.values)) - np.array([*trim, 0.0])
+    vehicle = replace(att, values=so3.as_quat(so3.from_rpy(rpy)))
+    streams = tuple(vehicle if s.id == "ATT" else s for s in fl.recording.streams)
+    rec = replace(fl.recording, streams=streams, params={**fl.recording.params, "AHRS_TRIM_X": trim[0],
+                                                          "AHRS_TRIM_Y": trim[1]})
+    cal, _ = heading_checks(rec, fl.truth(), [], None)
+    block = cal.magnetometers[0].heading_check
+    assert block is not None and block["rms_deg"]["magcal"] < 0.5, block["rms_deg"]
+    untrimmed, _ = heading_checks(replace(rec, params=fl.recording.params), fl.truth(), [], None)
+    assert untrimmed.magnetometers[0].heading_check["rms_deg"]["magcal"] > 2.0  # type: ignore[index]

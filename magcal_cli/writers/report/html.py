@@ -12,6 +12,7 @@ from magcal_cli.progress import active, current, steps
 from magcal_cli.writers.report.sections import (
     diagnosis,
     effects,
+    heading,
     magnetometer,
     method,
     notes,
@@ -83,6 +84,7 @@ SECTIONS: tuple[Section, ...] = (
     Section("summary", "Summary", summary.render),
     Section("method", "Method", method.render),
     Section("mag", "Magnetometer", magnetometer.render, per_magnetometer=True),
+    Section("heading", "Heading check", heading.render),
     Section("effects", "Effects", effects.render),
     Section("diagnosis", "Diagnosis", diagnosis.render),
     Section("warnings", "Warnings", notes.render),

@@ -147,9 +147,26 @@ def _render_mag(mag: MagCalibration, result: RunResult) -> list[str]:
                   *([f"    uncertainty        {widening_sentence(factor)}"] if (factor := widening(result, mag.id)) else []),
                   f"    solver             {'converged' if q.converged else 'NOT converged'} "
                   f"after {q.iterations} iterations"]
+    lines += heading_lines(mag)
     carried = tuple(eff.id for _, eff in terms(result.calibration.effects, mag.id))
     lines += ["  What to do next"] + [f"    - {a}" for a in advice(mag, misalign, before, carried)]
     return lines
+
+
+def heading_lines(mag: MagCalibration) -> list[str]:
+    """The heading check (firmware/heading.py): magcal's and the flown calibration against the attitude's yaw."""
+    h = mag.heading_check
+    if h is None:
+        return []
+    r = h["rms_deg"]
+    out = ["  Heading against the vehicle's attitude",
+           f"    {h['reference']} yaw, RMS  flown {r['flown']:.2f} deg, magcal {r['magcal']:.2f} deg; difference "
+           f"{h['difference_deg']:+.2f} +- {h['difference_std_deg']:.2f} deg over {h['folds']} time folds: "
+           f"{h['verdict']}"]
+    if not h.get("exported", True):
+        out += textwrap.wrap(f"left out of the firmware parameter file: {h['left_out_reason']} (magcal fit "
+                             "--export-worse writes it)", 100, initial_indent="    ", subsequent_indent="    ")
+    return out
 
 
 def widening(result: RunResult, mag_id: str) -> float | None:

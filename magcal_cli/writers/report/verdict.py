@@ -23,6 +23,7 @@ TITLES = {
     "poorly_observable": "Parameters the log determines poorly",
     "correlated_residuals": "Residuals correlated in time (uncertainty widened)",
     "dip_disagrees_with_wmm": "Dip differs from the World Magnetic Model",
+    "flown_calibration_better": "The calibration the vehicle flew with is better for heading",
     "fisher_condition": "Confounded parameters",
     "not_calibrated": "Magnetometers not calibrated",
     "disturbance_modelled": "Calibrated with a disturbance modelled",
