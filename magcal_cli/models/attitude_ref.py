@@ -126,26 +126,46 @@ def _solve_axis(x: FloatArray, y: FloatArray, prior_mean: FloatArray, prior_var:
     ratio = np.maximum(np.diag(sandwich) / np.diag(model), 1.0)
     most = float(np.max(ratio, initial=1.0))
     cov = np.asarray(np.linalg.inv(data + np.diag(p)) * most, dtype=np.float64)
+    if held.size:
+        # a held coefficient reports its prior's std (issue 38), not the soft prior's widened posterior: its rows and
+        # columns are scaled, which keeps the correlations and the free block
+        f = np.ones(x.shape[1])
+        f[held] = np.sqrt(prior_var[held] / np.diag(cov)[held])
+        cov = cov * np.outer(f, f)
     widen = np.full(x.shape[1], np.sqrt(most))
     widen[free] = np.sqrt(ratio)
     return AxisFit(np.asarray(beta, dtype=np.float64), cov, sigma, r, data / np.outer(widen, widen))
 
 
 def _held_fit(x: FloatArray, y: FloatArray, prior_mean: FloatArray, prior_var: FloatArray,
-              blocks: npt.NDArray[np.int64]) -> tuple[AxisFit, npt.NDArray[np.int64]]:
+              blocks: npt.NDArray[np.int64], free: tuple[int, ...] = ()) -> tuple[AxisFit, npt.NDArray[np.int64]]:
     """The axis fitted with what the data, their correlation in time counted, know no better than the prior held
     at it (`partial.choose`, as the joint MAP holds its entries), rather than left to wander along the direction
     the attitude does not vary; and the coefficients held. Holding changes the residuals and so the widening: the
-    choice is redone at the new fit, keeping what is held, until it stays."""
+    choice is redone at the new fit, keeping what is held, until it stays. The `free` coefficients are never held
+    (a horizontal axis's offset after a half turn of heading: `turned_axes`)."""
     fitted = _solve_axis(x, y, prior_mean, prior_var, blocks)
     held = np.zeros(0, np.int64)
+    judged = np.sqrt(prior_var)
+    judged[list(free)] = np.inf                   # choose: an infinite prior std is never held
     for _ in range(x.shape[1]):
-        more = partial.choose(fitted.info, np.sqrt(prior_var), held, AXIS_RANK[:x.shape[1]])
+        more = partial.choose(fitted.info, judged, held, AXIS_RANK[:x.shape[1]])
         if more.size == held.size:
             break
         held = more
         fitted = _solve_axis(x, y, prior_mean, prior_var, blocks, held)
     return fitted, held
+
+
+def turned_axes(rot: FloatArray) -> tuple[int, ...]:
+    """The body axes whose offsets a turn of the attitude (N, 3, 3) body -> NED determines whatever their prior:
+    those off the axis nearest the mean vertical, when the heading turned through at least
+    `partial.OFFSETS_YAW_DEG` (issue 25 item 5, issue 38 item 3), else none."""
+    heading = np.unwrap(np.arctan2(rot[:, 1, 0], rot[:, 0, 0]))
+    if np.degrees(np.ptp(heading)) < partial.OFFSETS_YAW_DEG:
+        return ()
+    vertical = int(np.argmax(np.abs(rot[:, 2, :].mean(axis=0))))      # R^T e_z: NED down in the body
+    return tuple(i for i in range(3) if i != vertical)
 
 
 def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField,
@@ -180,13 +200,14 @@ def fit_attitude(problem: Problem, mag: Stream, att: Stream, ref: ReferenceField
     c_var = np.zeros(3)
     cov = np.zeros((MAG.size, MAG.size))
     held: list[HeldEntry] = []
+    horizontal = turned_axes(rot[ok])
     rms = []
     for i in range(3):
         mean = np.append(prior.D[i], prior.o[i])
         var = np.full(4, sd**2)
         if current is not None:                                   # no prior on the interference: free
             mean, var = np.append(mean, 0.0), np.append(var, np.inf)
-        fitted, hold = _held_fit(x, y[:, i], mean, var, blocks)
+        fitted, hold = _held_fit(x, y[:, i], mean, var, blocks, (3,) if i in horizontal else ())
         beta, cv, r = fitted.beta, fitted.cov, fitted.r
         d[i], o[i] = beta[:3], beta[3]
         if current is not None:
