@@ -602,7 +602,9 @@ def test_sigint_mid_run_leaves_no_partial_files(tmp_path: Path) -> None:
      "{path}: the log is cut: it ends inside a record at byte 81918 of 81920 (a record header, 2 of its 3 bytes "
      "present). Re-copy the log, or leave out --strict to calibrate from its complete records"),
     ("ap462_truncated_80k.bin", (),
-     "ap462_truncated_80k.bin: magnetometer MAG[0] has only 4 samples (0.3 s); a calibration needs a recording of at "
+     "ap462_truncated_80k.bin: none of the 2 magnetometers can be used: MAG[0], magnetometer MAG[0] has only 4 "
+     "samples (0.3 s); a calibration needs a recording of at least a minute with the vehicle turned through many "
+     "orientations; MAG[1], magnetometer MAG[1] has only 4 samples (0.3 s); a calibration needs a recording of at "
      "least a minute with the vehicle turned through many orientations"),
 ])
 def test_negative_real_logs(runner: CliRunner, tmp_path: Path, realdata: Path, name: str, args: tuple[str, ...],

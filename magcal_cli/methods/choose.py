@@ -67,17 +67,19 @@ DISTURBANCES = ("current_interference", "throttle_interference", "motor_interfer
 Progress = Callable[[str], None]
 
 
+#: what to record instead, for a refusal whose message carries no advice of its own
+RECORD_AGAIN = "record again, turning the vehicle slowly about all three axes away from iron and power wiring"
+
+
 def _advice(exc: MagcalError) -> str:
-    """The `To fix:` advice a refusal ends with (or the general one: record more rotation)."""
+    """The `To fix:` advice a refusal ends with ("" when its message says what to do in its own words)."""
     text = str(exc)
-    if " To fix:" in text:
-        return text.split(" To fix:", 1)[1].strip().rstrip(".")
-    return "record again, turning the vehicle slowly about all three axes away from iron and power wiring"
+    return text.split(" To fix:", 1)[1].strip().rstrip(".") if " To fix:" in text else ""
 
 
 def refusal(where: str, mag_id: str, exc: MagcalError) -> Refusal:
     """The refusal of one magnetometer from the error that refused it."""
-    return Refusal(mag_id, reason(exc, f"{where}: {mag_id}").removeprefix(f"{where}: "), _advice(exc))
+    return Refusal(mag_id, reason(exc, f"{where}: {mag_id}").removeprefix(f"{where}: "), _advice(exc) or RECORD_AGAIN)
 
 
 def refused_finding(r: Refusal) -> Finding:
@@ -185,10 +187,11 @@ def none_calibrated(where: str, refused: Sequence[Refusal], verb: str) -> str:
     advice of all of them, each piece once."""
     each = "; ".join(f"{r.id}, {r.reason}" for r in refused)
     advice: list[str] = []
-    for a in dict.fromkeys(r.advice for r in refused):
+    for a in dict.fromkeys(r.advice for r in refused if r.advice != RECORD_AGAIN):
         if not any(a in b for b in advice):
             advice = [b for b in advice if b not in a] + [a]
-    return f"{where}: none of the {len(refused)} magnetometers {verb}: {each}. To fix: {'; '.join(advice)}"
+    return f"{where}: none of the {len(refused)} magnetometers {verb}: {each}" + \
+        (f". To fix: {'; '.join(advice)}" if advice else "")
 
 
 def merge(parts: list[MethodResult]) -> MethodResult:
