@@ -19,7 +19,13 @@ from magcal_cli.align import clean_time
 from magcal_cli.errors import LogReadError, StreamError
 from magcal_cli.progress import active, current, within
 from magcal_cli.readers import ReadOptions
-from magcal_cli.readers.checks import drop_held, normalised_field, normalised_note, sensor_checks
+from magcal_cli.readers.checks import (
+    drop_held,
+    nan_throughout,
+    normalised_field,
+    normalised_note,
+    sensor_checks,
+)
 from magcal_cli.readers.cut import mark_cut, refuse_if_strict
 from magcal_cli.streams import Cut, FloatArray, Kind, Recording, Sampling, Stream
 
@@ -322,6 +328,17 @@ class CsvReader:
             partial = np.any(given, axis=1) & ~complete
             if partial.any():
                 notes.append(f"{where}: dropped {int(partial.sum())} rows with some {names} cells or the time empty")
+            if not complete.any():
+                # a magnetometer whose every cell is empty or nan is kept as logged, for fit to refuse by name
+                dead = nan_throughout(t_abs - t0, vals, where) if kinds == (Kind.MAGNETOMETER,) else None
+                if dead is not None:
+                    notes += dead[2]
+                    cs = by[families[0]]
+                    src = f"{path.name}#{', '.join(c.cell for c in cs)}"
+                    streams.append(Stream(kinds[0], sid, dead[0], dead[1], src, cs[0].unit, sampling=Sampling.INSTANT))
+                else:
+                    notes.append(f"{where}: no row has every {names} cell and the time; no {names} stream")
+                continue
             t, v, cleaned = clean_time(t_abs[complete] - t0, vals[complete], where)
             notes += cleaned
             if kinds == (Kind.MAGNETOMETER,):

@@ -194,3 +194,18 @@ def test_a_nan_magnetometer_of_a_bag_or_ulog_is_refused_by_name(tmp_path: Path, 
     assert code == 0, err
     assert calibrated_ids(doc) == ids[:1]
     assert re.search(re.escape(ids[1]) + r" reads NaN in all \d+ samples", refused_text(doc)), refused_text(doc)
+
+
+def test_a_csv_magnetometer_whose_every_cell_is_empty_is_the_dead_sensor_error(tmp_path: Path) -> None:
+    """A CSV whose mx, my, mz cells are all empty exited 123 (`cannot reshape array of size 0`); it is the
+    dead-sensor error naming the magnetometer."""
+    path = tmp_path / "x.csv"
+    sim = simulate("handheld", 0, rate=10.0, mag_rate=10.0, mag_phase_s=0.0)
+    streams = tuple(dataclasses.replace(s, values=np.full_like(s.values, np.nan)) if s.kind is Kind.MAGNETOMETER
+                    else s for s in sim.recording.streams)
+    write_log(dataclasses.replace(sim, recording=dataclasses.replace(sim.recording, streams=streams)), path)
+    code, err, _ = fit(path, tmp_path / "o")
+    assert code == 1, err
+    assert re.fullmatch(r"Error: x\.csv#mx \[uT\], my \[uT\], mz \[uT\]: the magnetometer mag reads NaN in all \d+ "
+                        r"samples; the sensor is stuck, disconnected or not enabled \(or the column is a placeholder\)"
+                        r"\. Check the sensor and its logging, and record again", err.strip()), err
