@@ -131,7 +131,8 @@ def _drift(rng: np.random.Generator, t: np.ndarray, std_mg: float, tau_s: float 
 
 
 def three_compass_flight(tmp_path: Path, seed: int = 0, duration: float = 110.0, drift_mg: float = DRIFT_MG,
-                         dia3: tuple[float, float, float] = FLOWN_DIA3) -> tuple[Path, ThreeCompass]:
+                         dia3: tuple[float, float, float] = FLOWN_DIA3,
+                         firmware: tuple[int, int, int] = (3, 5, 5)) -> tuple[Path, ThreeCompass]:
     """An ArduCopter 3.5 DataFlash log of a quad (issue 38's 3-compass flight): 3 compasses, full yaw, tilt within
     16 deg, one still segment (on the pad before take-off; the log ends in the air), per-motor interference on
     MAG[0], COMPASS_MOTCT=2 motor offsets added before the iron matrix (3.5's order). MAG[0] flies with a good
@@ -171,13 +172,13 @@ def three_compass_flight(tmp_path: Path, seed: int = 0, duration: float = 110.0,
     rec = replace(sim.recording, streams=tuple(streams))
     o2 = truths[1].o * 1e7
     prev = PreviousCalibration(
-        mot=MOT_MG_PER_A[0], motct=2, current_swing_a=12.0, firmware=(3, 5, 5),
+        mot=MOT_MG_PER_A[0], motct=2, current_swing_a=12.0, firmware=firmware,
         more=(CompassParams(ofs=(0.0, 0.0, 0.0), dia=(1.0, 1.0, 1.0), mot=MOT_MG_PER_A[1]),
               CompassParams(ofs=(-o2[0] + 30.0, -o2[1] - 20.0, -o2[2] + 40.0), dia=dia3,
                             odi=(0.02, -0.03, 0.01), mot=MOT_MG_PER_A[2])))
     sim = replace(sim, recording=rec, extra_truths=tuple(truths), previous=prev,
                   still=tuple(iv for iv in sim.still if iv[1] <= end))
-    path = tmp_path / f"copter35-{seed}.bin"
+    path = tmp_path / f"copter{firmware[0]}{firmware[1]}-{seed}.bin"
     write_bin(sim, path)
     R = sim.trajectory.at(rec.select(Kind.ACCELEROMETER).t) if sim.trajectory is not None else sim.rotations
     heading = np.unwrap(np.arctan2(R[:, 1, 0], R[:, 0, 0]))
