@@ -118,3 +118,15 @@ def test_a_compass_whose_field_follows_the_current_is_calibrated_with_it(tmp_pat
     assert np.all((lo_hi[:, 0] - 0.5 * (lo_hi[:, 1] - lo_hi[:, 0]) <= truth)
                   & (truth <= lo_hi[:, 1] + 0.5 * (lo_hi[:, 1] - lo_hi[:, 0]))), (c, lo_hi, truth)
     assert mag.quality is not None and mag.quality.field_norm_rms_pct < 1.0
+
+
+def test_the_three_compass_flight_keeps_every_compass_and_alone_gives_the_same(tmp_path: Path) -> None:
+    """The issue's 3-compass ArduCopter 3.5 flight (tests/firmware/flightsim.py): every compass is calibrated by the
+    default fit, none refused, and MAG[1] run alone (`--mag MAG[1]`) gets the method the whole-log run gave it."""
+    from tests.firmware.flightsim import three_compass_flight
+
+    path, _ = three_compass_flight(tmp_path)
+    cal = calibrate(path, command_config()).calibration
+    assert [m.id for m in cal.magnetometers] == ["MAG[0]", "MAG[1]", "MAG[2]"] and not cal.refused
+    alone = calibrate(path, command_config("MAG[1]")).calibration
+    assert [m.method for m in alone.magnetometers] == [cal.magnetometer("MAG[1]").method]
