@@ -166,6 +166,8 @@ def heading_checks(rec: Recording, cal: Calibration, findings: Sequence[Finding]
         if block is None:
             mags.append(mag)
             continue
+        # the attitude method fits against this attitude: its side of the comparison is in sample, favoured
+        block["reference_in_fit"] = mag.reference != "motion"
         dip = _dip_suspect(mag, block, ref, widened.get(mag.id))
         why = ("magcal's is worse by more than the comparison's uncertainty" if block["verdict"] == "worse"
                else None if block["verdict"] == "better" else dip)
