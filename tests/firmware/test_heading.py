@@ -12,6 +12,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from magcal_cli import so3
 from magcal_cli.calibration.document import from_dict, to_dict
@@ -137,3 +138,25 @@ def test_ardupilot_trim_levels_the_board() -> None:
     assert block is not None and block["rms_deg"]["magcal"] < 0.5, block["rms_deg"]
     untrimmed, _ = heading_checks(replace(rec, params=fl.recording.params), fl.truth(), [], None)
     assert untrimmed.magnetometers[0].heading_check["rms_deg"]["magcal"] > 2.0  # type: ignore[index]
+
+
+@pytest.mark.parametrize(("flag", "expected"), [((), False), (("--export-worse",), True)])
+def test_fit_option_reaches_the_pipeline(flag: tuple[str, ...], expected: bool, tmp_path: Path,
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """`magcal fit --export-worse` sets Config.export_worse (default off), which heading_checks reads."""
+    from click.testing import CliRunner
+
+    from magcal_cli import pipeline
+    from magcal_cli.cli.main import cli
+    from magcal_cli.errors import MagcalError
+
+    seen: list[Config] = []
+
+    def stop(path: Path, cfg: Config, *args: object) -> None:
+        seen.append(cfg)
+        raise MagcalError("stopped by the test")
+
+    monkeypatch.setattr(pipeline, "calibrate", stop)
+    log = Path(__file__).resolve().parents[2] / "sample_logs" / "handheld.bin"
+    out = CliRunner().invoke(cli, ["fit", str(log), "-o", str(tmp_path / "out"), *flag])
+    assert out.exit_code == 1 and [c.export_worse for c in seen] == [expected], out.output
