@@ -104,9 +104,9 @@ def on_common(series: dict[str, tuple[Array, Array]], keys: tuple[str, str], lo:
     return t[keep], ea[ia][keep], eb[ib][keep]
 
 
-def log_context(log: Path) -> dict[str, Any] | None:
-    """The recording, its attitude stream, declination (rad), AHRS trim and the halves' boundary; None without
-    an attitude stream the vehicle flew with."""
+def log_context(log: Path) -> dict[str, Any] | str:
+    """The recording, its attitude stream, declination (rad), AHRS trim and the halves' boundary; why not, when the
+    log cannot be read or has no attitude stream the vehicle flew with or no magnetometer."""
     from magcal_cli.config import Config
     from magcal_cli.errors import MagcalError
     from magcal_cli.pipeline import with_position
@@ -116,11 +116,13 @@ def log_context(log: Path) -> dict[str, Any] | None:
 
     try:
         rec = open_recording(log, None, ReadOptions(allow_truncated=True))
-    except MagcalError:
-        return None
+    except Exception as exc:  # noqa: BLE001 - reported in the table, not a reason to stop the benchmark
+        return f"not read: {type(exc).__name__}: {exc}"
     att = [s for s in rec.of_kind(Kind.ATTITUDE) if s.id in ATTITUDE and len(s) >= 2]
-    if not att or not rec.of_kind(Kind.MAGNETOMETER):
-        return None
+    if not att:
+        return "no ATT or vehicle_attitude stream"
+    if not rec.of_kind(Kind.MAGNETOMETER):
+        return "no magnetometer stream"
     try:
         ref = reference_for(with_position(rec, Config()))
     except MagcalError:
@@ -208,14 +210,16 @@ def compass_rows(ctx: dict[str, Any], mag_id: str, fld: dict[str, tuple[Array, A
     return row
 
 
-def run_log(log: Path, realdata: Path, args: argparse.Namespace) -> dict[str, Any] | None:
-    """The fits (whole log, each half), magfit_WMM per calibrated compass (ArduPilot) and the heading rows."""
+def run_log(log: Path, realdata: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """The fits (whole log, each half), magfit_WMM per calibrated compass (ArduPilot) and the heading rows; or why
+    the log was skipped."""
     from magcal_cli.streams import Kind
 
-    ctx = log_context(log)
-    if ctx is None:
-        return None
     name = str(log.relative_to(realdata))
+    ctx = log_context(log)
+    if isinstance(ctx, str):
+        print(f"{name}: skipped, {ctx}", flush=True)
+        return {"log": name, "skipped": ctx}
     t0 = time.perf_counter()
     half = f"{ctx['half']:.3f}"
     runs = {"magcal": fit_default(log, args.timeout, ("--outputs", "json")),
@@ -296,6 +300,8 @@ def _diff(p: dict[str, float] | None) -> str:
 
 def markdown(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
     """The page: what was run, the tally, then one line per compass and half and one for both halves."""
+    skipped = [r for r in rows if "skipped" in r]
+    rows = [r for r in rows if "skipped" not in r]
     comps = [c for r in rows for c in r["compasses"]]
     pooled = [c.get("oos_minus_flown") for c in comps]
     worse = sum(p is not None and p["diff_deg"] > 2 * p["se_deg"] for p in pooled)
@@ -338,7 +344,8 @@ def markdown(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
     errors = [f"- {r['log']} {m}: {e}" for r in rows for m, e in r.get("magfit_error", {}).items()]
     times = [f"- {r['log']}: {r['seconds']} s (magcal fits {r['fit_s']}; magfit_WMM {r.get('magfit_s', 'n/a')})"
              for r in rows]
-    return head + "\n".join(lines) + "\n\n## Times\n\n" + "\n".join(times) + "\n" + \
+    skips = [f"- {r['log']}: {r['skipped']}" for r in skipped]
+    return head + "\n".join(lines) + "\n\n## Logs not compared\n\n" + "\n".join(skips) + "\n\n## Times\n\n" + "\n".join(times) + "\n" + \
         ("\n## magfit_WMM failures and retries\n\n" + "\n".join(errors) + "\n" if errors else "")
 
 
@@ -352,7 +359,13 @@ def main() -> None:
     ap.add_argument("--no-magfit", action="store_true", help="skip magfit_WMM")
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per fit")
     ap.add_argument("--only", default="", help="comma-separated substrings: run only the logs whose path has one")
+    ap.add_argument("--render", action="store_true", help="only rewrite OUT.md (and print it) from OUT.json")
     args = ap.parse_args()
+    if args.render:
+        saved = json.loads(args.out.with_suffix(".json").read_text())
+        args.out.with_suffix(".md").write_text(page := markdown(saved["logs"], saved["meta"]))
+        print(page)
+        return
     if not args.realdata.is_dir():
         print(f"{args.realdata}: no real logs here; nothing to measure")
         return
@@ -360,7 +373,7 @@ def main() -> None:
     if args.only:
         logs = [p for p in logs if any(s in str(p) for s in args.only.split(","))]
     t0 = time.perf_counter()
-    rows = [r for r in (run_log(p, args.realdata, args) for p in logs) if r is not None]
+    rows = [run_log(p, args.realdata, args) for p in logs]
     meta = {"command": "python benchmarks/real_heading.py " + " ".join(sys.argv[1:]),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "seconds": time.perf_counter() - t0,
             "magfit_reduce": args.magfit_reduce, "no_magfit": args.no_magfit, **git_meta()}
