@@ -90,9 +90,9 @@ def refused_finding(r: Refusal) -> Finding:
 
 def _disturbed(run: MethodRun, problem: Problem, cfg: Config, method: str, exc: UnexplainedError,
                progress: Progress) -> tuple[MethodResult, list[Finding]] | None:
-    """The base fit left one magnetometer's readings unexplained: the fit with one disturbance the log has a channel for, the first of
-    current, throttle, motors and temperature (the usual size of each on a vehicle) that explains the readings;
-    None when none does. Only where the effects are the diagnosis's to choose (`--effects auto`) and the method
+    """The base fit left one magnetometer's readings unexplained: the fit with one disturbance the log has a channel
+    for, the first of current, throttle, motors and temperature (the usual size of each on a vehicle) that explains
+    the readings; None when none does. Only where the effects are the diagnosis's to choose (`--effects auto`) and the method
     models them. The first, not the best: a refused fit costs as much as a whole one, and the rivals are told
     apart by the diagnosis of a log that a base model explains."""
     if not (cfg.diagnose and METHODS[method].carries == "all"):
