@@ -311,13 +311,19 @@ def cap_pins(prior: MagPrior) -> tuple[IntArray, str]:
     return np.zeros(0, np.int64), ""
 
 
+#: the field directions' third principal spread (rad RMS) below which the motion was a vehicle's, turning about one
+#: body axis near the vertical (the issue's 3-compass flight, tilt within 16 deg: 0.03); a hand-held half sphere
+#: (x-io's sensor_data.csv: 0.14) has no heading whose turn fixes the offsets, and what it fixes the information says
+LEVEL_SPREAD = 0.1
+
+
 def turned_offsets(prior: MagPrior) -> IntArray:
     """The base columns of the horizontal offsets (those off the body axis nearest the vertical) when the vehicle
-    turned through at least OFFSETS_YAW_DEG of heading, else none: the horizontal field then swept at least half a
+    turned through at least OFFSETS_YAW_DEG of heading while staying near level (LEVEL_SPREAD), else none: the horizontal field then swept at least half a
     circle about that axis, whose centre they are (issue 25 item 5, issue 38 item 3). The information may still say
     the data know them worse than their prior (residuals correlated in time widen it): they are then estimated with
     that larger std, not pinned at a prior that the turn itself contradicts."""
-    if prior.yaw_deg is None or prior.yaw_deg < OFFSETS_YAW_DEG:
+    if prior.yaw_deg is None or prior.yaw_deg < OFFSETS_YAW_DEG or prior.spread[2] > LEVEL_SPREAD:
         return np.zeros(0, np.int64)
     vertical = 2 if prior.flat_axis is None else prior.flat_axis
     return np.array([c for i, c in enumerate(BASE.cols("o")) if i != vertical], np.int64)
