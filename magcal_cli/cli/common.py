@@ -48,9 +48,9 @@ def progress_line(ctx: click.Context) -> Any:
 #: finding code -> its folded line in the terminal: what happened and what to do, said once for every magnetometer
 #: it names; the {fields} come from the group's evidence and messages (`_fields`)
 BRIEF = {
-    "flown_calibration_better": "the calibration the vehicle flew with is better for heading against its attitude "
-                                "(magcal's is worse, or its dip is off the WMM on weak motion): left out of the "
-                                "firmware parameter file unless --export-worse",
+    "flown_calibration_better": "the calibration the vehicle flew with is better for heading against its attitude, "
+                                "so it is left out of the firmware parameter file (--export-worse writes it); to "
+                                "fix: record again turning the vehicle through full circles and tilting it",
     "correlated_residuals": "residuals correlated in time beyond the noise model (uncertainty widened up to "
                             "{max_factor:.1f}x)",
     "poorly_observable": "{what} poorly determined by the motion in this log{fix}",
