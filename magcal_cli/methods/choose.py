@@ -71,15 +71,15 @@ Progress = Callable[[str], None]
 RECORD_AGAIN = "record again, turning the vehicle slowly about all three axes away from iron and power wiring"
 
 
-def _advice(exc: MagcalError) -> str:
-    """The `To fix:` advice a refusal ends with ("" when its message says what to do in its own words)."""
-    text = str(exc)
-    return text.split(" To fix:", 1)[1].strip().rstrip(".") if " To fix:" in text else ""
-
-
 def refusal(where: str, mag_id: str, exc: MagcalError) -> Refusal:
-    """The refusal of one magnetometer from the error that refused it."""
-    return Refusal(mag_id, reason(exc, f"{where}: {mag_id}").removeprefix(f"{where}: "), _advice(exc) or RECORD_AGAIN)
+    """The refusal of one magnetometer from the error that refused it: its `To fix:` advice, else the last sentence
+    of a `where: what. How` message, else RECORD_AGAIN."""
+    text = str(exc)
+    why = reason(exc, f"{where}: {mag_id}").removeprefix(f"{where}: ")
+    if " To fix:" in text:
+        return Refusal(mag_id, why, text.split(" To fix:", 1)[1].strip().rstrip("."))
+    what, _, how = why.rpartition(". ")
+    return Refusal(mag_id, what, how[:1].lower() + how[1:]) if what else Refusal(mag_id, why, RECORD_AGAIN)
 
 
 def refused_finding(r: Refusal) -> Finding:

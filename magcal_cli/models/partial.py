@@ -323,7 +323,8 @@ def turned_offsets(prior: MagPrior) -> IntArray:
     circle about that axis, whose centre they are (issue 25 item 5, issue 38 item 3). The information may still say
     the data know them worse than their prior (residuals correlated in time widen it): they are then estimated with
     that larger std, not pinned at a prior that the turn itself contradicts."""
-    if prior.yaw_deg is None or prior.yaw_deg < OFFSETS_YAW_DEG or prior.spread[2] > LEVEL_SPREAD:
+    tumbled = prior.spread is not None and float(prior.spread[2]) > LEVEL_SPREAD
+    if prior.yaw_deg is None or prior.yaw_deg < OFFSETS_YAW_DEG or tumbled:
         return np.zeros(0, np.int64)
     vertical = 2 if prior.flat_axis is None else prior.flat_axis
     return np.array([c for i, c in enumerate(BASE.cols("o")) if i != vertical], np.int64)
