@@ -17,6 +17,8 @@ def render(ctx: Context) -> str:
     result, verdicts = ctx.result, ctx.verdicts
     cal = result.calibration
     level = overall(verdicts)
+    if cal.refused and level == "good":          # a compass of the log could not be calibrated: not all is well
+        level = "check"
     words = {"good": "ready to use", "check": "usable, with caveats", "poor": "not usable; record again"}
     by_level = {lv: [v.mag_id for v in verdicts if v.level == lv] for lv in LEVELS}
     parts = [f"{words[lv]} ({', '.join(ids)})" if len(verdicts) > 1 else words[lv]
