@@ -89,7 +89,8 @@ def compare(flown: Flown, mine: Flown, att: Stream, rec: Recording, declination:
     g = np.einsum("nij,nj->ni", lev, flown.field[mask])
     h = np.hypot(g[:, 0], g[:, 1])
     # fast turns put the compass and the attitude's latency apart; near-vertical fields have no heading
-    keep = slow(rec, flown.t[mask], MAX_RATE_DPS) & (h > 0.5 * np.median(h)) & np.all(np.isfinite(q), axis=1)
+    finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(flown.field[mask] + mine.field[mask]), axis=1)
+    keep = slow(rec, flown.t[mask], MAX_RATE_DPS) & (h > 0.5 * np.nanmedian(h)) & finite
     folds = _folds(int(keep.sum()))
     if folds is None:
         return None
