@@ -20,7 +20,7 @@ seen) is not passed on either. Either way it is left out of the firmware paramet
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -74,8 +74,19 @@ def _rms(e: FloatArray) -> float:
     return float(np.rad2deg(np.sqrt(np.mean(e**2))))
 
 
-def compare(flown: Flown, mine: Flown, att: Stream, rec: Recording, declination: float) -> dict[str, Any] | None:
-    """The heading_check block's numbers for one compass (None when too few samples line up with the attitude)."""
+@dataclass(frozen=True, eq=False)
+class Series:
+    """Both calibrations' heading errors (rad, mean removed) at the samples kept, their times and the yaw seen."""
+
+    t: FloatArray
+    flown: FloatArray
+    magcal: FloatArray
+    offsets_deg: tuple[float, float]            # (flown, magcal): the constant removed from each
+    yaw: FloatArray
+
+
+def series(flown: Flown, mine: Flown, att: Stream, rec: Recording, declination: float) -> Series | None:
+    """Heading errors of the flown and magcal's field against the attitude's yaw (None: too few samples)."""
     mask, q = onto(att, flown.t, max_gap_s=1.0)
     if mask.sum() < 2 * MIN_PER_FOLD:
         return None
@@ -91,24 +102,43 @@ def compare(flown: Flown, mine: Flown, att: Stream, rec: Recording, declination:
     # fast turns put the compass and the attitude's latency apart; near-vertical fields have no heading
     finite = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(flown.field[mask] + mine.field[mask]), axis=1)
     keep = slow(rec, flown.t[mask], MAX_RATE_DPS) & (h > 0.5 * np.nanmedian(h)) & finite
-    folds = _folds(int(keep.sum()))
-    if folds is None:
+    if keep.sum() < 2 * MIN_PER_FOLD:
         return None
     e_f, off_f = _errors(flown.field[mask][keep], lev[keep], yaw[keep], declination)
     e_m, off_m = _errors(mine.field[mask][keep], lev[keep], yaw[keep], declination)
-    per_f = [_rms(e_f[b]) for b in folds]
-    per_m = [_rms(e_m[b]) for b in folds]
+    return Series(flown.t[mask][keep], e_f, e_m, (off_f, off_m), yaw[keep])
+
+
+def compare(flown: Flown, mine: Flown, att: Stream, rec: Recording, declination: float) -> dict[str, Any] | None:
+    """The heading_check block's numbers for one compass (None when too few samples line up with the attitude)."""
+    s = series(flown, mine, att, rec, declination)
+    folds = None if s is None else _folds(s.t.size)
+    if s is None or folds is None:
+        return None
+    per_f = [_rms(s.flown[b]) for b in folds]
+    per_m = [_rms(s.magcal[b]) for b in folds]
     d = np.subtract(per_m, per_f)
     se = float(np.std(d, ddof=1) / np.sqrt(d.size))
     diff = float(np.mean(d))
     bound = max(1.96 * se, FLOOR_DEG)
     verdict = "worse" if diff > bound else "better" if diff < -bound else "same"
-    return {"verdict": verdict, "rms_deg": {"magcal": _rms(e_m), "flown": _rms(e_f)},
-            "difference_deg": diff, "difference_std_deg": se, "reference": att.id, "samples": int(keep.sum()),
+    return {"verdict": verdict, "rms_deg": {"magcal": _rms(s.magcal), "flown": _rms(s.flown)},
+            "difference_deg": diff, "difference_std_deg": se, "reference": att.id, "samples": int(s.t.size),
             "folds": len(folds), "fold_rms_deg": {"magcal": per_m, "flown": per_f},
-            "offset_deg": {"magcal": off_m, "flown": off_f},
-            "heading_coverage_deg": 360.0 - heading_gap_deg(yaw[keep]),
+            "offset_deg": {"magcal": s.offsets_deg[1], "flown": s.offsets_deg[0]},
+            "heading_coverage_deg": 360.0 - heading_gap_deg(s.yaw),
             "flown_slot": flown.slot, "flown_used": flown.used, "protocol": PROTOCOL}
+
+
+def error_series(rec: Recording, cal: Calibration, mag_id: str) -> Series | None:
+    """The heading errors behind a compass's heading_check, for the report's plot (None: not measurable)."""
+    att = [s for s in rec.of_kind(Kind.ATTITUDE) if len(s) >= 2]
+    try:
+        flown = flown_fields(rec, [mag_id], None, None)[0]
+        mine = flown_fields(rec, [mag_id], None, cal)[0]
+    except MagcalError:
+        return None
+    return series(flown[0], mine[0], att[0], rec, 0.0) if att and flown and mine else None
 
 
 def _dip_suspect(mag: MagCalibration, block: dict[str, Any], ref: ReferenceField | None,

@@ -117,8 +117,10 @@ def test_report_says_what_was_left_out() -> None:
     lines = " ".join(heading_lines(cal.magnetometers[0]))
     assert "time folds: worse" in lines and "left out of the firmware parameter file" in lines
     assert "--export-worse" in lines
-    ctx = SimpleNamespace(result=SimpleNamespace(calibration=cal), anchor="heading")
-    assert "left out (the vehicle keeps its own)" in str(heading_section(ctx))  # type: ignore[arg-type]
+    ctx = SimpleNamespace(result=SimpleNamespace(calibration=cal, recording=fl.recording), anchor="heading")
+    page = heading_section(ctx)  # type: ignore[arg-type]
+    assert "left out (the vehicle keeps its own)" in page
+    assert "Heading error against the vehicle&#x27;s attitude" in page and "data:image/svg+xml;base64," in page
 
 
 def test_ardupilot_trim_levels_the_board() -> None:

@@ -3,9 +3,18 @@
 from __future__ import annotations
 
 from html import escape
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from magcal_cli.firmware.heading import error_series
+from magcal_cli.writers.report.plots import CAL, REF, Plot, embed, figure, legend_above, margins, robust_ylim
 from magcal_cli.writers.report.sections.base import Context
-from magcal_cli.writers.report.sections.markup import badge, num
+from magcal_cli.writers.report.sections.markup import badge, figures, num
+
+if TYPE_CHECKING:
+    from magcal_cli.calibration.run import RunResult
+    from magcal_cli.calibration.types import MagCalibration
 
 #: verdict -> badge colour
 LEVEL = {"better": "good", "same": "muted", "worse": "poor"}
@@ -36,4 +45,27 @@ def render(ctx: Context) -> str:
             "flown calibration is left out of the firmware parameter file unless <code>--export-worse</code>. "
             "Where the attitude is steered by that compass (the primary), it leans towards the flown "
             "calibration.</p><table><tr><th>compass</th><th>flown</th><th>magcal</th><th>difference</th>"
-            "<th>verdict</th><th>firmware file</th></tr>" + "".join(body) + "</table></section>")
+            "<th>verdict</th><th>firmware file</th></tr>" + "".join(body) + "</table>"
+            + figures(_plots(ctx.result, mags), "heading check") + "</section>")
+
+
+def _plots(result: RunResult, mags: list[MagCalibration]) -> list[Plot]:
+    """One figure: each compass's heading error over time, flown and magcal's (mean removed)."""
+    panels = [(m, s) for m in mags if (s := error_series(result.recording, result.calibration, m.id)) is not None]
+    if not panels:
+        return []
+    height = 0.6 + 1.5 * len(panels)
+    fig = figure(height)
+    for (m, s), (ax,) in zip(panels, fig.grid(len(panels), 1, margins(height, hspace=0.5)), strict=True):
+        flown, mine = np.rad2deg(s.flown), np.rad2deg(s.magcal)
+        # a NaN after each gap of over a second (fast turns left out) breaks the lines there
+        cut = np.flatnonzero(np.diff(s.t) > 1.0) + 1
+        t = np.insert(s.t, cut, np.nan)
+        ax.line(t, np.insert(flown, cut, np.nan), REF, label="flown")
+        ax.line(t, np.insert(mine, cut, np.nan), CAL, label="magcal")
+        robust_ylim(ax, flown, mine)
+        ax.title, ax.ylabel, ax.xlabel = m.id, "error (deg)", "time (s)"
+        legend_above(ax, 2)
+    return [Plot("Heading error against the vehicle's attitude",
+                 "The heading of each compass, corrected as flown (grey) and with magcal's calibration (blue), "
+                 "minus the attitude's yaw, each with its mean removed; fast turns left out.", embed(fig))]
