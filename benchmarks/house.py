@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "magcal_cli"
 TESTS = ROOT / "tests"
 MAX_LINES = 450
-MAX_TOP = 17
+MAX_TOP = 18    # 17 core and orchestration modules, and `api`: the Python API users import by name (issue 40)
 
 
 def modules() -> dict[str, Path]:

@@ -56,6 +56,11 @@ class CalibrationFileError(MagcalError):
     """A calibration document is malformed or of an unknown schema."""
 
 
+class OptionError(MagcalError):
+    """A Python API argument (`magcal_cli.api`) out of range or of the wrong shape; the CLI's options are checked
+    by click before they get there (exit 2)."""
+
+
 def reason(exc: Exception, where: str) -> str:
     """A refusal's `<what>` alone, for quoting inside another message: without its `where: ` prefix, its
     `To fix:` advice and its final full stop."""

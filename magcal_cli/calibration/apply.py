@@ -8,13 +8,15 @@ offset, ...) is removed by its plug-in's `correct` when the log has the channels
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from magcal_cli import units
-from magcal_cli.calibration.types import Calibration
-from magcal_cli.effects.correct import remove
+from magcal_cli.calibration.types import Calibration, MagCalibration
+from magcal_cli.effects.correct import Channels, remove
 from magcal_cli.errors import StreamError
-from magcal_cli.streams import Kind, Recording, Sampling
+from magcal_cli.streams import FloatArray, Kind, Recording, Sampling
 from magcal_cli.timing import CHOICES, as_instants, stated
 
 #: how the CSV header names each document unit (the CSV input contract's spellings)
@@ -22,8 +24,19 @@ SHORT = {"tesla": "T", "millitesla": "mT", "microtesla": "uT", "nanotesla": "nT"
          "milligauss": "mG"}
 
 
-def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | None = None) -> tuple[str, list[str]]:
-    """(CSV text, notes) of the calibrated field of every document magnetometer found in `rec`."""
+def calibrated(cal: Calibration, mag: MagCalibration, t: FloatArray, y: FloatArray,
+               channels: Channels | Mapping[str, FloatArray]) -> tuple[FloatArray, FloatArray, list[str]]:
+    """(stamps, calibrated field F A (y - o - terms) (N, 3) in the document's unit, notes) of `mag`'s readings y
+    (N, 3, document unit) at t (N,) s: the one correction `magcal apply` and `magcal_cli.api.apply` share.
+    `channels`: where the effects' channels are (`effects.correct.remove`)."""
+    t, y, notes = remove(cal.effects, mag.id, channels, t, y)
+    return t, mag.field_strength * mag.apply(y), notes
+
+
+def apply_rows(cal: Calibration, rec: Recording, mag_ids: list[str] | None = None
+               ) -> tuple[list[tuple[float, str, FloatArray]], str, list[str]]:
+    """(rows (t, id, field) sorted by time then id, the CSV's unit name, notes): the calibrated field of every
+    document magnetometer found in `rec`, unrounded."""
     mags = [cal.magnetometer(m) for m in mag_ids] if mag_ids else list(cal.magnetometers)
     have = {s.id for s in rec.of_kind(Kind.MAGNETOMETER)}
     missing = [m.id for m in mags if m.id not in have]
@@ -36,20 +49,23 @@ def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | No
     if len(unit_names) != 1:
         msg = f"{rec.path.name}: the magnetometers have different units ({', '.join(sorted(unit_names))}); use --mag"
         raise StreamError(msg)
-    u = unit_names.pop()
-    rows: list[tuple[float, str, np.ndarray]] = []
+    rows: list[tuple[float, str, FloatArray]] = []
     told = cal.source.timing.get("magnetometer")
     for mag in (m for m in mags if m.id in have):
         stream = rec.select(Kind.MAGNETOMETER, mag.id)
         if told in CHOICES:                # the fit's time convention, so a time offset means the same here
             stream = as_instants(stated(stream, Sampling(told)))
         y = stream.xyz * units.from_si(mag.unit)
-        t, y, done = remove(cal.effects, mag.id, rec, stream.t, y)
+        t, b, done = calibrated(cal, mag, stream.t, y, rec)
         notes += done
-        b = mag.field_strength * mag.apply(y)
         rows += [(float(ti), mag.id, v) for ti, v in zip(t, b, strict=True)]
     rows.sort(key=lambda r: (r[0], r[1]))
+    return rows, unit_names.pop(), notes
+
+
+def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | None = None) -> tuple[str, list[str]]:
+    """(CSV text, notes) of the calibrated field of every document magnetometer found in `rec`."""
+    rows, u, notes = apply_rows(cal, rec, mag_ids)
     lines = [f"t [s],id,mx [{u}],my [{u}],mz [{u}],norm [{u}]"]
     lines += [f"{t:.6f},{i},{v[0]:.7g},{v[1]:.7g},{v[2]:.7g},{np.linalg.norm(v):.7g}" for t, i, v in rows]
     return "\n".join(lines) + "\n", notes
-

@@ -18,7 +18,6 @@ from magcal_cli.cli.common import (
     verbosity,
     warning_lines,
 )
-from magcal_cli.config import Config
 
 if TYPE_CHECKING:
     from magcal_cli.streams import Sampling
@@ -66,6 +65,7 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
         robust_loss: str, effects: tuple[str, ...], fail_on: tuple[Any, ...], history: Path | None,
         vehicle: str | None, imu_timing: Sampling | None, mag_timing: Sampling | None, export_worse: bool) -> None:
     """Calibrate every selected magnetometer of LOG against the IMU and write the results."""
+    from magcal_cli.api import config
     from magcal_cli.calibration.document import dumps_json
     from magcal_cli.pipeline import calibrate
     from magcal_cli.writers import FIRMWARE_OUTPUTS
@@ -77,11 +77,10 @@ def fit(ctx: click.Context, log: Path, outdir: Path | None, mags: tuple[str, ...
     auto = _firmware_output(ctx, log, fmt, names)
     outdir = outdir or Path.cwd() / f"{log.stem}-magcal"
     _check_outdir(outdir, names + ([auto] if auto else []), force)
-    cfg = Config(method=method, mag=",".join(mags) or "all", imu=imu, start_s=start_s, end_s=end_s,
-                 allow_truncated=not strict, location=location, date=date, robust_loss=robust_loss,
-                 effects=() if effects == options.AUTO else effects, diagnose=effects == options.AUTO,
-                 imu_timing=imu_timing,
-                 mag_timing=mag_timing, export_worse=export_worse)
+    cfg = config(method=method, mag=mags or "all", imu=imu, start=start_s, end=end_s, strict=strict,
+                 location=location, date=date, robust_loss=robust_loss,
+                 effects="auto" if effects == options.AUTO else effects, imu_timing=imu_timing,
+                 mag_timing=mag_timing, export_worse=export_worse)      # the Python API's Config, checked the same
     with progress_line(ctx) as progress:        # the writing too: its files are part of the run's time
         result = calibrate(log, cfg, fmt, progress)
         if auto and FIRMWARE_OUTPUTS.get(result.recording.format) == auto:

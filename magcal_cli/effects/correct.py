@@ -9,7 +9,7 @@ deg with it, 19.4 deg flown; docs/decisions.md).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -59,21 +59,16 @@ def terms(effects: Sequence[dict[str, Any]], mag_id: str, statuses: tuple[str, .
     return out
 
 
-def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels, t: FloatArray, y: FloatArray,
-           statuses: tuple[str, ...] = MODELLED) -> tuple[FloatArray, FloatArray, list[str]]:
+def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels | Mapping[str, FloatArray], t: FloatArray,
+           y: FloatArray, statuses: tuple[str, ...] = MODELLED) -> tuple[FloatArray, FloatArray, list[str]]:
     """Readings and stamps with the modelled magnetometer effects of `mag_id` (`terms`) removed, and what was
-    done."""
+    done. `rec` holds the channels: a Recording or a Problem's aux (resampled at t), or a mapping of channel kind
+    value ("battery_current", ...) to its values at t already (the Python API's readings, `magcal_cli.api`)."""
     notes = []
     for e, eff in terms(effects, mag_id, statuses):
         eid = eff.id
-        chans: dict[str, np.ndarray] = {}
-        for kind in eff.channels:
-            named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
-            found = named or [s for s in rec.of_kind(kind) if len(s) >= 2]
-            if found and kind is Kind.MOTOR_OUTPUT:          # one stream per motor: (N, motors) in motor order
-                chans[kind.value] = np.column_stack([np.interp(t, s.t, s.values[:, 0]) for s in motor_streams(found)])
-            elif found:
-                chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
+        chans = ({k.value: rec[k.value] for k in eff.channels if k.value in rec} if isinstance(rec, Mapping)
+                 else _at(e, eff, rec, t))
         missing = [k.value for k in eff.channels if k.value not in chans]
         if missing:
             notes.append(f"{mag_id}: the {e.get('status')} {eid} is not removed (the log lacks its "
@@ -82,3 +77,16 @@ def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels, t: Flo
         t, y = eff.correct(dict(e.get("params") or {}), t, y, chans)
         notes.append(f"{mag_id}: {eid} removed")
     return t, y, notes
+
+
+def _at(e: dict[str, Any], eff: Effect, rec: Channels, t: FloatArray) -> dict[str, np.ndarray]:
+    """The channels of `eff` found in `rec` (the entry's own channel ids first), resampled at t."""
+    chans: dict[str, np.ndarray] = {}
+    for kind in eff.channels:
+        named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
+        found = named or [s for s in rec.of_kind(kind) if len(s) >= 2]
+        if found and kind is Kind.MOTOR_OUTPUT:          # one stream per motor: (N, motors) in motor order
+            chans[kind.value] = np.column_stack([np.interp(t, s.t, s.values[:, 0]) for s in motor_streams(found)])
+        elif found:
+            chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
+    return chans
