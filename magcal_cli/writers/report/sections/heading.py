@@ -54,13 +54,13 @@ def _plots(result: RunResult, mags: list[MagCalibration]) -> list[Plot]:
     panels = [(m, s) for m in mags if (s := error_series(result.recording, result.calibration, m.id)) is not None]
     if not panels:
         return []
-    height = 0.6 + 1.5 * len(panels)
+    height = 0.6 + 1.7 * len(panels)
     fig = figure(height)
-    for (m, s), (ax,) in zip(panels, fig.grid(len(panels), 1, margins(height, hspace=0.5)), strict=True):
+    for (m, s), (ax,) in zip(panels, fig.grid(len(panels), 1, margins(height, hspace=0.75)), strict=True):
         flown, mine = np.rad2deg(s.flown), np.rad2deg(s.magcal)
         # a NaN after each gap of over a second (fast turns left out) breaks the lines there
         cut = np.flatnonzero(np.diff(s.t) > 1.0) + 1
-        t = np.insert(s.t, cut, np.nan)
+        t = np.insert(s.t, cut, 0.5 * (s.t[cut - 1] + s.t[cut]))       # x stays finite: the envelope bins by it
         ax.line(t, np.insert(flown, cut, np.nan), REF, label="flown")
         ax.line(t, np.insert(mine, cut, np.nan), CAL, label="magcal")
         robust_ylim(ax, flown, mine)
