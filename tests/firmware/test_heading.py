@@ -162,3 +162,28 @@ def test_fit_option_reaches_the_pipeline(flag: tuple[str, ...], expected: bool, 
     log = Path(__file__).resolve().parents[2] / "sample_logs" / "handheld.bin"
     out = CliRunner().invoke(cli, ["fit", str(log), "-o", str(tmp_path / "out"), *flag])
     assert out.exit_code == 1 and [c.export_worse for c in seen] == [expected], out.output
+
+
+def test_two_compasses_only_the_worse_is_left_out(tmp_path: Path) -> None:
+    """Two compasses reading the same field with the same flown calibration: MAG[0] magcal's = truth (not worse),
+    MAG[1] perturbed (worse). ardupilot.param keeps COMPASS_OFS_* for MAG[0] and leaves COMPASS_OFS2_* out,
+    its header naming MAG[1]."""
+    fl = flight(0, ofs_miss=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0), tilt_deg=(0.0, 0.0))
+    rec = fl.recording
+    mag0 = next(s for s in rec.streams if s.id == "MAG[0]")
+    second = {k.replace("COMPASS_OFS_", "COMPASS_OFS2_").replace("COMPASS_DIA_", "COMPASS_DIA2_")
+              .replace("COMPASS_ODI_", "COMPASS_ODI2_").replace("COMPASS_USE", "COMPASS_USE2")
+              .replace("COMPASS_EXTERNAL", "COMPASS_EXTERN2").replace("COMPASS_ORIENT", "COMPASS_ORIENT2"): v
+              for k, v in rec.params.items() if k.startswith(("COMPASS_OFS_", "COMPASS_DIA_", "COMPASS_ODI_"))
+              or k in ("COMPASS_USE", "COMPASS_EXTERNAL", "COMPASS_ORIENT")}
+    rec = replace(rec, streams=(*rec.streams, replace(mag0, id="MAG[1]")), params={**rec.params, **second})
+    truth = fl.truth()
+    m1 = _perturbed(truth).magnetometers[0]
+    cal, found = heading_checks(rec, replace(truth, magnetometers=(*truth.magnetometers, replace(m1, id="MAG[1]"))),
+                                [], None)
+    verdicts = {m.id: (m.heading_check or {}).get("verdict") for m in cal.magnetometers}
+    assert verdicts["MAG[1]"] == "worse" and verdicts["MAG[0]"] in ("same", "better"), verdicts
+    assert [f.evidence["sensor"] for f in found] == ["MAG[1]"]
+    text = _param_file(cal, rec, tmp_path)
+    assert "COMPASS_OFS_X," in text and "COMPASS_OFS2_X" not in text and "# left out: MAG[1]" in text
+    assert "left out: MAG[0]" not in text
