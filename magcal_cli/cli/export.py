@@ -15,6 +15,8 @@ from magcal_cli.errors import MagcalError
 PARAM_FORMATS = ("dataflash", "ulog")
 #: the document's log format -> the firmware -o writes for (the flight controller that wrote the log)
 FIRMWARE_OF = {"dataflash": "ardupilot", "ulog": "px4", "px4log": "px4"}
+#: the --driver names (firmware.drivers.DRIVERS; the registry holds import strings, so this import is light)
+DRIVER_NAMES = ("generic", "microstrain_inertial_driver", "phidgets_spatial")
 #: the compass slots --slot takes: ArduPilot COMPASS_*, COMPASS_*2, COMPASS_*3; PX4 CAL_MAG0_* to CAL_MAG3_*
 SLOTS = {"ardupilot": (1, 3), "px4": (0, 3)}
 
@@ -54,6 +56,10 @@ def _vehicle_params(ctx: click.Context, params_path: Path | None, cal_path: Path
               metavar="FILE|-",
               help="Write PX4 CAL_MAGn_* parameters to this file (QGroundControl .params; '-': standard output), "
                    "whatever log the calibration came from.")
+@click.option("--driver", type=click.Choice(sorted(DRIVER_NAMES)), default=None,
+              help="Write the parameter file this IMU driver loads to -o (one magnetometer: --mag when the document "
+                   "has several): phidgets_spatial (ROS 2 cc_* parameters), microstrain_inertial_driver (hard-iron "
+                   "offset and soft-iron matrix), generic (hard_iron / soft_iron, m = S (y - h)).")
 @click.option("--style", type=click.Choice(["default", "mavproxy", "nsh"]), default="default", show_default=True,
               help="default: Mission Planner .param / QGroundControl .params; mavproxy: 'NAME VALUE' lines "
                    "(ArduPilot); nsh: 'param set NAME VALUE' lines (PX4).")
@@ -75,12 +81,13 @@ def _vehicle_params(ctx: click.Context, params_path: Path | None, cal_path: Path
 @click.pass_context
 @handle_errors
 def export_cmd(ctx: click.Context, calibration: Path, out: Path | None, ardupilot_out: Path | None,
-               px4_out: Path | None, style: str, mags: tuple[str, ...], slot: int | None, params_path: Path | None,
+               px4_out: Path | None, driver: str | None, style: str, mags: tuple[str, ...], slot: int | None, params_path: Path | None,
                rotation: str, custom_above_deg: float, external: bool | None, force: bool) -> None:
     """Write firmware parameters for the calibration in CALIBRATION (a magcal document).
 
     -o writes the parameters of the flight controller that recorded the calibrated log; --ardupilot and --px4
-    name the firmware (both at once write two files). '-' writes to standard output.
+    name the firmware (both at once write two files); --driver NAME -o FILE writes what an IMU driver loads.
+    '-' writes to standard output.
     """
     from magcal_cli.atomic import check_writable, write_text
     from magcal_cli.firmware.common import Options
@@ -88,6 +95,12 @@ def export_cmd(ctx: click.Context, calibration: Path, out: Path | None, ardupilo
     from magcal_cli.firmware.paramfile import render
 
     targets = [(fw, path) for fw, path in (("ardupilot", ardupilot_out), ("px4", px4_out)) if path is not None]
+    if driver is not None:
+        if targets or slot is not None or params_path is not None:
+            msg = "--driver writes one IMU driver's file to -o; leave out --ardupilot, --px4, --slot and --params"
+            raise click.UsageError(msg)
+        _driver_export(ctx, calibration, driver, out, mags, force)
+        return
     if out is not None and targets:
         msg = ("give -o (the firmware of the calibrated log) or --ardupilot/--px4 (a firmware by name), not both")
         raise click.UsageError(msg)
@@ -151,3 +164,30 @@ def _firmware_of(cal_path: Path, cal: Any) -> str:
                "--px4 FILE instead")
         raise click.UsageError(msg)
     return firmware
+
+
+def _driver_export(ctx: click.Context, cal_path: Path, driver: str, out: Path | None, mags: tuple[str, ...],
+                   force: bool) -> None:
+    """--driver NAME -o FILE: one magnetometer's correction as the file that IMU driver loads."""
+    from magcal_cli.atomic import check_writable, write_text
+    from magcal_cli.firmware.drivers import export_driver
+
+    if out is None:
+        msg = f"--driver {driver} needs -o FILE (e.g. -o params.yaml; '-' writes to standard output)"
+        raise click.UsageError(msg)
+    cal = guards.calibration_document(cal_path, "CALIBRATION", f"Run: magcal export CAL.json --driver {driver} "
+                                      "-o params.yaml")
+    refused = [str(r.get("id")) for r in cal.refused]
+    guards.mags_in([m for m in mags if m not in refused], [m.id for m in cal.magnetometers],
+                   f"the calibration {cal_path}")
+    if not guards.is_stdout(out):
+        guards.refuse_existing([out], force)
+        check_writable(out.parent, hint="Choose another output file")
+    result = export_driver(cal, driver, mags)
+    for line in result.not_held:
+        say(ctx, f"{result.mag_id}: {line}")
+    if guards.is_stdout(out):
+        click.echo(result.text, nl=False)
+        return
+    write_text(out, result.text)
+    click.echo(f"wrote {out} ({driver}, {result.mag_id})")
