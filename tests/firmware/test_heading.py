@@ -137,7 +137,8 @@ def test_ardupilot_trim_levels_the_board() -> None:
                                                           "AHRS_TRIM_Y": trim[1]})
     cal, _ = heading_checks(rec, fl.truth(), [], None)
     block = cal.magnetometers[0].heading_check
-    assert block is not None and block["rms_deg"]["magcal"] < 0.5, block["rms_deg"]
+    assert block is not None, "no heading check"
+    assert block["rms_deg"]["magcal"] < 0.5, block["rms_deg"]
     untrimmed, _ = heading_checks(replace(rec, params=fl.recording.params), fl.truth(), [], None)
     assert untrimmed.magnetometers[0].heading_check["rms_deg"]["magcal"] > 2.0  # type: ignore[index]
 
