@@ -18,8 +18,10 @@ Writes paper_study.md (tables, the published values, the checks), paper_study.js
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -297,6 +299,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "results", help="output directory")
     args = ap.parse_args(argv)
     args.argv = list(argv) if argv is not None else list(os.sys.argv[1:])
+    if importlib.util.find_spec("matplotlib") is None:   # before the hours of fitting, not after them
+        sys.exit("paper_study.py draws its figures with matplotlib, an extra: pip install 'magcal-cli[bench]'")
     if args.quick:
         args.datasets, args.duration = 1, args.duration or 60.0
     methods = [m for m in args.methods.split(",") if m in METHODS]
