@@ -46,7 +46,8 @@ def microstrain_correct(p: dict[str, Any], y: np.ndarray) -> np.ndarray:
     device stores them (float32)."""
     h = np.asarray(p["mag_hard_iron_offset"], dtype=np.float32).astype(float)
     m = np.asarray(p["mag_soft_iron_matrix"], dtype=np.float32).astype(float).reshape(3, 3)
-    return (y - h) @ m.T
+    out: np.ndarray = (y - h) @ m.T
+    return out
 
 
 def ros_params(text: str) -> dict[str, Any]:
@@ -146,6 +147,10 @@ def test_driver_errors() -> None:
     with pytest.raises(FirmwareError, match="a driver file holds one magnetometer, but --mag gives 2"):
         export_driver(cal, "generic", ["MAG[0]", "MAG[1]"])
     assert export_driver(cal, "generic", ["MAG[1]"]).mag_id == "MAG[1]"
+    none_left = doc(480.0 * np.eye(3), (0.0, 0.0, 0.0), ids=(), refused=cal.refused)
+    with pytest.raises(FirmwareError, match=r"the document has no calibrated magnetometer \(refused: MAG\[2\]\); "
+                                            "record the compass again"):
+        export_driver(none_left, "microstrain_inertial_driver")
     flipped = doc(480.0 * np.diag([1.0, -1.0, -1.0]), (0.0, 0.0, 0.0))
     with pytest.raises(FirmwareLimitError, match=r"cc_gain1=-2.083 is outside libphidget22's 0..15"):
         export_driver(flipped, "phidgets_spatial")
