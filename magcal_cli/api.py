@@ -20,6 +20,7 @@ import numpy.typing as npt
 from magcal_cli import units
 from magcal_cli.calibration import types
 from magcal_cli.config import Config
+from magcal_cli.effects.motor import MOTORS
 from magcal_cli.errors import MagcalError, OptionError, StreamError
 from magcal_cli.streams import FloatArray, Sampling
 
@@ -27,7 +28,7 @@ __all__ = ["Calibration", "apply", "apply_stamped", "config", "fit", "load", "sa
 
 #: the keyword of each effect channel `apply` takes, its unit and its width per reading (streams.Kind values)
 CHANNELS = {"battery_current": ("A", 1), "battery_voltage": ("V", 1), "throttle": ("0..1", 1),
-            "temperature": ("degC", 1), "motor_output": ("0..1 of each motor's range, motors 1-4", 4)}
+            "temperature": ("degC", 1), "motor_output": (f"0..1 of each motor's range, motors 1-{MOTORS}", MOTORS)}
 ROBUST_LOSSES = ("l2", "huber", "cauchy")
 PathLike = str | os.PathLike[str]
 

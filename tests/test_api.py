@@ -106,6 +106,8 @@ def test_bad_arguments_are_option_errors_saying_what_to_pass(node_cal: tuple[Pat
                                                                       r"calibration, which has /imu/mag"),
         (lambda: api.apply(cal, [1.0, 2.0, 3.0], 0.0, unit="furlong"), r"apply\(unit='furlong'\): unknown unit"),
         (lambda: api.save(cal, tmp_path / "cal.txt"), r"cannot tell the format from '.txt'"),
+        (lambda: api.apply(cal, np.ones((2, 3)), [0.0, 1.0], motor_output=[0.5] * 3),
+         r"apply\(motor_output of shape \(3,\)\): expected \(4,\) or \(N, 4\) for 2 readings"),
     ]
     for call, message in cases:
         with pytest.raises(OptionError, match=message):
