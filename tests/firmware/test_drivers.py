@@ -156,6 +156,13 @@ def test_driver_errors() -> None:
         export_driver(flipped, "phidgets_spatial")
 
 
+def test_every_number_reads_back_as_a_float() -> None:
+    """A whole-number exponent (1e-05) is a string to YAML 1.1 readers: the files write 1.0e-05."""
+    cal = doc(1e-5 * np.eye(3), (1e-5, -2e-6, 0.0), unit="tesla")
+    g = yaml.safe_load(export_driver(cal, "generic").text)
+    assert g["hard_iron"] == [1e-5, -2e-6, 0.0] and isinstance(g["field_strength"], float)
+
+
 def test_effects_are_said_not_held() -> None:
     effect = {"id": "time_offset", "sensor": "MAG[0]", "status": "accepted", "params": {"tau_s": 0.02}}
     text = export_driver(doc(480.0 * np.eye(3), (0.0, 0.0, 0.0), effects=(effect,)), "phidgets_spatial").text

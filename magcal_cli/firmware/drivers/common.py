@@ -69,8 +69,11 @@ def held_line(mag: MagCalibration) -> str:
 
 
 def num(x: float) -> str:
-    """A float as YAML reads it back exactly (shortest repr)."""
-    return repr(float(x))
+    """A float as YAML reads it back exactly (shortest repr), always with a '.': YAML 1.1 (PyYAML, ROS 1) reads
+    1e-05 as a string."""
+    text = repr(float(x))
+    mantissa, e, exponent = text.partition("e")
+    return text if "." in mantissa or not e else f"{mantissa}.0e{exponent}"
 
 
 def vector(xs: FloatArray) -> str:
