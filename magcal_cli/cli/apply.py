@@ -18,12 +18,11 @@ if TYPE_CHECKING:
 @click.command("apply", context_settings=CONTEXT, epilog=EXIT_CODES)
 @click.argument("calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.argument("log", type=click.Path(exists=True, path_type=Path))
-@options.option("output", required=True, metavar="FILE|DIR|-",
-                type=click.Path(allow_dash=True, path_type=Path),
-                help="What to write, by its name: OUT.mcap, OUT.bag or a folder (a ROS 2 bag): a copy of the log with "
-                     "a calibrated sensor_msgs/MagneticField topic per magnetometer (a DataFlash, ULog or CSV log: a "
-                     "ROS 2 MCAP file of its IMU and magnetometers); any other name: CSV of t [s], id, the calibrated "
-                     "field x, y, z and its magnitude ('-': standard output).")
+@options.option("output", required=True,
+                help="What to write, by its name: OUT.mcap, OUT.bag or a new folder (a ROS 2 bag): a copy of the log "
+                     "with a calibrated sensor_msgs/MagneticField topic per magnetometer (from a DataFlash, ULog or "
+                     "CSV log: a ROS 2 MCAP file of its IMU and magnetometers); any other name: CSV of t [s], id, the "
+                     "calibrated field x, y, z and its magnitude ('-': standard output).")
 @click.option("--topic", default=None, metavar="TOPIC",
               help="The calibrated topic's name in a log output [default: <magnetometer topic>/calibrated].")
 @click.option("--replace", is_flag=True,
