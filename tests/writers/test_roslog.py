@@ -267,3 +267,13 @@ def test_replace_refuses_a_nested_field(tmp_path: Path) -> None:
         apply_to_log(nested, SAMPLES / "handheld.bag", tmp_path / "o.bag", replace=True)
     with pytest.raises(OutputError, match="ROS 2 bag folder"):
         apply_to_log(cal, SAMPLES / "handheld.bag", tmp_path / "o")
+
+
+def test_stamps_snap_to_the_logged_ones() -> None:
+    """t0 + t misses a logged integer-ns stamp by up to ~120 ns (rec.t0 is a float of ~1.7e9 s): the one shift
+    under 1 us that lands the stamps on the source's times is applied; a larger miss is left alone."""
+    from magcal_cli.writers.roslog.series import snapped
+
+    logged = 1_700_000_000_123_456_789 + np.arange(0, 10**9, 10**7, dtype=np.int64)
+    assert np.array_equal(snapped(logged[::3] - 97, logged), logged[::3])
+    assert np.array_equal(snapped(logged[::3] + 5000, logged), logged[::3] + 5000)
