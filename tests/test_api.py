@@ -48,9 +48,8 @@ def test_a_node_corrects_readings_one_at_a_time_as_magcal_apply_does(
     assert result.exit_code == 0, result.output
     lines = out.read_text().splitlines()
     assert lines[0] == "t [s],id,mx [T],my [T],mz [T],norm [T]" and len(lines) == len(one) + 1
-    mine = [f"{t:.6f},/imu/mag,{v[0]:.7g},{v[1]:.7g},{v[2]:.7g},{np.linalg.norm(v):.7g}"
-            for t, v in zip(stream.t, one, strict=True)]
-    assert lines[1:] == mine
+    printed = np.array([ln.split(",")[2:5] for ln in lines[1:]], dtype=float)
+    assert np.max(np.abs(one - printed) / np.linalg.norm(printed, axis=1)[:, None]) < 1e-12
     rows, unit, _ = apply_rows(cal, open_recording(SAMPLE))
     batch = np.array([v for _, _, v in rows])
     assert unit == "T" and np.max(np.abs(one - batch) / np.linalg.norm(batch, axis=1)[:, None]) < 1e-12

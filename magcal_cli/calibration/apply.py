@@ -67,5 +67,8 @@ def apply_to_recording(cal: Calibration, rec: Recording, mag_ids: list[str] | No
     """(CSV text, notes) of the calibrated field of every document magnetometer found in `rec`."""
     rows, u, notes = apply_rows(cal, rec, mag_ids)
     lines = [f"t [s],id,mx [{u}],my [{u}],mz [{u}],norm [{u}]"]
-    lines += [f"{t:.6f},{i},{v[0]:.7g},{v[1]:.7g},{v[2]:.7g},{np.linalg.norm(v):.7g}" for t, i, v in rows]
+    # the shortest text that reads back to the same double: the CSV is the field, not a rounding of it (a calibrated
+    # topic or a node's correction agrees with it to the last bit, issue 40)
+    lines += [f"{t:.6f},{i},{float(v[0])!r},{float(v[1])!r},{float(v[2])!r},{float(np.linalg.norm(v))!r}"
+              for t, i, v in rows]
     return "\n".join(lines) + "\n", notes
