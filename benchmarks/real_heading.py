@@ -285,6 +285,23 @@ def _method(c: dict[str, Any]) -> str:
     return str(c["method"]) + (f" ({c['role']})" if c.get("role") else "")
 
 
+def _check(hc: Any) -> str:
+    """magcal's own heading_check block in a few words: its RMS for magcal and flown, difference ± std, verdict."""
+    if not isinstance(hc, dict):
+        return ""
+    rms = hc.get("rms_deg") or {}
+    try:
+        return (f"{rms['magcal']:.2f} vs flown {rms['flown']:.2f}: {hc['difference_deg']:+.2f} ± "
+                f"{hc['difference_std_deg']:.2f} ({hc.get('verdict')}, {hc.get('folds')} folds)")
+    except (KeyError, TypeError, ValueError):
+        return _cell_text(json.dumps(hc))
+
+
+def _cell_text(text: str) -> str:
+    """A document excerpt for a table cell: pipes escaped, at most 100 characters."""
+    return text.replace("|", "\\|")[:100]
+
+
 def _num(v: float | None) -> str:
     """A number of degrees for the table, or n/a."""
     return "n/a" if v is None else f"{v:.2f}"
@@ -327,7 +344,7 @@ def markdown(rows: list[dict[str, Any]], meta: dict[str, Any]) -> str:
         for i, c in enumerate(r["compasses"]):
             for k, h in enumerate(c["halves"]):
                 rms = h["rms_deg"]
-                hc = json.dumps(c["heading_check"])[:100] if c.get("heading_check") and k == 0 else ""
+                hc = _check(c.get("heading_check")) if k == 0 else ""
                 lines.append(f"| {r['log'] if i == 0 and k == 0 else ''} | {c['id'] if k == 0 else ''} | "
                              f"{_method(c) if k == 0 else ''} | {h['span_s'][0]:.0f}-{h['span_s'][1]:.0f} | "
                              f"{_num(rms.get('flown'))} | {_num(rms.get('magcal_oos'))} | "
