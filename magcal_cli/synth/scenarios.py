@@ -23,7 +23,15 @@ from magcal_cli import so3
 from magcal_cli.align import columns
 from magcal_cli.models.accel import G
 from magcal_cli.streams import FloatArray
-from magcal_cli.synth.motion import OVERSAMPLE, Motion, Trajectory, fine_times, smooth
+from magcal_cli.synth.motion import (
+    BLOCK,
+    OVERSAMPLE,
+    Motion,
+    Trajectory,
+    fine_count,
+    fine_times,
+    smoother,
+)
 
 Intervals = tuple[tuple[float, float], ...]
 
@@ -267,50 +275,64 @@ def multirotor(rng: np.random.Generator, rate: float, duration: float, limits: L
     lim, (kp, kd), (kpz, kdz) = np.deg2rad(TILT_LIMIT_DEG), HOLD_GAINS, ALTITUDE_GAINS
     cols = (r[:, 0], r[:, 1], r_d[:, 0], r_d[:, 1], np.gradient(r_d[:, 0], dt), np.gradient(r_d[:, 1], dt),
             -h, z_d, np.gradient(z_d, dt), yaw, pilot_roll, pilot_pitch, w)
-    rn, re, vn_r, ve_r, an_r, ae_r, z_r, vz_r, az_r, psi, p_roll, p_pitch, ww = (c.tolist() for c in cols)
     p, v = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
     v_td: list[float] = []
-    rolls, pitches, acc = [0.0] * (n + 1), [0.0] * (n + 1), np.zeros((n, 3))
-    for k in range(n + 1):
-        air = t_to <= k * dt < t_td
-        roll, pitch = pads[int(k * dt > duration / 2)]
-        az_cmd = 0.0
-        if air:
-            az_cmd = az_r[k] + kpz * (z_r[k] - p[2]) + kdz * (vz_r[k] - v[2])
-            ax = an_r[k] + kp * (rn[k] - p[0]) + kd * (vn_r[k] - v[0])
-            ay = ae_r[k] + kp * (re[k] - p[1]) + kd * (ve_r[k] - v[1])
-            if limits.active:
-                roll, pitch = _limited((ax, ay), psi[k], (p_roll[k], p_pitch[k]), ww[k], (roll, pitch), v, az_cmd,
-                                       limits)
+    rolls, pitches, acc = np.zeros(n + 1), np.zeros(n + 1), np.zeros((n, 3))
+    # the controller steps in Python floats, a block of the references at a time (whole lists of an hour at
+    # 400 Hz would take 0.6 GB)
+    for base in range(0, n + 1, BLOCK):
+        rn, re, vn_r, ve_r, an_r, ae_r, z_r, vz_r, az_r, psi, p_roll, p_pitch, ww = (
+            c[base:base + BLOCK].tolist() for c in cols)
+        for k in range(base, min(base + BLOCK, n + 1)):
+            j = k - base
+            air = t_to <= k * dt < t_td
+            roll, pitch = pads[int(k * dt > duration / 2)]
+            az_cmd = 0.0
+            if air:
+                az_cmd = az_r[j] + kpz * (z_r[j] - p[2]) + kdz * (vz_r[j] - v[2])
+                ax = an_r[j] + kp * (rn[j] - p[0]) + kd * (vn_r[j] - v[0])
+                ay = ae_r[j] + kp * (re[j] - p[1]) + kd * (ve_r[j] - v[1])
+                if limits.active:
+                    roll, pitch = _limited((ax, ay), psi[j], (p_roll[j], p_pitch[j]), ww[j], (roll, pitch), v, az_cmd,
+                                           limits)
+                else:
+                    ax, ay = ax + ROTOR_DRAG * v[0], ay + ROTOR_DRAG * v[1]
+                    c, s = math.cos(psi[j]), math.sin(psi[j])
+                    cmd_roll = math.atan((c * ay - s * ax) / G) + p_roll[j]
+                    cmd_pitch = -math.atan((c * ax + s * ay) / G) + p_pitch[j]
+                    roll = ww[j] * lim * math.tanh(cmd_roll / lim) + (1.0 - ww[j]) * roll
+                    pitch = ww[j] * lim * math.tanh(cmd_pitch / lim) + (1.0 - ww[j]) * pitch
+            rolls[k], pitches[k] = roll, pitch
+            if k == n:
+                break
+            if air:
+                a = _thrust_acceleration(roll, pitch, psi[j], v, az_cmd)
+            elif k >= k_td:                                                     # on the pad: brake what is left
+                v_td = v_td or list(v)
+                a = [(vi * keep[k] - v[i]) / dt for i, vi in enumerate(v_td)]
             else:
-                ax, ay = ax + ROTOR_DRAG * v[0], ay + ROTOR_DRAG * v[1]
-                c, s = math.cos(psi[k]), math.sin(psi[k])
-                cmd_roll = math.atan((c * ay - s * ax) / G) + p_roll[k]
-                cmd_pitch = -math.atan((c * ax + s * ay) / G) + p_pitch[k]
-                roll = ww[k] * lim * math.tanh(cmd_roll / lim) + (1.0 - ww[k]) * roll
-                pitch = ww[k] * lim * math.tanh(cmd_pitch / lim) + (1.0 - ww[k]) * pitch
-        rolls[k], pitches[k] = roll, pitch
-        if k == n:
-            break
-        if air:
-            a = _thrust_acceleration(roll, pitch, psi[k], v, az_cmd)
-        elif k >= k_td:                                                     # on the pad: brake what is left
-            v_td = v_td or list(v)
-            a = [(vi * keep[k] - v[i]) / dt for i, vi in enumerate(v_td)]
-        else:
-            a = [0.0, 0.0, 0.0]
-        for i in range(3):
-            p[i] += v[i] * dt + 0.5 * a[i] * dt * dt
-            v[i] += a[i] * dt
-        acc[k] = a
+                a = [0.0, 0.0, 0.0]
+            for i in range(3):
+                p[i] += v[i] * dt + 0.5 * a[i] * dt * dt
+                v[i] += a[i] * dt
+            acc[k] = a
     still = (_still(0.0, t_to, rate), _still(k_td * dt + BRAKE_S + 1.0, duration, rate))
-    tf = fine_times(n * dt, rate)
-    rot = so3.from_rpy(smooth(np.column_stack([rolls, pitches, yaw]), dt, tf))
+    count = fine_count(n * dt, rate)
+    rpy = smoother(np.column_stack([rolls, pitches, yaw]), dt)
+    mid = t[:-1] + 0.5 * dt
+
+    # the fine grid is made a block at a time where it is used (an hour at 400 Hz is 14 M knots, 1 GB each for
+    # the attitude and its coefficients): the knot times exactly those of fine_times
+    def rot(idx: npt.NDArray[np.int64]) -> FloatArray:
+        return so3.from_rpy(rpy(idx / (rate * OVERSAMPLE)))
+
     # the acceleration the controller held over [t_k, t_k+1), continuous through the interval midpoints (same
     # integral over the log, so the vehicle still comes to rest)
-    a_n = columns(tf, t[:-1] + 0.5 * dt, acc)
+    def a_n(idx: npt.NDArray[np.int64]) -> FloatArray:
+        return columns(idx / (rate * OVERSAMPLE), mid, acc)
+
     dtf = dt / OVERSAMPLE
-    return Scenario(Trajectory.from_knots(rot, dtf), Motion.from_acceleration(a_n, dtf), still, ((t_to, t_td),))
+    return Scenario(Trajectory(rot, count, dtf), Motion.from_source(a_n, count, dtf), still, ((t_to, t_td),))
 
 
 def _terrain(rng: np.random.Generator, s: FloatArray) -> FloatArray:
