@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -324,6 +325,22 @@ def test_ctrl_c_stops_a_fit_that_does_not_answer(logs: Path, tmp_path: Path) -> 
     _nothing_half_written(out)
 
 
+@pytest.fixture
+def dask_offload_ended() -> Iterator[None]:
+    """After a Dask test: Dask's offload thread ended, its executor replaced by a fresh (threadless) one. The thread
+    outlives the client, and a later test in the same xdist worker that forks (diagnose/forked.py refuses to fork
+    beside a thread it does not own) failed on the test order alone."""
+    yield None
+    from concurrent.futures import ThreadPoolExecutor
+
+    import distributed.utils
+
+    old = distributed.utils._offload_executor
+    distributed.utils._offload_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="Dask-Offload")
+    old.shutdown(wait=True)
+
+
+@pytest.mark.usefixtures("dask_offload_ended")
 def test_dask_cluster_on_loopback(runner, logs: Path, tmp_path: Path) -> None:
     """A real scheduler and two worker processes on 127.0.0.1: the batch runs through --scheduler tcp://...; with
     --history the workers make the entries and the client records them once (issue 29: a Job carries no store)."""
@@ -368,6 +385,7 @@ if MARK:
 """
 
 
+@pytest.mark.usefixtures("dask_offload_ended")
 def test_dask_ctrl_c_stops_the_running_fits(logs: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 30: on a Dask cluster a fit already running completed after Ctrl-C (cancelling a running task does
     not stop it). Now the batch exits 130 within CTRL_C_S and the running fit stops at its next progress report:
