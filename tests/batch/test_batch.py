@@ -415,3 +415,20 @@ def test_dask_ctrl_c_stops_the_running_fits(logs: Path, tmp_path: Path, monkeypa
         time.sleep(6.0)                    # the slow fit, had it gone on, would have renamed its outputs by now
     assert not (out / "slow").exists(), sorted(p.name for p in (out / "slow").rglob("*"))
     _nothing_half_written(out)
+
+
+def test_a_refused_compass_has_its_row_in_batch(runner, tmp_path: Path) -> None:
+    """Issue 38: batch names every compass of a log, a refused one with its reason (the table's last column and the
+    --json entry), as fit does; it vanished from both."""
+    from tests.readers.test_dead_compass import two_compass_bin, zero_unhealthy
+
+    sim = simulate("handheld", 0, rate=10.0, mag_rate=5.0, mag_phase_s=0.0, n_mags=2)
+    (tmp_path / "in").mkdir()
+    two_compass_bin(sim, tmp_path / "in" / "dead.bin", {1: zero_unhealthy})
+    result, doc = _run(runner, str(tmp_path / "in"), "-o", str(tmp_path / "out"), "--json", *FAST)
+    assert result.exit_code == 0, result.stderr
+    mags = {m["id"]: m for m in _by_name(doc)["dead"]["magnetometers"]}
+    assert mags["MAG[0]"]["status"] == "calibrated" and mags["MAG[0]"]["method"] == "map"
+    assert mags["MAG[1]"]["status"] == "refused" and "all readings are zero" in mags["MAG[1]"]["reason"]
+    table, _ = _run(runner, str(tmp_path / "in"), "-o", str(tmp_path / "again"), *FAST)
+    assert "refused: MAG[1]" in table.stdout, table.stdout
