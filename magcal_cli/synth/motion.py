@@ -258,7 +258,7 @@ class Motion:
         for lo in range(0, count - 1, BLOCK):
             hi = min(lo + BLOCK, count - 1)
             vb, pb = _integrate(source(np.arange(lo, hi + 1)), dt, v, p)
-            v, p = vb[-1], pb[-1]
+            v, p = vb[-1].copy(), pb[-1].copy()     # not views: each would keep its whole block alive
             vs.append(v)
             ps.append(p)
         return cls(dt, source, count, np.array(vs), np.array(ps))

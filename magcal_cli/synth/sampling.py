@@ -106,5 +106,10 @@ def sample_imu(truth: ImuTruth, t: FloatArray, rate: float, sampling: Sampling) 
     """Noise-free gyro and accelerometer samples (N, 3) stamped t, as a `sampling` IMU at `rate` Hz reports them."""
     check_sampling(sampling)
     if sampling is Sampling.INSTANT:
-        return truth.rate(t), truth.force(t)
+        # a block of stamps at a time: each sample depends on its own stamp only, and the attitude (M, 3, 3) and
+        # the temporaries of an hour at 400 Hz would take several hundred MB at once
+        gyro, acc = np.empty((len(t), 3)), np.empty((len(t), 3))
+        for i in range(0, len(t), BLOCK):
+            gyro[i:i + BLOCK], acc[i:i + BLOCK] = truth.rate(t[i:i + BLOCK]), truth.force(t[i:i + BLOCK])
+        return gyro, acc
     return truth.mean_rate(t - 1.0 / rate, t), window_mean(truth.force, t, 1.0 / rate)
