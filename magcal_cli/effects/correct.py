@@ -15,7 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from magcal_cli.effects import EFFECTS, get
-from magcal_cli.effects.base import Effect, Target
+from magcal_cli.effects.base import Effect, Target, resample
 from magcal_cli.effects.motor import motor_streams
 from magcal_cli.streams import FloatArray, Kind, Stream
 
@@ -80,13 +80,15 @@ def remove(effects: Sequence[dict[str, Any]], mag_id: str, rec: Channels | Mappi
 
 
 def _at(e: dict[str, Any], eff: Effect, rec: Channels, t: FloatArray) -> dict[str, np.ndarray]:
-    """The channels of `eff` found in `rec` (the entry's own channel ids first), resampled at t."""
+    """The channels of `eff` found in `rec` (the entry's own channel ids first), resampled at t as the fit resampled
+    them (`effects.base.resample`: a spline, so what is removed is what was fitted)."""
     chans: dict[str, np.ndarray] = {}
     for kind in eff.channels:
-        named = [s for s in rec.of_kind(kind) if s.id in (e.get("channels") or []) and len(s) >= 2]
-        found = named or [s for s in rec.of_kind(kind) if len(s) >= 2]
+        ok = [s for s in rec.of_kind(kind) if np.isfinite(s.values[:, 0]).sum() >= 2]
+        named = [s for s in ok if s.id in (e.get("channels") or [])]
+        found = named or ok
         if found and kind is Kind.MOTOR_OUTPUT:          # one stream per motor: (N, motors) in motor order
-            chans[kind.value] = np.column_stack([np.interp(t, s.t, s.values[:, 0]) for s in motor_streams(found)])
+            chans[kind.value] = np.column_stack([resample(s, t)[:, 0] for s in motor_streams(found)])
         elif found:
-            chans[kind.value] = np.interp(t, found[0].t, found[0].values[:, 0])
+            chans[kind.value] = resample(found[0], t)[:, 0]
     return chans
