@@ -106,5 +106,6 @@ def test_log171_report_in_chromium(realdata: Path, tmp_path: Path, monkeypatch: 
     html = _report(log, tmp_path, Config(diagnose=True))
     _offline(html)
     probe = check_in_browser(html, IMAGES / "report-log171.png")
-    assert probe["images"] == 12                 # 4 per compass: sphere, over time, quality, modelled effects
+    # 4 per compass (sphere, over time, quality, modelled effects) and the heading check's figure (issue 38)
+    assert probe["images"] == 13
     assert "Warnings and notes" in html.read_text(encoding="utf-8")
