@@ -14,7 +14,6 @@ from magcal_cli.models.factor import Linearize
 from magcal_cli.models.gyro import Preintegrated
 from magcal_cli.models.map.cost import make_linearize
 from magcal_cli.models.map.effects import Bound
-from magcal_cli.models.map.hold import norm_spread, undisturbed
 from magcal_cli.models.observability import check_observability, check_useful
 from magcal_cli.models.partial import Held
 from magcal_cli.models.problem import Problem
@@ -112,9 +111,10 @@ class Record(NamedTuple):
 
 
 def estimate(problem: Problem, ctx: FitContext, sol: Solution, record: Record, cov_theta: FloatArray | None = None,
-             widen: FloatArray | None = None) -> MapEstimate:
+             widen: FloatArray | None = None, spread: float = 0.0) -> MapEstimate:
     """Convert the scaled solution to SI, with the total gyro bias and the observability findings (`cov_theta`:
-    the covariance when not the solver's; `widen`: the sandwich's std factors)."""
+    the covariance when not the solver's; `widen`: the sandwich's std factors; `spread`: the calibrated field
+    strength's, `hold.explains`)."""
     ep, pre, noise, layout, held = ctx.ep, ctx.pre, ctx.noise, ctx.layout, ctx.held
     s = ep.scale
     jac = layout.si_factors(s)
@@ -146,8 +146,7 @@ def estimate(problem: Problem, ctx: FitContext, sol: Solution, record: Record, c
         findings.append(widening_note(where, ep.mag_id, float(widen.max()), names))
     if held is not None:
         check_useful(cov[np.ix_(base, base)], s, held.cols, where,
-                     None if widen is None else widen[base],
-                     norm_spread(ep, sol.theta, layout, undisturbed(ep, sol.theta, layout, ctx.bound, sol.states, pre)))
+                     None if widen is None else widen[base], spread)
     return MapEstimate(ep.mag_id, theta, cov, noise_si, states, ep.t, sol.cost, record.iterations, sol.converged,
                        float(np.sqrt(np.mean(resid**2))), record.log, tuple(findings), record.notes, condition,
                        layout, context=ctx, held=held)

@@ -232,12 +232,12 @@ def _finish(problem: Problem, run: Run, sol: Solution, last_step: FloatArray | N
     if held is not None:
         widen[held.theta_cols] = 1.0            # a held entry's std is its prior's doubt, not the data's
     # a full fit too: one that leaves the field strength varying by 30 % calibrated a failing sensor (issue 38)
-    explains(run.ep, sol.theta, run.layout, run.where,
-             undisturbed(run.ep, sol.theta, run.layout, run.bound, sol.states, run.pre))
+    spread = explains(run.ep, sol.theta, run.layout, run.where,
+                      undisturbed(run.ep, sol.theta, run.layout, run.bound, sol.states, run.pre))
     ctx = FitContext(run.ep, run.pre, run.noise, run.layout, run.bound, sol.states, sol.theta, run.hold, held,
                      held_out(run.ep.t, problem.unmeasured))
     record = Record(run.iters, tuple(run.log), tuple(run.notes) + run.ep.notes)
-    est = estimate(problem, ctx, sol, record, cov, widen)
+    est = estimate(problem, ctx, sol, record, cov, widen, spread)
     fitted = results(run.bound, run.layout, est.theta, est.cov, run.mag_id, problem.imu_id)
     return replace(est, effects=tuple(fitted + run.untestable))
 

@@ -44,15 +44,16 @@ def undisturbed(ep: Epochs, theta: FloatArray, layout: Layout, bound: Sequence[B
     return out
 
 
-def explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str, mag: FloatArray | None = None) -> None:
-    """Refuse a calibration that does not explain the readings (`mag`: with the modelled disturbances taken out):
-    the calibrated field strength must stay within PARTIAL_MAX_NORM_RMS of constant."""
+def explains(ep: Epochs, theta: FloatArray, layout: Layout, where: str, mag: FloatArray | None = None) -> float:
+    """The calibrated field strength's spread (`norm_spread` of `mag`, the readings with the modelled disturbances
+    taken out); refuses a calibration that does not explain the readings: beyond PARTIAL_MAX_NORM_RMS."""
     spread = norm_spread(ep, theta, layout, mag)
     if spread > PARTIAL_MAX_NORM_RMS:
         msg = (f"{where}: no calibration explains the readings (the calibrated field strength "
                f"still varies {100 * spread:.0f} % RMS): the log's motion determines too little, or a disturbance "
                f"dominates. To fix: {ROTATE_ADVICE}")
         raise UnexplainedError(msg)
+    return spread
 
 
 def rechoose(held: Held, data: Linearize, states: FloatArray, theta: FloatArray, where: str,
