@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -71,6 +72,27 @@ def atomic_path(target: Path) -> Iterator[Path]:
         if isinstance(exc, OSError) and exc.errno != errno.EPIPE:
             raise _cannot_write(target, exc, "Free some space or choose another output location") from None
         raise
+
+
+@contextlib.contextmanager
+def atomic_dir(target: Path) -> Iterator[Path]:
+    """Yield a path named like the folder `target` inside a staging folder next to it (a ROS 2 bag names its
+    storage files after its folder); on success it replaces `target` (an old one too), and the staging folder
+    and whatever is left in it are removed either way."""
+    target = Path(target)
+    try:
+        parent = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent or Path()))
+    except OSError as exc:
+        raise _cannot_write(target, exc, "Choose another output location") from None
+    try:
+        tmp = parent / target.name
+        yield tmp
+        if target.exists():               # an old output, which the caller was told to replace (--force)
+            target.replace(parent / "old")
+        tmp.replace(target)
+    finally:
+        with contextlib.suppress(OSError):
+            shutil.rmtree(parent)
 
 
 def write_text(target: Path, text: str) -> Path:

@@ -9,16 +9,13 @@ a temporary name and rename it into place.
 
 from __future__ import annotations
 
-import contextlib
-import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from magcal_cli.atomic import atomic_path
+from magcal_cli.atomic import atomic_dir, atomic_path
 from magcal_cli.errors import OutputError
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.synth.simulate import Simulation
@@ -175,9 +172,7 @@ def write_ros2(sim: Simulation, path: Path, storage: str = "mcap") -> None:
     store = get_typestore(Stores.ROS2_HUMBLE)
     builder = Builder(store, False, sim.truth.noise_std)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    parent = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent or Path()))
-    try:
-        tmp = parent / path.name                          # storage files are named after the directory
+    with atomic_dir(path) as tmp:
         writer = Writer(tmp, version=9, storage_plugin=plugin)
         if plugin is StoragePlugin.MCAP:
             writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
@@ -185,9 +180,3 @@ def write_ros2(sim: Simulation, path: Path, storage: str = "mcap") -> None:
             conns = {top: writer.add_connection(top, mt, typestore=store) for top, mt, _ in topics(sim.recording)}
             for ns, top, mt, msg in messages(sim.recording, builder):
                 writer.write(conns[top], ns, store.serialize_cdr(msg, mt))
-        if path.exists():                                 # an old bag, and the CLI was given --force
-            path.replace(parent / "old")
-        tmp.replace(path)
-    finally:
-        with contextlib.suppress(OSError):
-            shutil.rmtree(parent)

@@ -7,17 +7,14 @@ payload is unchanged. The calibrated topics are `sensor_msgs/MagneticField`, ser
 
 from __future__ import annotations
 
-import contextlib
 import heapq
-import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from magcal_cli.atomic import atomic_path
+from magcal_cli.atomic import atomic_dir, atomic_path
 from magcal_cli.errors import LogReadError
 from magcal_cli.writers.roslog.series import Series, refuse_clash, snapped
 
@@ -153,20 +150,12 @@ def _write_bag2(reader: Any, out: Path, store: Any, series: list[Series], frames
     from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
     mcap = any(p.suffix == ".mcap" for p in reader.paths[0].iterdir())
-    parent = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent or Path()))
-    try:
-        tmp = parent / out.name                       # storage files are named after the folder
+    with atomic_dir(out) as tmp:
         writer = Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3)
         if mcap:
             writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         with writer:
             _write_all(reader, writer, store, series, frames, drop, extra, ros1=False)
-        if out.exists():                              # an old bag, and the CLI was given --force
-            out.replace(parent / "old")
-        tmp.replace(out)
-    finally:
-        with contextlib.suppress(OSError):
-            shutil.rmtree(parent)
 
 
 def _write_all(reader: Any, writer: Any, store: Any, series: list[Series], frames: dict[str, str], drop: set[str],
