@@ -69,6 +69,14 @@ _SI_UNIT = {
 }
 
 
+def _frozen(a: npt.ArrayLike) -> FloatArray:
+    """`a` as float64 that no one can write: an array already read-only float64 (a slice of another stream's, or one
+    a reader handed over frozen) is kept as it is rather than copied, which doubled a long log's memory (issue 39)."""
+    if isinstance(a, np.ndarray) and a.dtype == np.float64 and not a.flags.writeable:
+        return a
+    return np.array(a, dtype=np.float64)
+
+
 @dataclass(frozen=True, eq=False)
 class Stream:
     """Samples of one sensor channel: SI units, sensor frame, non-decreasing time in seconds.
@@ -92,8 +100,7 @@ class Stream:
     window_s: float | None = None
 
     def __post_init__(self) -> None:
-        t = np.array(self.t, dtype=np.float64)
-        values = np.array(self.values, dtype=np.float64)
+        t, values = _frozen(self.t), _frozen(self.values)
         if values.ndim == 1 and self.kind.width == 1:
             values = values[:, None]
         if t.ndim != 1 or values.shape != (t.size, self.kind.width):

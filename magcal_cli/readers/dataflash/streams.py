@@ -195,9 +195,11 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
             continue
         col = 0
+        t.flags.writeable = False               # handed over frozen: the kinds of one record share it, uncopied
         for kind, unit in zip(p.kinds, p.units, strict=False):
+            own = np.ascontiguousarray(values[:, col:col + kind.width])
+            own.flags.writeable = False
             # IMU/GYR/ACC and MAG hold the (filtered) value at the stamp (docs/timing.md)
-            streams.append(Stream(kind, p.id, t, values[:, col:col + kind.width], p.source, unit, p.resolution,
-                                  Sampling.INSTANT))
+            streams.append(Stream(kind, p.id, t, own, p.source, unit, p.resolution, Sampling.INSTANT))
             col += kind.width
     return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes), dead=dead)
