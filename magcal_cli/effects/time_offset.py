@@ -23,20 +23,78 @@ from magcal_cli.streams import FloatArray, Stream
 MIN_RATE_SPREAD = 0.05
 
 
-def attitude_at(t_gyr: FloatArray, q: FloatArray, w: FloatArray, t: FloatArray
-                ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
-    """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample, Q_j Exp(w_j (t - t_j)) with t_j <= t, and
-    the gyro sample j holding at each t."""
-    at, j = _attitude_cm(t_gyr, q, w, t)
-    return stacks.rm(at), j
+#: gyro samples per kept attitude: the attitude at a sample between two kept ones is integrated on from the one before
+#: it when a term needs it. Keeping it at every sample cost 72 B per IMU sample for every start bias the diagnosis
+#: binds, and its log-depth scan over the whole log most of an hour-long log's diagnosis (issue 39)
+KEY = 8
 
 
-def _attitude_cm(t_gyr: FloatArray, q: FloatArray, w: FloatArray, t: FloatArray
-                 ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
-    """`attitude_at` on component-major stacks (3, 3, M) (stacks.py): the term evaluates it at every
-    linearisation (~700 times on log171), where np.matmul would loop over its 2 383 tiny products."""
+def keyframes(t_gyr: FloatArray, w: FloatArray) -> FloatArray:
+    """The body attitude (ceil(N / KEY), 3, 3) at gyro samples 0, KEY, 2 KEY, ... relative to the first, integrated
+    from the rates w (N, 3) held over [t_j, t_j+1): products within each run of KEY samples, then their prefix."""
+    n = t_gyr.size
+    runs = -(-n // KEY)
+    block = np.broadcast_to(np.eye(3)[:, :, None], (3, 3, runs)).copy()      # component-major (stacks.py)
+    for i in range(KEY):                             # the i-th step of every run at once: KEY passes, not N
+        s = np.arange(runs) * KEY + i
+        ok = s < n - 1
+        phi = np.zeros((runs, 3))
+        phi[ok] = w[s[ok]] * (t_gyr[s[ok] + 1] - t_gyr[s[ok]])[:, None]
+        block = stacks.mul(block, stacks.exp(phi))
+    first = np.concatenate([np.eye(3)[None], so3.cumulative_product(stacks.rm(block[:, :, :-1]))]) \
+        if runs > 1 else np.eye(3)[None]
+    return np.ascontiguousarray(first)
+
+
+def _attitude_cm(t_gyr: FloatArray, keys: FloatArray, w: FloatArray, t: FloatArray,
+                 memo: dict[str, Any] | None = None) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+    """Body attitude Q(t) as a component-major stack (3, 3, M) (stacks.py) relative to the first gyro sample,
+    Q_j Exp(w_j (t - t_j)) with t_j <= t, Q_j integrated on from its kept attitude (`keyframes`); and the gyro
+    sample j holding at each t.
+
+    `memo` keeps the last call's Q_j: a fit moves tau a little per step, so most times keep their sample and
+    only the others are integrated again (each Q_j depends on its own j alone: the same digits either way)."""
     j = np.clip(np.searchsorted(t_gyr, t, side="right") - 1, 0, t_gyr.size - 1)
-    return stacks.mul(stacks.cm(q[j]), stacks.exp(w[j] * (t - t_gyr[j])[:, None])), j
+    last = memo.get("_last") if memo is not None else None
+    if last is not None and last[0].shape == j.shape:
+        q_j = last[1].copy()
+        redo = np.flatnonzero(last[0] != j)
+    else:
+        q_j, redo = np.empty((3, 3, j.size)), np.arange(j.size)
+    if redo.size:
+        q_j[:, :, redo] = _at_samples(t_gyr, keys, w, j[redo])
+    if memo is not None:
+        memo["_last"] = (j, q_j)         # one assignment: threads sharing the inputs see the old or the new pair
+    return stacks.mul(q_j, stacks.exp(w[j] * (t - t_gyr[j])[:, None])), j
+
+
+def _at_samples(t_gyr: FloatArray, keys: FloatArray, w: FloatArray, j: npt.NDArray[np.int64]) -> FloatArray:
+    """The attitude Q_j (3, 3, M) at gyro samples j: the kept one before each, times the steps up to j."""
+    k = j // KEY
+    at = stacks.cm(keys[k])
+    for i in range(KEY - 1):                         # the samples from the kept one up to j, masked past j
+        s = k * KEY + i
+        on = s < j
+        phi = np.zeros((j.size, 3))
+        phi[on] = w[s[on]] * (t_gyr[s[on] + 1] - t_gyr[s[on]])[:, None]
+        at = _product(at, stacks.exp(phi))
+    return at
+
+
+def _product(a: FloatArray, b: FloatArray) -> FloatArray:
+    """a b of component-major stacks, entry by entry: einsum's digits depend on where a column sits in memory, and
+    a Q_j kept by `_attitude_cm`'s memo must not depend on which other times were integrated with it."""
+    out = np.empty_like(a)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return out
+
+
+def attitude_at(t_gyr: FloatArray, w: FloatArray, t: FloatArray) -> FloatArray:
+    """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample, from the rates w (N, 3) held over
+    [t_j, t_j+1)."""
+    return stacks.rm(_attitude_cm(t_gyr, keyframes(t_gyr, w), w, t)[0])
 
 
 class TimeOffset(Effect):
@@ -59,20 +117,21 @@ class TimeOffset(Effect):
             msg = (f"the rotation rate hardly changes (std {spread:.3f} rad/s): a delay cannot be told from a "
                    "mounting rotation")
             raise NotTestable(msg)
-        steps = so3.exp(kin.gyr[:-1] * np.diff(kin.gyr_t)[:, None])
-        q = np.concatenate([np.eye(3)[None], so3.cumulative_product(steps)])
-        q_t, _ = attitude_at(kin.gyr_t, q, kin.gyr, kin.t)
-        return Inputs(kin.t, kin.omega, kin.omega_dot, {"q": q, "q_t": q_t, "gyr_t": kin.gyr_t, "gyr": kin.gyr})
+        keys = keyframes(kin.gyr_t, kin.gyr)
+        q_t = stacks.rm(_attitude_cm(kin.gyr_t, keys, kin.gyr, kin.t)[0])
+        # the gyro-rate arrays are constants, not channels: channels are per epoch
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"q_t": q_t},
+                      constants={"_keys": keys, "_gyr_t": kin.gyr_t, "_gyr": kin.gyr})
 
     def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
         """D (E - I) m_b; d/dtau = D (omega(t - tau) x E m_b); d/dphi_k = D (E - I) [m_b]x."""
-        c = inp.channels
+        c, k = inp.channels, inp.constants
         sensed = inp.t - float(beta[0])
-        q_s, j = _attitude_cm(c["gyr_t"], c["q"], c["gyr"], sensed)
+        q_s, j = _attitude_cm(k["_gyr_t"], k["_keys"], k["_gyr"], sensed, k)
         e = stacks.tmul(q_s, stacks.cm(c["q_t"]))                      # R(t - tau)^T R(t), (3, 3, M)
         mb_s = np.einsum("ijn,nj->ni", e, at.m_b)
         v = mb_s - at.m_b                                                # (E - I) m_b
-        d_tau = (np.cross(c["gyr"][j], mb_s) @ at.D.T)[:, :, None]
+        d_tau = (np.cross(k["_gyr"][j], mb_s) @ at.D.T)[:, :, None]
         e_i = stacks.minus_identity(e)
         m = v.shape[0]
         d_d = np.zeros((m, 3, 3, 3))                                    # d (D v) / d vec(D), column-major:

@@ -112,6 +112,12 @@ def _memo(problem: Problem) -> dict[tuple[object, ...], Inputs | str]:
         return _INPUTS.setdefault(problem, {})
 
 
+def reported(inputs: Inputs) -> dict[str, object]:
+    """An effect's constants that its result keeps: not a term's private "_" tables, which can hold a value per IMU
+    sample (time_offset's gyro) and would travel with every result a diagnosis worker sends back (issue 39)."""
+    return {k: v for k, v in inputs.constants.items() if not k.startswith("_")}
+
+
 def layout_for(bound: Sequence[Bound]) -> Layout:
     """Accelerometer effects, b_a, b_g, gyro effects, D, o, dip, magnetometer effects."""
     def of(target: Target) -> list[ParamBlock]:
@@ -218,7 +224,7 @@ def results(bound: Sequence[Bound], layout: Layout, theta_si: FloatArray, cov_si
             w = e.effect.weights(e.inputs)
             n = 0 if w is None else int(np.count_nonzero(w == 0.0))
             out.append(EffectFit(e.effect.id, sensor, "accepted" if n else "rejected", None, e.inputs.channel_ids,
-                                 float(n), 0, float("nan"), constants=dict(e.inputs.constants)))
+                                 float(n), 0, float("nan"), constants=reported(e.inputs)))
             continue
         short = Layout(e.effect.params)
         est = Estimate(short, theta_si[cols], cov_si[np.ix_(cols, cols)])
@@ -233,5 +239,5 @@ def results(bound: Sequence[Bound], layout: Layout, theta_si: FloatArray, cov_si
         p = float(chdtrc(b.size, stat)) if np.isfinite(stat) else float("nan")
         status = "accepted" if np.isfinite(p) and p < ALPHA else "rejected"
         out.append(EffectFit(e.effect.id, sensor, status, est, e.inputs.channel_ids, stat, int(b.size), p,
-                             constants=dict(e.inputs.constants)))
+                             constants=reported(e.inputs)))
     return out
