@@ -35,9 +35,10 @@ class NotTestable(Exception):  # noqa: N818 -- a finding, not an error
 @dataclass(frozen=True, eq=False)
 class Kinematics:
     """The motion at one magnetometer's K epochs t (s): body rate omega (K, 3) rad/s with the start gyro bias
-    removed and its derivative omega_dot (K, 3) rad/s^2; the gyro samples themselves (bias removed) for effects
-    that integrate between epochs: gyr_t (N,) s, gyr (N, 3) rad/s, each held over [t_j, t_j+1); `still` (K,):
-    the epoch lies in a segment where the gyro and accelerometer show only noise (detect.py)."""
+    removed and its derivative omega_dot (K, 3) rad/s^2; the gyro samples themselves for effects that integrate
+    between epochs: gyr_t (N,) s, gyr (N, 3) rad/s as logged (the problem's own arrays, not copied), each held over
+    [t_j, t_j+1), and `gyr_bias` (3,) the start bias to remove from them; `still` (K,): the epoch lies in a segment
+    where the gyro and accelerometer show only noise (detect.py)."""
 
     t: FloatArray
     omega: FloatArray
@@ -45,6 +46,7 @@ class Kinematics:
     gyr_t: FloatArray
     gyr: FloatArray
     still: npt.NDArray[np.bool_] | None = None
+    gyr_bias: FloatArray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass(frozen=True, eq=False)

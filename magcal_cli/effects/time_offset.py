@@ -8,7 +8,7 @@ omega(t - tau) x m_b' (the rate at the time the field was sensed).
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -29,32 +29,49 @@ MIN_RATE_SPREAD = 0.05
 KEY = 8
 
 
-def keyframes(t_gyr: FloatArray, w: FloatArray) -> FloatArray:
-    """The body attitude (ceil(N / KEY), 3, 3) at gyro samples 0, KEY, 2 KEY, ... relative to the first, integrated
-    from the rates w (N, 3) held over [t_j, t_j+1): products within each run of KEY samples, then their prefix."""
-    n = t_gyr.size
+class Gyro(NamedTuple):
+    """The gyro samples as logged (the problem's arrays, not copied: t (N,) s, raw (N, 3) rad/s, each held over
+    [t_j, t_j+1)) and the bias to remove from them."""
+
+    t: FloatArray
+    raw: FloatArray
+    bias: FloatArray
+
+    def rate(self, j: npt.NDArray[np.int64]) -> FloatArray:
+        """The body rate (rad/s) of samples j: what a bias-free copy of the whole log would hold there."""
+        out: FloatArray = self.raw[j] - self.bias
+        return out
+
+    def step(self, j: npt.NDArray[np.int64], on: npt.NDArray[np.bool_]) -> FloatArray:
+        """The rotation (3, 3, M) over sample j's whole interval where `on`, the identity elsewhere."""
+        phi = np.zeros((j.size, 3))
+        phi[on] = self.rate(j[on]) * (self.t[j[on] + 1] - self.t[j[on]])[:, None]
+        return stacks.exp(phi)
+
+
+def keyframes(g: Gyro) -> FloatArray:
+    """The body attitude (ceil(N / KEY), 3, 3) at gyro samples 0, KEY, 2 KEY, ... relative to the first: products
+    within each run of KEY samples, then their prefix."""
+    n = g.t.size
     runs = -(-n // KEY)
     block = np.broadcast_to(np.eye(3)[:, :, None], (3, 3, runs)).copy()      # component-major (stacks.py)
     for i in range(KEY):                             # the i-th step of every run at once: KEY passes, not N
         s = np.arange(runs) * KEY + i
-        ok = s < n - 1
-        phi = np.zeros((runs, 3))
-        phi[ok] = w[s[ok]] * (t_gyr[s[ok] + 1] - t_gyr[s[ok]])[:, None]
-        block = stacks.mul(block, stacks.exp(phi))
+        block = stacks.mul(block, g.step(np.minimum(s, n - 1), s < n - 1))
     first = np.concatenate([np.eye(3)[None], so3.cumulative_product(stacks.rm(block[:, :, :-1]))]) \
         if runs > 1 else np.eye(3)[None]
     return np.ascontiguousarray(first)
 
 
-def _attitude_cm(t_gyr: FloatArray, keys: FloatArray, w: FloatArray, t: FloatArray,
-                 memo: dict[str, Any] | None = None) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+def _attitude_cm(g: Gyro, keys: FloatArray, t: FloatArray, memo: dict[str, Any] | None = None
+                 ) -> tuple[FloatArray, npt.NDArray[np.int64]]:
     """Body attitude Q(t) as a component-major stack (3, 3, M) (stacks.py) relative to the first gyro sample,
     Q_j Exp(w_j (t - t_j)) with t_j <= t, Q_j integrated on from its kept attitude (`keyframes`); and the gyro
     sample j holding at each t.
 
     `memo` keeps the last call's Q_j: a fit moves tau a little per step, so most times keep their sample and
     only the others are integrated again (each Q_j depends on its own j alone: the same digits either way)."""
-    j = np.clip(np.searchsorted(t_gyr, t, side="right") - 1, 0, t_gyr.size - 1)
+    j = np.clip(np.searchsorted(g.t, t, side="right") - 1, 0, g.t.size - 1)
     last = memo.get("_last") if memo is not None else None
     if last is not None and last[0].shape == j.shape:
         q_j = last[1].copy()
@@ -62,22 +79,19 @@ def _attitude_cm(t_gyr: FloatArray, keys: FloatArray, w: FloatArray, t: FloatArr
     else:
         q_j, redo = np.empty((3, 3, j.size)), np.arange(j.size)
     if redo.size:
-        q_j[:, :, redo] = _at_samples(t_gyr, keys, w, j[redo])
+        q_j[:, :, redo] = _at_samples(g, keys, j[redo])
     if memo is not None:
         memo["_last"] = (j, q_j)         # one assignment: threads sharing the inputs see the old or the new pair
-    return stacks.mul(q_j, stacks.exp(w[j] * (t - t_gyr[j])[:, None])), j
+    return stacks.mul(q_j, stacks.exp(g.rate(j) * (t - g.t[j])[:, None])), j
 
 
-def _at_samples(t_gyr: FloatArray, keys: FloatArray, w: FloatArray, j: npt.NDArray[np.int64]) -> FloatArray:
+def _at_samples(g: Gyro, keys: FloatArray, j: npt.NDArray[np.int64]) -> FloatArray:
     """The attitude Q_j (3, 3, M) at gyro samples j: the kept one before each, times the steps up to j."""
     k = j // KEY
     at = stacks.cm(keys[k])
     for i in range(KEY - 1):                         # the samples from the kept one up to j, masked past j
         s = k * KEY + i
-        on = s < j
-        phi = np.zeros((j.size, 3))
-        phi[on] = w[s[on]] * (t_gyr[s[on] + 1] - t_gyr[s[on]])[:, None]
-        at = _product(at, stacks.exp(phi))
+        at = _product(at, g.step(np.minimum(s, j), s < j))
     return at
 
 
@@ -91,10 +105,9 @@ def _product(a: FloatArray, b: FloatArray) -> FloatArray:
     return out
 
 
-def attitude_at(t_gyr: FloatArray, w: FloatArray, t: FloatArray) -> FloatArray:
-    """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample, from the rates w (N, 3) held over
-    [t_j, t_j+1)."""
-    return stacks.rm(_attitude_cm(t_gyr, keyframes(t_gyr, w), w, t)[0])
+def attitude_at(g: Gyro, t: FloatArray) -> FloatArray:
+    """Body attitude Q(t) (M, 3, 3) relative to the first gyro sample."""
+    return stacks.rm(_attitude_cm(g, keyframes(g), t)[0])
 
 
 class TimeOffset(Effect):
@@ -117,21 +130,22 @@ class TimeOffset(Effect):
             msg = (f"the rotation rate hardly changes (std {spread:.3f} rad/s): a delay cannot be told from a "
                    "mounting rotation")
             raise NotTestable(msg)
-        keys = keyframes(kin.gyr_t, kin.gyr)
-        q_t = stacks.rm(_attitude_cm(kin.gyr_t, keys, kin.gyr, kin.t)[0])
-        # the gyro-rate arrays are constants, not channels: channels are per epoch
-        return Inputs(kin.t, kin.omega, kin.omega_dot, {"q_t": q_t},
-                      constants={"_keys": keys, "_gyr_t": kin.gyr_t, "_gyr": kin.gyr})
+        g = Gyro(kin.gyr_t, kin.gyr, kin.gyr_bias)
+        keys = keyframes(g)
+        q_t = stacks.rm(_attitude_cm(g, keys, kin.t)[0])
+        # per-sample tables are constants, not channels: channels are per epoch
+        return Inputs(kin.t, kin.omega, kin.omega_dot, {"q_t": q_t}, constants={"_keys": keys, "_gyro": g})
 
     def term(self, inp: Inputs, beta: FloatArray, at: Point) -> Term:
         """D (E - I) m_b; d/dtau = D (omega(t - tau) x E m_b); d/dphi_k = D (E - I) [m_b]x."""
         c, k = inp.channels, inp.constants
         sensed = inp.t - float(beta[0])
-        q_s, j = _attitude_cm(k["_gyr_t"], k["_keys"], k["_gyr"], sensed, k)
+        g: Gyro = k["_gyro"]
+        q_s, j = _attitude_cm(g, k["_keys"], sensed, k)
         e = stacks.tmul(q_s, stacks.cm(c["q_t"]))                      # R(t - tau)^T R(t), (3, 3, M)
         mb_s = np.einsum("ijn,nj->ni", e, at.m_b)
         v = mb_s - at.m_b                                                # (E - I) m_b
-        d_tau = (np.cross(k["_gyr"][j], mb_s) @ at.D.T)[:, :, None]
+        d_tau = (np.cross(g.rate(j), mb_s) @ at.D.T)[:, :, None]
         e_i = stacks.minus_identity(e)
         m = v.shape[0]
         d_d = np.zeros((m, 3, 3, 3))                                    # d (D v) / d vec(D), column-major:
