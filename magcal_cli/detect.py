@@ -295,8 +295,22 @@ FOURTH = np.array([1.0, -4.0, 6.0, -4.0, 1.0])
 MIN_STILL_S = 2.0
 
 
-def gyro_noise_scale(gyr: Stream, still: StillResult, block_s: float = NOISE_BLOCK_S) -> FloatArray | None:
-    """(N, 3) each gyro sample's white-noise std relative to the still level, never below 1; None without MIN_STILL_S
+@dataclass(frozen=True, eq=False)
+class BlockScale:
+    """A value per sample held over blocks of `size` samples: sample k's is values[k // size] (B, 3). An array of
+    every sample's copy was 35 MB for an hour at 400 Hz (issue 39)."""
+
+    values: FloatArray
+    size: int
+
+    def __getitem__(self, k: npt.NDArray[np.int64]) -> FloatArray:
+        """The values of samples k (M,): (M, 3)."""
+        out: FloatArray = self.values[np.asarray(k) // self.size]
+        return out
+
+
+def gyro_noise_scale(gyr: Stream, still: StillResult, block_s: float = NOISE_BLOCK_S) -> BlockScale | None:
+    """Each gyro sample's white-noise std relative to the still level (3 axes), never below 1; None without MIN_STILL_S
     of still data (no rest level to compare with: the estimators then fit one level to the whole log).
 
     A running motor shakes the IMU: in flight a multirotor's gyro is several times noisier than at rest (the
@@ -314,5 +328,4 @@ def gyro_noise_scale(gyr: Stream, still: StillResult, block_s: float = NOISE_BLO
     blocks = -(-n // size)
     padded = np.concatenate([d, np.repeat(d[-1:], blocks * size - n, axis=0)]).reshape(blocks, size, 3)
     spread = 1.4826 * np.median(np.abs(padded - np.median(padded, axis=1, keepdims=True)), axis=1)
-    out: FloatArray = np.repeat(np.maximum(spread / level, 1.0), size, axis=0)[:n]
-    return out
+    return BlockScale(np.maximum(spread / level, 1.0), size)

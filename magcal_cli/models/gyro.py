@@ -19,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3, stacks
+from magcal_cli.detect import BlockScale
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models.factor import Factor
 from magcal_cli.streams import FloatArray
@@ -85,7 +86,7 @@ def broken_intervals(epochs: FloatArray, windows: tuple[tuple[float, float], ...
 
 def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: FloatArray,
                  noise_std: FloatArray, where: str = "gyro", scale_jacobian: bool = False,
-                 breaks: tuple[tuple[float, float], ...] = (), scale: FloatArray | None = None) -> Preintegrated:
+                 breaks: tuple[tuple[float, float], ...] = (), scale: BlockScale | None = None) -> Preintegrated:
     """Preintegrate gyro samples gyr (N, 3) rad/s at t_imu (N,) between consecutive epochs (K,) s.
 
     noise_std (3,) is the per-sample white-noise std (rad/s) at the nominal IMU period dt; a piece of
@@ -98,7 +99,7 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
     `scale_jacobian`: also d dR / d s for a gyro scale error (the bias Jacobian with each piece weighted by its
     rotation vector: the scale acts as a per-sample bias diag(w_j) s; effects/gyro_scale.py).
     `breaks`: time windows the gyro did not measure (Problem.unmeasured); an interval overlapping one carries no
-    gyro factor (L^-1 = 0) and an orientation-unknown covariance (pi^2 rad^2) for the filters. `scale` (N, 3)
+    gyro factor (L^-1 = 0) and an orientation-unknown covariance (pi^2 rad^2) for the filters. `scale` (per sample, 3)
     multiplies each sample's noise std (a flight's vibration, Problem.gyr_scale; None: 1).
     """
     if epochs.size < 2 or epochs[0] < t_imu[0] or np.any(np.diff(epochs) <= 0.0):

@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-from magcal_cli.detect import StillResult
+from magcal_cli.detect import BlockScale, StillResult
 from magcal_cli.models.partial import MagPrior
-from magcal_cli.streams import FloatArray, Kind, Stream
+from magcal_cli.streams import Kind, Stream
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,8 +39,8 @@ class Problem:
     base_effects: tuple[str, ...] = ()
     #: {"imu", "magnetometer", "set_by"}: the sampling the log's streams were read with (timing.py)
     timing: Mapping[str, str] = field(default_factory=dict)
-    #: (N, 3) each gyro sample's noise std relative to the still level (detect.gyro_noise_scale); None: 1
-    gyr_scale: FloatArray | None = None
+    #: each gyro sample's noise std relative to the still level (detect.gyro_noise_scale); None: 1
+    gyr_scale: BlockScale | None = None
 
     def channels(self, kind: Kind) -> tuple[Stream, ...]:
         """The auxiliary streams of one kind, in log order."""

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import so3, units
+from magcal_cli.detect import BlockScale
 from magcal_cli.errors import MagcalError
 from magcal_cli.findings import Finding
 from magcal_cli.models.accel import G
@@ -74,7 +75,7 @@ class Prepared:
     rot0: FloatArray
     notes: tuple[str, ...] = ()
     breaks: tuple[tuple[float, float], ...] = ()      # Problem.unmeasured
-    gyr_scale: FloatArray | None = None               # Problem.gyr_scale
+    gyr_scale: BlockScale | None = None               # Problem.gyr_scale
     effects: tuple[Bound, ...] = ()
     untestable: tuple[EffectFit, ...] = ()
 
