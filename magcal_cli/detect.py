@@ -58,14 +58,36 @@ class StillResult:
     mask: npt.NDArray[np.bool_]
 
 
+#: samples per block of `_moving`'s running sums: the whole log's sums and their temporaries were ten arrays the size
+#: of the IMU at once (0.7 GB for two hours at 400 Hz, issue 39)
+MOVING_BLOCK = 1 << 16
+
+
 def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
-    """Mean and variance (ddof=1) over windows of n samples; entry k covers x[k:k+n]."""
-    x = x - np.median(x, axis=0)                       # keeps E[x^2] - E[x]^2 well conditioned
-    c1 = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
-    c2 = np.concatenate([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
-    s1, s2 = c1[n:] - c1[:-n], c2[n:] - c2[:-n]
-    mean = s1 / n
-    var = np.maximum(s2 - s1 * mean, 0.0) / (n - 1)
+    """Mean and variance (ddof=1) over windows of n samples; entry k covers x[k:k+n].
+
+    Running sums c_i = sum of the first i samples, a block of samples at a time: each block's cumulative sum
+    starts from the last one's end (a sum accumulates in order, so the digits are those of one cumulative sum over
+    the whole log), and its windows take the n sums before the block from the last one's tail."""
+    med = np.median(x, axis=0)                         # centring keeps E[x^2] - E[x]^2 well conditioned
+    total, d = x.shape
+    count = max(total - n + 1, 0)
+    mean, var = np.empty((count, d)), np.empty((count, d))
+    tail1, tail2 = np.zeros((1, d)), np.zeros((1, d))  # c_k for k in [i0 - n, i0] (fewer at the start)
+    step = max(MOVING_BLOCK, 4 * n)
+    for i0 in range(0, total, step):
+        xc = x[i0:i0 + step] - med
+        c1 = np.cumsum(np.concatenate([tail1[-1:], xc]), axis=0)[1:]
+        c2 = np.cumsum(np.concatenate([tail2[-1:], xc * xc]), axis=0)[1:]
+        c1, c2 = np.concatenate([tail1, c1]), np.concatenate([tail2, c2])   # c_k for k in [i0 - len(tail) + 1 ...]
+        first = i0 + 1 - tail1.shape[0]                                    # the k of c1[0]
+        k0, k1 = max(first, 0), min(i0 + xc.shape[0] - n, count - 1)       # windows whose sums are all here
+        if k1 >= k0:
+            s1 = c1[k0 + n - first:k1 + n + 1 - first] - c1[k0 - first:k1 + 1 - first]
+            s2 = c2[k0 + n - first:k1 + n + 1 - first] - c2[k0 - first:k1 + 1 - first]
+            mean[k0:k1 + 1] = s1 / n
+            var[k0:k1 + 1] = np.maximum(s2 - s1 * mean[k0:k1 + 1], 0.0) / (n - 1)
+        tail1, tail2 = c1[-(n + 1):], c2[-(n + 1):]
     return mean, var
 
 
