@@ -132,6 +132,17 @@ class _Signal:
     x: FloatArray
     sd: FloatArray
 
+    def sums(self) -> FloatArray:
+        """The running sums (N + 1, 3) of x from 0, made once: every run and every split reads them (they were made
+        again each time, a copy of the whole log per candidate run)."""
+        got: FloatArray | None = self.__dict__.get("_sums")
+        if got is None:
+            got = np.empty((self.x.shape[0] + 1, self.x.shape[1]))
+            got[0] = 0.0
+            np.cumsum(self.x, axis=0, out=got[1:])
+            object.__setattr__(self, "_sums", got)
+        return got
+
 
 def _steady_parts(sig: list[_Signal], t_imu: FloatArray, i0: int, i1: int, n: int,
                   alpha: float) -> list[tuple[int, int]]:
@@ -152,7 +163,7 @@ def _steady_parts(sig: list[_Signal], t_imu: FloatArray, i0: int, i1: int, n: in
         dev = np.zeros(blocks)
         for s in sig:
             lo, hi = np.searchsorted(s.t, edges[:-1]), np.searchsorted(s.t, edges[1:])
-            c = np.concatenate([np.zeros((1, 3)), np.cumsum(s.x, axis=0)])
+            c = s.sums()
             cnt = (hi - lo).astype(np.float64)
             ok = cnt > 0
             if not ok.any():                            # this signal has no samples in the run (a dropout)
@@ -186,12 +197,18 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig, mags: tuple[Stream,
     a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), np.maximum(_resolution_floor(a), 1e-12))
     w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), np.maximum(_resolution_floor(w), 1e-12))
     var_bound = chi2_ppf(1.0 - cfg.false_alarm, n - 1) / (n - 1)
+    # each window statistic is dropped once judged: four of them the size of the log at once were the peak of a
+    # long log's fit (issue 39)
     a_mean, a_var = _moving(a, n)
-    w_mean_c, w_var = _moving(w, n)
-    w_mean = w_mean_c + np.median(w, axis=0)
-    a_mean = a_mean + np.median(a, axis=0)
-    quiet = np.all(a_var <= var_bound * a_sd**2, axis=1) & np.all(w_var <= var_bound * w_sd**2, axis=1)
+    quiet = np.all(a_var <= var_bound * a_sd**2, axis=1)
+    del a_var
+    a_mean += np.median(a, axis=0)
     at_rest = np.abs(np.linalg.norm(a_mean, axis=1) / G - 1.0) <= cfg.gravity_tolerance
+    del a_mean
+    w_mean, w_var = _moving(w, n)
+    quiet &= np.all(w_var <= var_bound * w_sd**2, axis=1)
+    del w_var
+    w_mean += np.median(w, axis=0)
     candidates = quiet & at_rest
     bias = np.median(w_mean[candidates], axis=0) if candidates.any() else np.zeros(3)
     # a still window's mean rate differs from the bias by noise/sqrt(n) plus the allowed bias drift

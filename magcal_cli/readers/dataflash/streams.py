@@ -126,8 +126,11 @@ def instance_tag(fmt: MessageFormat, inst: int) -> str:
 
 
 def stack_columns(table: Table, names: tuple[str, ...], factor: float = 1.0) -> FloatArray:
-    """(N, len(names)) float columns times a factor."""
-    return np.stack([table.num(c) * factor for c in names], axis=1)
+    """(N, len(names)) float columns times a factor, filled a column at a time (not a list of columns, then a copy)."""
+    out = np.empty((len(table), len(names)))
+    for i, c in enumerate(names):
+        out[:, i] = table.num(c) * factor
+    return out
 
 
 def int_factor(table: Table, column: str, integer_default: float) -> float:
