@@ -97,3 +97,21 @@ def test_a_stream_keeps_a_frozen_array_and_copies_a_writeable_one() -> None:
     cut = s.between(None, None)
     assert cut.values is s.values or np.shares_memory(cut.values, s.values)
     assert not cut.values.flags.writeable
+
+
+@pytest.mark.parametrize(("total", "n"), [(4, 5), (5, 5), (6, 5), (100, 7), (1000, 64), (1025, 64), (3000, 300)])
+def test_still_windows_a_block_at_a_time_are_the_whole_log_sums(total: int, n: int,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """The still detector's window means and variances, its running sums made a block at a time (blocks of 256
+    here, so windows straddle their edges): the digits of one cumulative sum over the whole log."""
+    from magcal_cli import detect
+
+    monkeypatch.setattr(detect, "MOVING_BLOCK", 256)
+    x = np.random.default_rng(total).normal(3.0, 2.0, (total, 3))
+    y = x - np.median(x, axis=0)
+    c1 = np.concatenate([np.zeros((1, 3)), np.cumsum(y, axis=0)])
+    c2 = np.concatenate([np.zeros((1, 3)), np.cumsum(y * y, axis=0)])
+    s1, s2 = c1[n:] - c1[:-n], c2[n:] - c2[:-n]
+    mean, var = detect._moving(x, n)
+    assert np.array_equal(mean, s1 / n)
+    assert np.array_equal(var, np.maximum(s2 - s1 * (s1 / n), 0.0) / (n - 1))
