@@ -43,6 +43,9 @@ STOP_POLL_S = 0.2
 #: how long a Ctrl-C'd batch waits for its running fits to stop and clean up before it kills their workers (s): a
 #: fit deep in a long computation, or waiting for its threads, answers only when that ends (once 14 s)
 STOP_GRACE_S = 0.3
+#: how long a Ctrl-C during the forkserver's preload waits for the start it cut to send its child's data (s): the
+#: microseconds of a few system calls, on a loaded machine
+START_GRACE_S = 0.05
 Done = Callable[[LogReport], None]
 
 
@@ -71,6 +74,20 @@ def _interruptible() -> Iterator[None]:
     finally:
         if main:
             signal.signal(signal.SIGINT, previous)    # a pool worker's: ignored; a caller's own: as it was
+
+
+@contextlib.contextmanager
+def _starting_processes() -> Iterator[None]:
+    """A Ctrl-C while the block starts processes is raised after it: interrupted between asking the forkserver for
+    a child and sending it its start-up data, the child would read nothing and print its EOFError traceback."""
+    got: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda sig, _: got.append(sig))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if got:
+        signal.raise_signal(signal.SIGINT)      # to the handler that was there: KeyboardInterrupt, or ignored
 
 
 def _worker_init(jobs: int = 1) -> None:
@@ -244,10 +261,18 @@ def _context() -> Any:
         signal.signal(signal.SIGINT, previous)
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # wait for the preload with a bare process: a pool worker queued behind it and served after a Ctrl-C'd
-    # magcal has exited would fail on the pool's vanished semaphores and print that traceback
-    ready = ctx.Process(target=_ready, daemon=True)
+    # magcal has exited would fail on the pool's vanished semaphores and print that traceback. Started on a thread:
+    # the start waits for the preload, and a Ctrl-C meanwhile (main thread only) must neither wait for it nor cut
+    # the start between asking for the child and sending it its data (`_starting_processes`)
+    ready = threading.Thread(target=_start_ready, args=(ctx,), daemon=True)
     ready.start()
-    ready.join()
+    try:
+        ready.join()
+    except KeyboardInterrupt:
+        # a start on the thread when the Ctrl-C came sends its child's data before magcal exits. Not join(timeout):
+        # an interrupted join has already marked the thread ended (bpo-45274), and would return at once
+        time.sleep(START_GRACE_S)
+        raise
     return ctx
 
 
@@ -256,6 +281,13 @@ def preload_modules() -> list[str]:
     root = Path(__file__).parent
     return PRELOAD + [f"magcal_cli.{pkg}" + ("" if f.stem == "__init__" else f".{f.stem}")
                       for pkg in PRELOAD_PACKAGES for f in sorted((root / pkg).glob("*.py"))]
+
+
+def _start_ready(ctx: Any) -> None:
+    """Start `_ready` in the forkserver and wait for it."""
+    ready = ctx.Process(target=_ready, daemon=True)
+    ready.start()
+    ready.join()
 
 
 def _ready() -> None:
@@ -384,7 +416,8 @@ def _run_pool(jobs: list[Job], workers: int, done: Done, reports: list[LogReport
     try:
         for i, j in enumerate(jobs):
             try:
-                futures[pool.submit(run_one, j)] = j
+                with _starting_processes():             # a submit may start a worker
+                    futures[pool.submit(run_one, j)] = j
             except (BrokenProcessPool, OSError):
                 # a worker died while the rest were being queued: those go back too. OSError is the same death
                 # seen a moment earlier, as the pool spawns a worker on fds its breaking has just closed (EBADF)

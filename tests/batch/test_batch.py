@@ -325,6 +325,43 @@ def test_ctrl_c_stops_a_fit_that_does_not_answer(logs: Path, tmp_path: Path) -> 
     _nothing_half_written(out)
 
 
+#: a sitecustomize for the batch (magcal's process only, not the forkserver's): the Nth request for a new process
+#: ($MAGCAL_TEST_CUT_START = N) is followed by a Ctrl-C, landing where a terminal's could: after the forkserver was
+#: asked for the child and before the child was sent its start-up data
+CUT_START = """
+import os, signal, sys
+N = int(os.environ.get("MAGCAL_TEST_CUT_START", "0"))
+if N and "batch" in sys.argv:
+    from multiprocessing import forkserver
+    real, calls = forkserver.connect_to_new_process, []
+    def connect(fds):
+        out = real(fds)
+        calls.append(1)
+        if len(calls) == N:
+            os.kill(os.getpid(), signal.SIGINT)
+        return out
+    forkserver.connect_to_new_process = connect
+"""
+
+
+@pytest.mark.parametrize("nth", [1, 2], ids=["preload-wait", "first-worker"])
+def test_ctrl_c_while_a_process_starts_prints_no_traceback(logs: Path, tmp_path: Path, nth: int) -> None:
+    """A Ctrl-C between the forkserver's being asked for a child and the child's being sent its data (CI saw it once
+    by chance) left that child to read nothing and print its EOFError traceback under the batch's one line. The
+    1st request is the preload's wait, the 2nd the first worker's: both exit 130 with the one line only."""
+    hooks = tmp_path / "hooks"
+    hooks.mkdir()
+    (hooks / "sitecustomize.py").write_text(CUT_START)
+    env = {**os.environ, "MAGCAL_TEST_CUT_START": str(nth),
+           "PYTHONPATH": os.pathsep.join([str(hooks), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    proc = subprocess.run([sys.executable, "-m", "magcal_cli", "batch", str(logs), "-o", str(tmp_path / "out"),
+                           "--jobs", "2", "--effects", "none", "--outputs", "json"], capture_output=True, text=True,
+                          env=env, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    assert "Error: interrupted" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    _nothing_half_written(tmp_path / "out")
+
+
 @pytest.fixture
 def dask_offload_ended() -> Iterator[None]:
     """After a Dask test: Dask's offload thread ended, its executor replaced by a fresh (threadless) one. The thread
