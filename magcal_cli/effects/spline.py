@@ -20,30 +20,44 @@ from magcal_cli.streams import FloatArray
 
 @dataclass(frozen=True, eq=False)
 class Spline:
-    """A cubic spline: knots x (n,) and, per piece, the coefficients of h^3, h^2, h, 1 (4, n-1, ...)."""
+    """A cubic spline: knots x (n,), samples y (n, ...) and the knots' slopes s (n, ...). A piece's coefficients are
+    made when a time asks for it: a 400 Hz channel of a two-hour log has 2.9 million pieces, and all their
+    coefficients at once (4 per piece) were the biggest allocation of its diagnosis (issue 39). Each piece's are the
+    same operations on the same numbers either way: the same digits."""
 
     x: FloatArray
-    c: FloatArray
+    y: FloatArray
+    s: FloatArray
 
     def __call__(self, t: npt.ArrayLike, deriv: int = 0) -> FloatArray:
         """Values (deriv 0) or slopes (deriv 1) at times t (..., then the samples' trailing shape); beyond the
         knots the end pieces are extended."""
+        if deriv not in (0, 1):
+            msg = f"deriv must be 0 or 1, not {deriv}"
+            raise ValueError(msg)
         t = np.asarray(t, dtype=np.float64)
         flat = t.ravel()
         piece = np.clip(np.searchsorted(self.x, flat, side="right") - 1, 0, self.x.size - 2)
-        h = (flat - self.x[piece]).reshape((-1,) + (1,) * (self.c.ndim - 2))
-        c3, c2, c1, c0 = (self.c[k, piece] for k in range(4))
+        c3, c2, c1, c0 = _coefficients(self.x, self.y, self.s, piece)
+        h = (flat - self.x[piece]).reshape((-1,) + (1,) * (self.y.ndim - 1))
         # scipy's evaluate_poly1: a sum of c_k z prefactor with z = h^k built up by products, lowest power first
         if deriv == 0:
             z2 = h * h
             out = c0 * 1.0 + c1 * h * 1.0 + c2 * z2 * 1.0 + c3 * (z2 * h) * 1.0
-        elif deriv == 1:
-            out = c1 * 1.0 * 1.0 + c2 * h * 2.0 + c3 * (h * h) * 3.0
         else:
-            msg = f"deriv must be 0 or 1, not {deriv}"
-            raise ValueError(msg)
-        result: FloatArray = out.reshape(t.shape + self.c.shape[2:])
+            out = c1 * 1.0 * 1.0 + c2 * h * 2.0 + c3 * (h * h) * 3.0
+        result: FloatArray = out.reshape(t.shape + self.y.shape[1:])
         return result
+
+
+def _coefficients(x: FloatArray, y: FloatArray, s: FloatArray, piece: npt.NDArray[np.intp]
+                  ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The coefficients of h^3, h^2, h, 1 of the given pieces, as scipy's CubicSpline makes them for every piece."""
+    dxr = (x[piece + 1] - x[piece]).reshape((-1,) + (1,) * (y.ndim - 1))
+    slope = (y[piece + 1] - y[piece]) / dxr
+    s0 = s[piece]
+    t = (s0 + s[piece + 1] - 2 * slope) / dxr
+    return t / dxr, (slope - s0) / dxr - t, s0, y[piece]
 
 
 def cubic(x: npt.ArrayLike, y: npt.ArrayLike) -> Spline:
@@ -67,9 +81,7 @@ def cubic(x: npt.ArrayLike, y: npt.ArrayLike) -> Spline:
         s = solve(a, b.reshape(3, -1), overwrite_a=True, overwrite_b=True, check_finite=False).reshape(b.shape)
     else:
         s = _slopes(x, dx, dxr, slope)
-    t = (s[:-1] + s[1:] - 2 * slope) / dxr
-    c = np.stack([t / dxr, (slope - s[:-1]) / dxr - t, s[:-1], y[:-1]])
-    return Spline(x, c)
+    return Spline(x, y, s)
 
 
 def _slopes(x: FloatArray, dx: FloatArray, dxr: FloatArray, slope: FloatArray) -> FloatArray:
