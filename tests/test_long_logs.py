@@ -115,3 +115,26 @@ def test_still_windows_a_block_at_a_time_are_the_whole_log_sums(total: int, n: i
     mean, var = detect._moving(x, n)
     assert np.array_equal(mean, s1 / n)
     assert np.array_equal(var, np.maximum(s2 - s1 * (s1 / n), 0.0) / (n - 1))
+
+
+def test_bound_inputs_kept_for_the_latest_start_biases_only() -> None:
+    """A diagnosis binds time_offset at each fit's own gyro bias, and its inputs hold an attitude per KEY IMU samples:
+    the problem's cache keeps the KEEP latest per effect and magnetometer (a two-hour log held 6 sets, 155 MB). A
+    kept one is served again as it is; one dropped is made again, to the same digits."""
+    from magcal_cli.models.map import effects as map_effects
+
+    problem = _problem(4000)
+    t = problem.gyr.t[5:-5:10]
+    mag = Stream(Kind.MAGNETOMETER, "mag", t, np.ones((t.size, 3)), "test", "T")
+    biases = [np.array([0.001 * k, 0.0, 0.0]) for k in range(map_effects.KEEP + 2)]
+    first = map_effects.bind(problem, mag, t, biases[0], ["time_offset"])[0][0].inputs
+    for b in biases[1:]:
+        map_effects.bind(problem, mag, t, b, ["time_offset"])
+    kept = [k for k in map_effects._memo(problem) if k[0] == "time_offset"]
+    assert len(kept) == map_effects.KEEP
+    latest = map_effects.bind(problem, mag, t, biases[-1], ["time_offset"])[0][0].inputs
+    assert map_effects.bind(problem, mag, t, biases[-1], ["time_offset"])[0][0].inputs is latest
+    again = map_effects.bind(problem, mag, t, biases[0], ["time_offset"])[0][0].inputs
+    assert again is not first
+    assert np.array_equal(again.channels["q_t"], first.channels["q_t"])
+    assert np.array_equal(again.constants["_keys"], first.constants["_keys"])

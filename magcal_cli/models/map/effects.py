@@ -91,13 +91,14 @@ def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Se
         # the diagnosis refits the same epochs with the same start bias dozens of times (log171: 52 fits, 3.2 s
         # of time_offset's attitude integration alone); inputs are read-only, so one computation serves them all
         key = (eid, *epochs)
-        if key not in known:
+        got = _recall(known, key)
+        if got is None:
             kin = kin or kinematics(problem, t, bias)
             try:
-                known[key] = eff.inputs(problem.aux, mag, kin, declination)
+                got = eff.inputs(problem.aux, mag, kin, declination)
             except NotTestable as exc:
-                known[key] = str(exc)
-        got = known[key]
+                got = str(exc)
+            _keep(known, key, got)
         if isinstance(got, str):
             untestable.append(EffectFit(eid, sensor, "not_testable", reason=got))
         else:
@@ -105,6 +106,11 @@ def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Se
     return bound, untestable
 
 
+#: the inputs kept per effect, magnetometer and declination: the most recently used epochs and start biases. A
+#: diagnosis binds at each fit's own gyro bias, and time_offset's inputs hold an attitude per KEY IMU samples: every
+#: one kept held 6 of them, 155 MB, at a two-hour log's peak (issue 39). Repeats come in runs (a round's fits share
+#: their start), so the latest few serve them
+KEEP = 2
 #: each problem's effect inputs by (effect, magnetometer, declination, epochs and start bias digest); the reason
 #: as a string where the effect was not testable. Dropped with the problem. A magnetometer's readings are the
 #: problem's own (or a thinned copy, whose epochs differ): its id and epochs name them
@@ -116,6 +122,24 @@ def _memo(problem: Problem) -> dict[tuple[object, ...], Inputs | str]:
     """The problem's inputs cache (the diagnosis binds from worker threads)."""
     with _LOCK:
         return _INPUTS.setdefault(problem, {})
+
+
+def _recall(known: dict[tuple[object, ...], Inputs | str], key: tuple[object, ...]) -> Inputs | str | None:
+    """The cached inputs of `key`, now the most recently used; None when not cached."""
+    with _LOCK:
+        got = known.pop(key, None)
+        if got is not None:
+            known[key] = got
+        return got
+
+
+def _keep(known: dict[tuple[object, ...], Inputs | str], key: tuple[object, ...], got: Inputs | str) -> None:
+    """Cache `got` under `key`, dropping the least recently used entries of its effect and magnetometer beyond KEEP."""
+    with _LOCK:
+        known[key] = got
+        same = [k for k in known if k[:3] == key[:3]]
+        for k in same[:-KEEP]:
+            del known[k]
 
 
 def reported(inputs: Inputs) -> dict[str, object]:
