@@ -11,6 +11,8 @@ forks one worker per byte it can take, a worker gives its byte back when it is d
 waits for its workers lends its own. So a section nested in an item (a magnetometer's folds) gets a core as soon
 as a sibling item (another magnetometer) has ended, and the working processes never outnumber the cores.
 
+Workers are also no more than the memory left holds (`memory.py`): with none, the items run here in turn.
+
 Forking is skipped (the caller runs the items another way) off Linux (macOS' Accelerate BLAS is not fork-safe)
 and when threads other than this module's are running (a fork copies their locks in whatever state they are
 in: a Dask worker).
@@ -30,6 +32,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import suppress
 from typing import Any, TypeVar
 
+from magcal_cli.diagnose import memory
 from magcal_cli.progress import Hook, active
 
 T = TypeVar("T")
@@ -98,7 +101,8 @@ def run(fn: Callable[[T], R], items: Sequence[T], jobs: int, hook_for: Callable[
     finished = False
     parent = os.getpid()
     try:
-        for _ in range(_take(jobs, min(jobs, len(items)) - 1)):
+        # no more workers than cores free now, and than the memory left holds (a long log on a small machine)
+        for _ in range(_take(jobs, memory.workers(min(jobs, len(items)) - 1))):
             out_r, out_w = os.pipe()
             with warnings.catch_warnings():
                 # Python >= 3.12 warns of a fork beside threads: here only this module's relays, whose locks no

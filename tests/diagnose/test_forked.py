@@ -232,3 +232,14 @@ def test_workers_die_with_a_killed_parent(tmp_path: Path) -> None:
         time.sleep(0.05)
     status = Path(f"/proc/{workers[0]}/stat")
     assert not status.exists() or status.read_text().split()[2] == "Z"      # gone, or a zombie awaiting its reaper
+
+
+def test_no_worker_when_the_memory_left_holds_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the memory left too small for one more process like this one, every item runs here, in order, and the
+    core stays free (a two-hour log in a 1 GB container: a fold worker beside its parent was killed out of memory)."""
+    from magcal_cli.diagnose import memory
+
+    monkeypatch.setattr(memory, "available", lambda *_: memory.MARGIN + 2**20)     # 1 MiB beyond the margin
+    out = forked.run(_slow, list(range(3)), 2, _none, lambda i: None)
+    assert [v for v, _ in out] == [0, 1, 4] and {pid for _, pid in out} == {os.getpid()}
+    assert _free_cores() == 1
