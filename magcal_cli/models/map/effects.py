@@ -107,9 +107,9 @@ def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Se
 
 
 #: the inputs kept per effect, magnetometer and declination: the most recently used epochs and start biases. A
-#: diagnosis binds at each fit's own gyro bias, and time_offset's inputs hold an attitude per KEY IMU samples: every
-#: one kept held 6 of them, 155 MB, at a two-hour log's peak (issue 39). Repeats come in runs (a round's fits share
-#: their start), so the latest few serve them
+#: diagnosis binds at each fit's own gyro bias, and time_offset's inputs hold an attitude per KEY IMU samples: with
+#: every bias kept, 6 sets (155 MB) were alive at a two-hour log's peak (issue 39). Repeats come in runs (a round's
+#: fits share their start), so the latest few serve them
 KEEP = 2
 #: each problem's effect inputs by (effect, magnetometer, declination, epochs and start bias digest); the reason
 #: as a string where the effect was not testable. Dropped with the problem. A magnetometer's readings are the
