@@ -116,7 +116,12 @@ def _fit(problem: Problem, mag: Stream, cfg: FitSettings, cache: dict[bytes, Pre
     if run.held is not None and run.held.cols.size and cfg.warm is None:
         run.notes.append(f"{mag.id}: the motion cannot determine {', '.join(run.held.names())}: held at "
                          f"{'; '.join(sorted(set(run.held.sources)))}")
-    return _finish(problem, run, sol, last_step)
+    # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
+    # or disturbances) make the information overstate what the data know: widen where the data say so
+    widen = widening(sol, factor_clusters(sol.factors, time_clusters(run.ep.t)))
+    # then the Jacobians go, before the covariance at the final noise levels makes its own (issue 39)
+    sol = sol.residuals_only()
+    return _finish(problem, run, sol, last_step, widen)
 
 
 def _to_convergence(loss: str, warm: bool = False) -> Options:
@@ -158,6 +163,9 @@ def _rounds(problem: Problem, run: Run, cfg: FitSettings) -> tuple[Solution, Flo
     for rnd in range(noise_rounds + 1):
         hook(f"{run.mag_id}: joint MAP, noise round", rnd, noise_rounds + 1)
         opts = (round0 if noise_rounds else first) if rnd == 0 else later
+        # the last round's solution (every factor's Jacobians, the covariance) goes before this round's is made:
+        # two at once were a 60-min flight's peak (issue 39)
+        sol = None
         sol = solve(run.cost(run.held), run.states, run.theta, opts)
         run.states, run.theta, run.iters = sol.states, sol.theta.copy(), run.iters + sol.iterations
         run.log.extend(f"round {rnd}: {line}" for line in sol.log)
@@ -182,6 +190,7 @@ def _rounds(problem: Problem, run: Run, cfg: FitSettings) -> tuple[Solution, Flo
     # round 0's loose relative tolerance is no convergence test when the noise levels then stay: a slow direction
     # (throttle's exponent from its start at 1, where c = 0 gives it no gradient) had stopped 2 std short
     if sol is not None and (not sol.converged or opts is round0):
+        sol = None                                      # as in the rounds: one solution at a time
         sol = solve(run.cost(run.held), run.states, run.theta, resumed)
         run.iters += sol.iterations
         run.log.extend(f"final: {line}" for line in sol.log)
@@ -210,9 +219,10 @@ def _hold_again(run: Run, sol: Solution, loss: str) -> Solution:
     return sol
 
 
-def _finish(problem: Problem, run: Run, sol: Solution, last_step: FloatArray | None) -> MapEstimate:
-    """The estimate in SI with its covariance (at the final noise levels, widened where the residuals are
-    correlated in time), its effects and the context it was fitted in."""
+def _finish(problem: Problem, run: Run, sol: Solution, last_step: FloatArray | None, widen: FloatArray
+            ) -> MapEstimate:
+    """The estimate in SI with its covariance (at the final noise levels, widened by `widen` where the residuals
+    are correlated in time), its effects and the context it was fitted in."""
     cov = None
     if last_step is not None:
         # the last small change of the levels moves the optimum negligibly but the covariance proportionally:
@@ -225,10 +235,6 @@ def _finish(problem: Problem, run: Run, sol: Solution, last_step: FloatArray | N
                                   0.0 if held is None else TRAJECTORY_DAMPING)
         if held is not None:
             cov = with_prior_doubt(cov, held)
-    # residuals correlated in time beyond the white-noise model (quantised still readings, unmodelled motion
-    # or disturbances) make the information overstate what the data know: widen where the data say so
-    ids = time_clusters(run.ep.t)
-    widen = widening(sol, factor_clusters(sol.factors, ids))
     if held is not None:
         widen[held.theta_cols] = 1.0            # a held entry's std is its prior's doubt, not the data's
     # a full fit too: one that leaves the field strength varying by 30 % calibrated a failing sensor (issue 38)

@@ -233,6 +233,7 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
     for rnd in range(noise_rounds + 1):
         hook("joint MAP of every magnetometer, noise round", rnd, noise_rounds + 1)
         opts = (start_opts if noise_rounds else first) if rnd == 0 else later
+        fs, fs_at, sol = [], None, None         # the last round's go before this round's are made (as fit.py)
         sol = solve_joint(joint_data(je, pre, noise, layout, hold), states, theta, opts)
         states, theta, iters = sol.states, sol.theta.copy(), iters + sol.iterations
         log.extend(f"round {rnd}: {line}" for line in sol.log)
@@ -257,6 +258,7 @@ def _fit_joint(problem: Problem, loss: str, dip_prior: float | None, noise_round
         pre = pre.scaled(float(np.exp(step[3])))
     assert sol is not None
     if not sol.converged:
+        fs, fs_at, sol = [], None, None
         sol = solve_joint(joint_data(je, pre, noise, layout, hold), states, theta, first)
         iters += sol.iterations
         log.extend(f"final: {line}" for line in sol.log)
