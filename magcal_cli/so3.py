@@ -342,11 +342,15 @@ def times_hat(m: FloatArray, v: FloatArray) -> FloatArray:
     return out
 
 
+#: squared angle (rad^2) below which `exp_coefficients` takes the Taylor series (angles below 1e-2 rad)
+SERIES_T2 = 1e-4
+
+
 def exp_coefficients(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """sin(t)/t, (1-cos t)/t^2, (t-sin t)/t^3 of (..., 3) rotation vectors, as `exp_and_right_jacobian` uses them:
     the Taylor series to theta^4 when every angle is below 1e-2 rad."""
     t2 = np.einsum("...i,...i->...", phi, phi)
-    if t2.size and float(t2.max()) < 1e-4:
+    if t2.size and float(t2.max()) < SERIES_T2:
         return (1.0 + t2 * (-1.0 / 6.0 + t2 / 120.0), 0.5 + t2 * (-1.0 / 24.0 + t2 / 720.0),
                 1.0 / 6.0 + t2 * (-1.0 / 120.0 + t2 / 5040.0))
     _, a, b, c = _coefficients(phi)

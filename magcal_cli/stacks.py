@@ -76,8 +76,15 @@ def _plus_identity(m: FloatArray) -> FloatArray:
 
 
 def exp(phi: FloatArray) -> FloatArray:
-    """so3.exp of rotation vectors phi (M, 3), component-major (3, 3, M)."""
-    a, b, _ = so3.exp_coefficients(phi)
+    """so3.exp of rotation vectors phi (M, 3), component-major (3, 3, M), each rotation's coefficients chosen by its
+    own angle. `so3.exp_coefficients` takes its series only when every angle of the batch is small, so a rotation's
+    digits depended on the others beside it: time_offset integrates a subset of samples again (its memo) and must
+    get the digits of the whole, or a diagnosis worker, whose memo saw other fits, moves the last digits."""
+    a, b = np.empty(phi.shape[0]), np.empty(phi.shape[0])
+    small = np.einsum("...i,...i->...", phi, phi) < so3.SERIES_T2
+    for rows in (small, ~small):
+        if rows.any():
+            a[rows], b[rows], _ = so3.exp_coefficients(phi[rows])
     k, k2 = _hat_and_square(np.ascontiguousarray(phi.T))
     return _plus_identity(a * k + b * k2)
 

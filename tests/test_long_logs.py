@@ -138,3 +138,27 @@ def test_bound_inputs_kept_for_the_latest_start_biases_only() -> None:
     assert again is not first
     assert np.array_equal(again.channels["q_t"], first.channels["q_t"])
     assert np.array_equal(again.constants["_keys"], first.constants["_keys"])
+
+
+def test_time_offset_attitudes_of_a_subset_are_the_whole_logs_digits() -> None:
+    """A rotation's digits do not depend on the samples integrated beside it: time_offset's memo integrates again
+    only the times that changed sample, so a subset (all small angles: the series) must give what the whole log
+    (with fast samples: the closed form, before) gave. Before, the series was taken only when every angle of a batch
+    was small, and a diagnosis worker, whose memo had seen other fits, moved the 13th digit (2015-10-11_19-59-09)."""
+    from magcal_cli import stacks
+
+    rng = np.random.default_rng(4)
+    phi = np.concatenate([rng.normal(0.0, 1e-3, (500, 3)), rng.normal(0.0, 0.3, (20, 3))])
+    rng.shuffle(phi)
+    whole = stacks.exp(phi)
+    small = np.flatnonzero(np.einsum("ij,ij->i", phi, phi) < 1e-4)
+    for rows in (small, small[::7], np.arange(phi.shape[0])[::3]):
+        assert np.array_equal(stacks.exp(np.ascontiguousarray(phi[rows])), whole[:, :, rows])
+    t_gyr, raw = _gyro(3000)
+    raw[::50] *= 200.0                               # a few fast samples among slow ones
+    g = Gyro(t_gyr, raw, np.zeros(3))
+    keys = time_offset.keyframes(g)
+    j = np.sort(rng.choice(t_gyr.size - 1, 400, replace=False))
+    calm = j[(j % time_offset.KEY == time_offset.KEY - 1) & (j % 50 > 10)]
+    assert np.array_equal(time_offset._at_samples(g, keys, calm),
+                          time_offset._at_samples(g, keys, j)[:, :, np.searchsorted(j, calm)])
