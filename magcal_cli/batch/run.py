@@ -86,8 +86,8 @@ def _starting_processes() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
-    if got:
-        signal.raise_signal(signal.SIGINT)      # to the handler that was there: KeyboardInterrupt, or ignored
+        if got:                             # also when the block raised: a Ctrl-C is never lost
+            signal.raise_signal(signal.SIGINT)      # to the handler that was there: KeyboardInterrupt, or ignored
 
 
 def _worker_init(jobs: int = 1) -> None:
