@@ -7,6 +7,7 @@ quietest windows are still); each window is then tested against chi-square bound
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import numpy.typing as npt
@@ -132,16 +133,14 @@ class _Signal:
     x: FloatArray
     sd: FloatArray
 
+    @cached_property
     def sums(self) -> FloatArray:
         """The running sums (N + 1, 3) of x from 0, made once: every run and every split reads them (they were made
         again each time, a copy of the whole log per candidate run)."""
-        got: FloatArray | None = self.__dict__.get("_sums")
-        if got is None:
-            got = np.empty((self.x.shape[0] + 1, self.x.shape[1]))
-            got[0] = 0.0
-            np.cumsum(self.x, axis=0, out=got[1:])
-            object.__setattr__(self, "_sums", got)
-        return got
+        out = np.empty((self.x.shape[0] + 1, self.x.shape[1]))
+        out[0] = 0.0
+        np.cumsum(self.x, axis=0, out=out[1:])
+        return out
 
 
 def _steady_parts(sig: list[_Signal], t_imu: FloatArray, i0: int, i1: int, n: int,
@@ -163,7 +162,7 @@ def _steady_parts(sig: list[_Signal], t_imu: FloatArray, i0: int, i1: int, n: in
         dev = np.zeros(blocks)
         for s in sig:
             lo, hi = np.searchsorted(s.t, edges[:-1]), np.searchsorted(s.t, edges[1:])
-            c = s.sums()
+            c = s.sums
             cnt = (hi - lo).astype(np.float64)
             ok = cnt > 0
             if not ok.any():                            # this signal has no samples in the run (a dropout)
