@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -45,6 +46,13 @@ class Factor:
             return slice(0, p)
         start = run_start(c)
         return c if start is None else slice(start, start + c.size)
+
+    def rows(self, sel: slice) -> Factor:
+        """The factor's row groups `sel` (views)."""
+        def cut(a: npt.NDArray[Any] | None) -> Any:
+            return None if a is None else a[sel]
+        return Factor(self.name, self.r[sel], cut(self.idx), cut(self.J_x), cut(self.J_next), cut(self.J_theta),
+                      self.theta_cols)
 
     def full_theta(self, p: int) -> FloatArray | None:
         """J_theta expanded to all p columns."""

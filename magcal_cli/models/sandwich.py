@@ -21,6 +21,9 @@ from magcal_cli.streams import FloatArray
 
 IntArray = npt.NDArray[np.int64]
 
+#: row groups whose eliminated Jacobians (rows, k, p) are made at once (`_per_cluster`)
+CHUNK_ROWS = 4096
+
 
 def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 0) -> FloatArray:
     """Sandwich covariance of theta; clusters[i] (M_i,) gives the cluster id of each row group of factor i
@@ -34,16 +37,20 @@ def cluster_robust_cov(sol: Solution, clusters: Sequence[IntArray], lags: int = 
     return s_inv @ newey_west(scores, lags) @ s_inv
 
 
-def _eliminated(sol: Solution, f: Factor, p: int) -> FloatArray:
-    """A factor's Jacobian by theta with the trajectory eliminated, (M, k, p): J_theta - J_x W (rows whitened)."""
-    out = np.zeros((*f.r.shape, p))
-    for jx, idx in ((f.J_x, f.idx), (f.J_next, None if f.idx is None else f.idx + 1)):
-        if jx is not None and idx is not None:
-            start = run_start(idx)                      # a run of states: W's rows as a view, not a copy
-            w = sol.hxx_inv_hxt
-            out -= jx @ (w[idx] if start is None else w[start:start + idx.shape[0]])
+def _eliminated(sol: Solution, f: Factor, p: int, rows: slice | IntArray = slice(None)) -> FloatArray:
+    """A factor's Jacobian by theta with the trajectory eliminated, (M, k, p): J_theta - J_x W (rows whitened), for
+    the row groups `rows` (default all)."""
+    r = f.r[rows]
+    out = np.zeros((*r.shape, p))
+    if f.idx is not None:
+        for jx, shift in ((f.J_x, 0), (f.J_next, 1)):
+            if jx is not None:
+                idx = f.idx[rows] + shift
+                start = run_start(idx)                  # a run of states: W's rows as a view, not a copy
+                w = sol.hxx_inv_hxt
+                out -= jx[rows] @ (w[idx] if start is None else w[start:start + idx.shape[0]])
     if f.J_theta is not None:
-        out[:, :, f.theta_slice(p)] += f.J_theta
+        out[:, :, f.theta_slice(p)] += f.J_theta[rows]
     return out
 
 
@@ -75,14 +82,23 @@ def _per_cluster(sol: Solution, clusters: Sequence[IntArray], information: bool
         # summed with np.add.at took seconds on a long log
         order = keep[np.argsort(c[keep], kind="stable")]
         ids, first = np.unique(c[order], return_index=True)
-        j, r = _eliminated(sol, f, p), f.r
-        if order.size != r.shape[0] or np.any(np.diff(order) != 1):       # time clusters usually keep row order
-            j, r = j[order], r[order]
-        for cid, lo, hi in zip(ids, first, [*first[1:], order.size], strict=True):
-            block = j[lo:hi].reshape(-1, p)
-            scores[cid] += block.T @ r[lo:hi].reshape(-1)
-            if info is not None:
-                info[cid] += block.T @ block
+        in_order = order.size == f.r.shape[0] and not np.any(np.diff(order) != 1)   # time clusters usually are
+        ends = np.append(first[1:], order.size)
+        # whole clusters of about CHUNK_ROWS rows at a time: all rows' (M, k, p) at once was a 60-min flight's
+        # peak (issue 39), and one chunk per cluster costs a few numpy calls per second of log
+        chunk = np.searchsorted(first, first + CHUNK_ROWS, side="left")
+        a = 0
+        while a < ids.size:
+            b = max(int(chunk[a]), a + 1)
+            lo0, hi0 = int(first[a]), int(ends[b - 1])
+            rows = slice(lo0, hi0) if in_order else order[lo0:hi0]
+            j, r = _eliminated(sol, f, p, rows), f.r[rows]
+            for cid, lo, hi in zip(ids[a:b], first[a:b] - lo0, ends[a:b] - lo0, strict=True):
+                block = j[lo:hi].reshape(-1, p)
+                scores[cid] += block.T @ r[lo:hi].reshape(-1)
+                if info is not None:
+                    info[cid] += block.T @ block
+            a = b
     return scores, info
 
 

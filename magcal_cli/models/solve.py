@@ -14,11 +14,12 @@ from dataclasses import dataclass, field, replace
 from typing import Generic, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 from scipy import linalg
 
 from magcal_cli import so3
 from magcal_cli.models import normal
-from magcal_cli.models.factor import Factor, Linearize
+from magcal_cli.models.factor import Factor, Linearize, run_start
 from magcal_cli.streams import FloatArray
 
 #: the smallest damping: where a solve that starts at a neighbouring optimum begins (`Options.lambda0`)
@@ -44,15 +45,40 @@ class Options:
     covariance: bool = True
 
 
+#: row groups whose leverage is computed at once: the (rows, k, p) products for a whole factor were a 60-min
+#: flight's peak (issue 39)
+LEVERAGE_ROWS = 8192
+
+Rows = slice | npt.NDArray[np.int64]
+
+
 @dataclass(frozen=True, eq=False)
 class Marginals:
-    """Blocks of H^-1 on the sparsity pattern of H (marginal covariances): state k (N, 3, 3), states k and
-    k+1 (N-1, 3, 3), state k with theta (N, 3, p) and theta (p, p)."""
+    """Blocks of H^-1 on the sparsity pattern of H (marginal covariances), made for the states asked: state k
+    (3, 3), states k and k+1 (3, 3), state k with theta (3, p); theta's (p, p) is `tt`. Held are the trajectory's
+    own blocks (`normal.selected_inverse`), W = Hxx^-1 Hxt (N, 3, p), not a copy, and tt: the blocks with theta
+    are made for the states asked only."""
 
-    xx: FloatArray
-    x_next: FloatArray
-    xt: FloatArray
+    z_xx: FloatArray
+    z_next: FloatArray
+    w: FloatArray
     tt: FloatArray
+
+    def xt(self, i: Rows) -> FloatArray:
+        """Blocks (state i, theta): -W_i S^-1."""
+        return -(self.w[i] @ self.tt)
+
+    def xx(self, i: Rows) -> FloatArray:
+        """Blocks (state i, state i): Z_ii + W_i S^-1 W_i^T."""
+        w_s = self.w[i] @ self.tt
+        out: FloatArray = self.z_xx[i] + w_s @ self.w[i].transpose(0, 2, 1)
+        return out
+
+    def x_next(self, i: Rows) -> FloatArray:
+        """Blocks (state i, state i + 1), i < N - 1: Z_i,i+1 + W_i S^-1 W_i+1^T."""
+        nxt = np.arange(self.w.shape[0])[i] + 1
+        out: FloatArray = self.z_next[i] + (self.w[i] @ self.tt) @ self.w[nxt].transpose(0, 2, 1)
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,10 +111,7 @@ class Solution:
         n = self._hxx_diag.shape[0]
         off = self._off if self._off is not None and self._band == 5 else np.zeros((max(n - 1, 0), 3, 3))
         z_xx, z_next = normal.selected_inverse(self._hxx_diag, off)
-        w_s = self.hxx_inv_hxt @ self.cov_theta                         # Hxx^-1 Hxt S^-1, (N, 3, p)
-        xx = z_xx + w_s @ self.hxx_inv_hxt.transpose(0, 2, 1)
-        x_next = z_next + w_s[:-1] @ self.hxx_inv_hxt[1:].transpose(0, 2, 1)
-        return Marginals(xx, x_next, -w_s, self.cov_theta)
+        return Marginals(z_xx, z_next, self.hxx_inv_hxt, self.cov_theta)
 
     def leverage(self, factor: Factor, marginals: Marginals | None = None) -> FloatArray:
         """Diagonal of the hat matrix J H^-1 J^T for a factor's rows (M, m); unary or consecutive-binary."""
@@ -99,39 +122,58 @@ class Solution:
             return self._leverage_block_diagonal(factor)
         z = marginals or self.marginals()
         h = np.zeros(factor.r.shape)
+        for a in range(0, factor.r.shape[0], LEVERAGE_ROWS):
+            rows = slice(a, a + LEVERAGE_ROWS)
+            h[rows] = self._leverage_rows(factor, z, rows)
+        return h
+
+    def _leverage_rows(self, factor: Factor, z: Marginals, rows: slice) -> FloatArray:
+        """`leverage` of a factor's row groups `rows`."""
+        f = factor.rows(rows)
+        h = np.zeros(f.r.shape)
         p = self.theta.size
-        cols = factor.theta_slice(p)
-        jt = factor.J_theta if isinstance(cols, slice) else factor.full_theta(p)
+        cols = f.theta_slice(p)
+        jt = f.J_theta if isinstance(cols, slice) else f.full_theta(p)
         cols = cols if isinstance(cols, slice) else slice(0, p)
         if jt is not None:
             h += np.einsum("mkp,mkp->mk", jt @ z.tt[cols, cols], jt)
-        if factor.idx is None or factor.J_x is None:
+        if f.idx is None or f.J_x is None:
             return h
-        i = factor.idx
-        h += np.einsum("mki,mki->mk", factor.J_x @ z.xx[i], factor.J_x)
+        at = run_start(f.idx)                              # a run of states: their blocks as views, not copies
+        i = f.idx if at is None else slice(at, at + f.idx.shape[0])
+        h += np.einsum("mki,mki->mk", f.J_x @ z.xx(i), f.J_x)
         if jt is not None:
-            h += 2.0 * np.einsum("mkp,mkp->mk", factor.J_x @ z.xt[i][:, :, cols], jt)
-        if factor.J_next is not None:
-            h += np.einsum("mki,mki->mk", factor.J_next @ z.xx[i + 1], factor.J_next)
-            h += 2.0 * np.einsum("mki,mki->mk", factor.J_x @ z.x_next[i], factor.J_next)
+            h += 2.0 * np.einsum("mkp,mkp->mk", f.J_x @ z.xt(i)[:, :, cols], jt)
+        if f.J_next is not None:
+            i1 = f.idx + 1 if at is None else slice(at + 1, at + 1 + f.idx.shape[0])
+            h += np.einsum("mki,mki->mk", f.J_next @ z.xx(i1), f.J_next)
+            h += 2.0 * np.einsum("mki,mki->mk", f.J_x @ z.x_next(i), f.J_next)
             if jt is not None:
-                h += 2.0 * np.einsum("mkp,mkp->mk", factor.J_next @ z.xt[i + 1][:, :, cols], jt)
+                h += 2.0 * np.einsum("mkp,mkp->mk", f.J_next @ z.xt(i1)[:, :, cols], jt)
         return h
 
     def _leverage_block_diagonal(self, factor: Factor) -> FloatArray:
-        """Unary factors on a block-diagonal trajectory: one 3x3 inverse per state."""
-        p_tt = self.cov_theta
+        """Unary factors on a block-diagonal trajectory: one 3x3 inverse per state, a block of rows at a time."""
         h = np.zeros(factor.r.shape)
-        jt = factor.full_theta(self.theta.size)
+        for a in range(0, factor.r.shape[0], LEVERAGE_ROWS):
+            rows = slice(a, a + LEVERAGE_ROWS)
+            h[rows] = self._block_diagonal_rows(factor.rows(rows))
+        return h
+
+    def _block_diagonal_rows(self, f: Factor) -> FloatArray:
+        """`_leverage_block_diagonal` of some of a factor's row groups."""
+        p_tt = self.cov_theta
+        h = np.zeros(f.r.shape)
+        jt = f.full_theta(self.theta.size)
         if jt is not None:
             h += np.einsum("mkp,pq,mkq->mk", jt, p_tt, jt)
-        if factor.J_x is not None and factor.idx is not None:
-            w = self.hxx_inv_hxt[factor.idx]                          # (M, 3, p) = Hxx^-1 Hxt
-            p_kk = np.linalg.inv(self._hxx_diag[factor.idx]) + w @ p_tt @ w.transpose(0, 2, 1)
-            h += np.einsum("mki,mij,mkj->mk", factor.J_x, p_kk, factor.J_x)
+        if f.J_x is not None and f.idx is not None:
+            w = self.hxx_inv_hxt[f.idx]                               # (M, 3, p) = Hxx^-1 Hxt
+            p_kk = np.linalg.inv(self._hxx_diag[f.idx]) + w @ p_tt @ w.transpose(0, 2, 1)
+            h += np.einsum("mki,mij,mkj->mk", f.J_x, p_kk, f.J_x)
             if jt is not None:
                 p_kt = -w @ p_tt
-                h += 2.0 * np.einsum("mki,mip,mkp->mk", factor.J_x, p_kt, jt)
+                h += 2.0 * np.einsum("mki,mip,mkp->mk", f.J_x, p_kt, jt)
         return h
 
 
@@ -256,9 +298,12 @@ class _System:
     equations: normal.NormalEquations | None = None
 
     def assembled(self, n: int, p: int) -> normal.NormalEquations:
-        """The normal equations, assembled on first use."""
+        """The normal equations, assembled on first use; the factors then keep their residual rows only (a
+        rejected step solves the same equations again): a point's Jacobians beside the next trial point's were a
+        60-min flight's peak (issue 39). `_solve` linearises again where the last point's are needed."""
         if self.equations is None:
             self.equations = normal.assemble(self.factors, self.weights, n, p)
+            self.factors = [Factor(f.name, f.r) for f in self.factors]
         return self.equations
 
 
@@ -286,6 +331,10 @@ def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: 
     out = iterate(evaluate, step, states0, theta0, opts)
     factors, weights = out.system.factors, out.system.weights
     log = list(out.log)
+    if opts.covariance and out.system.equations is not None:
+        # stopped on a point whose Jacobians went into its equations (a rejected last step): the same point's
+        # factors again, to the same digits
+        factors = out.system.factors = linearize(out.states, out.theta, True)
     if not opts.covariance:
         return Solution(out.states, out.theta, out.cost, out.iterations, out.converged, np.full((p, p), np.nan),
                         tuple(log), tuple(factors), np.full((n, 3, 3), np.nan), np.full((n, 3, p), np.nan), u,

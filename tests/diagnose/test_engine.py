@@ -326,12 +326,18 @@ def test_the_step_zeroes_the_candidates_summed_score() -> None:
     assert np.linalg.norm(g) > 1e3 * np.linalg.norm(after[a])
 
 
-def test_per_cluster_scores_and_information_are_the_sums_over_their_rows() -> None:
-    """Each cluster's score and information (sandwich.py: one product per cluster, rows sorted by cluster) equal
-    the plain sums over its rows, with clusters in any order, of any size, and rows left out (id -1)."""
+@pytest.mark.parametrize("chunk_rows", [4096, 7])
+def test_per_cluster_scores_and_information_are_the_sums_over_their_rows(chunk_rows: int,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each cluster's score and information (sandwich.py: one product per cluster, rows sorted by cluster, a chunk
+    of clusters at a time) equal the plain sums over its rows, with clusters in any order, of any size, and rows
+    left out (id -1)."""
     from magcal_cli.diagnose.score import _extend
+    from magcal_cli.models import sandwich
     from magcal_cli.models.map.effects import bind
     from magcal_cli.models.sandwich import _eliminated, cluster_scores_and_information
+
+    monkeypatch.setattr(sandwich, "CHUNK_ROWS", chunk_rows)
 
     _, problem, est = _fit("current", 3)
     ctx = est.context

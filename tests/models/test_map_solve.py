@@ -4,6 +4,7 @@ leverage of binary factors on a tridiagonal trajectory, compact theta columns, t
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from magcal_cli import so3
 from magcal_cli.models.factor import Factor
@@ -86,9 +87,13 @@ def test_selected_inverse_equals_dense_inverse_blocks() -> None:
         np.testing.assert_allclose(nxt[k], inv[3 * k:3 * k + 3, 3 * k + 3:3 * k + 6], rtol=1e-9, atol=1e-12)
 
 
-def test_leverage_and_marginals_on_a_tridiagonal_trajectory() -> None:
-    """Hat-matrix diagonal of unary and binary factors and the marginal blocks equal the dense inverse; the
-    leverages sum to the number of unknowns."""
+@pytest.mark.parametrize("chunk", [8192, 4])
+def test_leverage_and_marginals_on_a_tridiagonal_trajectory(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Hat-matrix diagonal of unary and binary factors and the marginal blocks equal the dense inverse, whatever
+    the row blocks the leverage is computed in; the leverages sum to the number of unknowns."""
+    from magcal_cli.models import solve as solve_module
+
+    monkeypatch.setattr(solve_module, "LEVERAGE_ROWS", chunk)
     rng = np.random.default_rng(1)
     n = 15
     truth, linearize, p = _chain(rng, n, compact=True)
@@ -104,9 +109,9 @@ def test_leverage_and_marginals_on_a_tridiagonal_trajectory() -> None:
     assert abs(h.sum() - (3 * n + 4)) < 1e-8
     z = sol2.marginals()
     np.testing.assert_allclose(z.tt, inv[3 * n:, 3 * n:], rtol=1e-8)
-    np.testing.assert_allclose(z.xx[4], inv[12:15, 12:15], rtol=1e-8)
-    np.testing.assert_allclose(z.x_next[4], inv[12:15, 15:18], rtol=1e-8, atol=1e-14)
-    np.testing.assert_allclose(z.xt[4], inv[12:15, 3 * n:], rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(z.xx(np.array([4]))[0], inv[12:15, 12:15], rtol=1e-8)
+    np.testing.assert_allclose(z.x_next(slice(4, 5))[0], inv[12:15, 15:18], rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(z.xt(np.array([4]))[0], inv[12:15, 3 * n:], rtol=1e-8, atol=1e-14)
 
 
 def test_compact_theta_columns_change_nothing() -> None:

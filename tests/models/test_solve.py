@@ -4,9 +4,11 @@ factorisation, steps for other residuals) against the solver's own first step an
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from magcal_cli import so3
 from magcal_cli.models.factor import Factor
+from magcal_cli.models import solve as solve_module
 from magcal_cli.models.solve import Options, linearised, solve
 
 
@@ -106,8 +108,11 @@ def test_linearised_step_is_the_solvers_first_step_and_the_dense_gauss_newton_st
     np.testing.assert_allclose(np.concatenate([dx.ravel(), dt]), want, rtol=1e-8, atol=1e-12)
 
 
-def test_leverage_matches_the_dense_hat_matrix() -> None:
-    """Solution.leverage gives diag(J (J^T J)^-1 J^T) for unary factors on a block-diagonal trajectory."""
+@pytest.mark.parametrize("chunk", [8192, 3])
+def test_leverage_matches_the_dense_hat_matrix(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Solution.leverage gives diag(J (J^T J)^-1 J^T) for unary factors on a block-diagonal trajectory, whatever
+    the row blocks it is computed in."""
+    monkeypatch.setattr(solve_module, "LEVERAGE_ROWS", chunk)
     rng = np.random.default_rng(5)
     n = 10
     truth = so3.exp(rng.normal(size=(n, 3)))
@@ -152,3 +157,30 @@ def test_one_blas_thread_limits_blas_inside_the_block_only() -> None:
     with one_blas_thread():                          # the second use reuses the scan and still limits
         assert {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"} == {1}
     assert {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"} == before
+
+
+def test_a_solve_that_stops_on_a_rejected_step_keeps_its_points_jacobians() -> None:
+    """The factors drop their Jacobians once assembled (issue 39); a solve whose last step was rejected stops on a
+    point whose equations are assembled, and its solution still holds that point's factors with Jacobians."""
+    rng = np.random.default_rng(3)
+    n = 12
+    truth, _, linearize = _chain_problem(rng, n)
+    start, theta0 = truth @ so3.exp(0.1 * rng.normal(size=(n, 3))), np.zeros(2)
+    calls = []
+
+    def rejecting(states: np.ndarray, theta: np.ndarray, jac: bool) -> list[Factor]:
+        calls.append(jac)
+        out = linearize(states, theta, jac)
+        if len(calls) == 2:                        # the first trial point: a cost that no step can be accepted at
+            out = [Factor(f.name, 1e6 + f.r, f.idx, f.J_x, f.J_next, f.J_theta, f.theta_cols) for f in out]
+        return out
+
+    sol = solve(rejecting, start, theta0, Options(max_iterations=1))
+    assert "rejected" in sol.log[-1] and sol.iterations == 1
+    np.testing.assert_array_equal(sol.states, start)
+    fresh = linearize(start, theta0, True)
+    for got, want in zip(sol.factors, fresh, strict=True):
+        assert got.J_x is not None
+        np.testing.assert_array_equal(got.J_x, want.J_x)
+        np.testing.assert_array_equal(got.r, want.r)
+    assert np.all(np.isfinite(sol.cov_theta))
