@@ -6,6 +6,7 @@ quietest windows are still); each window is then tested against chi-square bound
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -64,16 +65,15 @@ class StillResult:
 MOVING_BLOCK = 1 << 16
 
 
-def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
-    """Mean and variance (ddof=1) over windows of n samples; entry k covers x[k:k+n].
+def _window_sums(x: FloatArray, n: int) -> Iterator[tuple[int, int, FloatArray, FloatArray]]:
+    """Sums (s1, s2) of x - median(x) and of its square over the windows k0..k1 of n samples, a block at a time.
 
-    Running sums c_i = sum of the first i samples, a block of samples at a time: each block's cumulative sum
-    starts from the last one's end (a sum accumulates in order, so the digits are those of one cumulative sum over
-    the whole log), and its windows take the n sums before the block from the last one's tail."""
+    Running sums c_i = sum of the first i samples: each block's cumulative sum starts from the last one's end (a sum
+    accumulates in order, so the digits are those of one cumulative sum over the whole log), and its windows take
+    the n sums before the block from the last one's tail."""
     med = np.median(x, axis=0)                         # centring keeps E[x^2] - E[x]^2 well conditioned
     total, d = x.shape
     count = max(total - n + 1, 0)
-    mean, var = np.empty((count, d)), np.empty((count, d))
     tail1, tail2 = np.zeros((1, d)), np.zeros((1, d))  # c_k for k in [i0 - n, i0] (fewer at the start)
     step = max(MOVING_BLOCK, 4 * n)
     for i0 in range(0, total, step):
@@ -84,12 +84,27 @@ def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
         first = i0 + 1 - tail1.shape[0]                                    # the k of c1[0]
         k0, k1 = max(first, 0), min(i0 + xc.shape[0] - n, count - 1)       # windows whose sums are all here
         if k1 >= k0:
-            s1 = c1[k0 + n - first:k1 + n + 1 - first] - c1[k0 - first:k1 + 1 - first]
-            s2 = c2[k0 + n - first:k1 + n + 1 - first] - c2[k0 - first:k1 + 1 - first]
-            mean[k0:k1 + 1] = s1 / n
-            var[k0:k1 + 1] = np.maximum(s2 - s1 * mean[k0:k1 + 1], 0.0) / (n - 1)
+            yield (k0, k1, c1[k0 + n - first:k1 + n + 1 - first] - c1[k0 - first:k1 + 1 - first],
+                   c2[k0 + n - first:k1 + n + 1 - first] - c2[k0 - first:k1 + 1 - first])
         tail1, tail2 = c1[-(n + 1):], c2[-(n + 1):]
+
+
+def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
+    """Mean and variance (ddof=1) over windows of n samples; entry k covers x[k:k+n] (the mean of x - median(x))."""
+    count = max(x.shape[0] - n + 1, 0)
+    mean, var = np.empty((count, x.shape[1])), np.empty((count, x.shape[1]))
+    for k0, k1, s1, s2 in _window_sums(x, n):
+        mean[k0:k1 + 1] = s1 / n
+        var[k0:k1 + 1] = np.maximum(s2 - s1 * mean[k0:k1 + 1], 0.0) / (n - 1)
     return mean, var
+
+
+def _moving_var(x: FloatArray, n: int) -> FloatArray:
+    """`_moving`'s variances alone, to the same digits, without holding the means (a log-sized array)."""
+    var = np.empty((max(x.shape[0] - n + 1, 0), x.shape[1]))
+    for k0, k1, s1, s2 in _window_sums(x, n):
+        var[k0:k1 + 1] = np.maximum(s2 - s1 * (s1 / n), 0.0) / (n - 1)
+    return var
 
 
 def noise_std(x: FloatArray, n: int, quantile: float) -> FloatArray:
@@ -100,13 +115,18 @@ def noise_std(x: FloatArray, n: int, quantile: float) -> FloatArray:
     smooth motion but absorbs jitter. With short windows at low rates the first alone let a steady
     rotation pass as noise (paper protocol at 10 Hz).
     """
-    _, var = _moving(x, n)
-    q = np.quantile(var, quantile, axis=0)
+    # the work arrays are the size of the log: each is partitioned in place and dropped before the next is made
+    # (five at once were a two-hour log's peak, issue 39); a quantile or a median does not depend on the order
+    var = _moving_var(x, n)
+    q = np.quantile(var, quantile, axis=0, overwrite_input=True)
+    del var
     by_windows: FloatArray = np.sqrt(q * (n - 1) / chi2_ppf(quantile, n - 1))
     if len(x) < 3:
         return by_windows
     d2 = np.diff(x, n=2, axis=0)
-    by_differences = 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0)
+    d2 -= np.median(d2, axis=0, overwrite_input=True)
+    np.abs(d2, out=d2)
+    by_differences = 1.4826 * np.median(d2, axis=0, overwrite_input=True) / np.sqrt(6.0)
     out: FloatArray = np.minimum(by_windows, by_differences)
     return out
 
@@ -119,8 +139,9 @@ def _runs(mask: npt.NDArray[np.bool_]) -> list[tuple[int, int]]:
 
 def _resolution_floor(x: FloatArray) -> FloatArray:
     """Per-axis quantisation noise step/sqrt(12), so integer-logged signals are not judged noise-free."""
-    d = np.abs(np.diff(x, axis=0))
-    d = np.where(d > 0, d, np.inf)
+    d = np.diff(x, axis=0)
+    np.abs(d, out=d)
+    d[~(d > 0)] = np.inf                                 # in place (NaN too, as np.where did): one log-sized array
     step = np.min(d, axis=0) if len(d) else np.full(x.shape[1], np.inf)
     return np.where(np.isfinite(step), step / np.sqrt(12.0), 0.0)
 
