@@ -189,10 +189,10 @@ def _pivots(diag: FloatArray, off: FloatArray) -> FloatArray:
 
 
 def _schur(ne: NormalEquations, lam: float, u: int, lam_theta: float | None = None
-           ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+           ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """The damped Schur complement S = Htt - X^T X with X = U^-T Hxt, y = U^-T gx (Hxx = U^T U, banded
-    Cholesky): returns S, X, y, the banded factor and the damped Hxx blocks. `lam_theta` damps Htt (default
-    `lam`)."""
+    Cholesky): returns S, X, y, the banded factor, the damped Hxx blocks and [X, y] (3N, p + 1), Fortran order,
+    whose views X and y are. `lam_theta` damps Htt (default `lam`)."""
     n, p = ne.gx.shape[0], ne.gt.size
     diag = ne.diag.copy()
     d = np.einsum("nii->ni", diag)
@@ -210,7 +210,7 @@ def _schur(ne: NormalEquations, lam: float, u: int, lam_theta: float | None = No
         raise np.linalg.LinAlgError(msg)
     x, y = sol[:, :p], sol[:, p]
     s = htt - x.T @ x
-    return 0.5 * (s + s.T), x, y, cb, diag
+    return 0.5 * (s + s.T), x, y, cb, diag, sol
 
 
 def step(ne: NormalEquations, lam: float, u: int, need_w: bool = False, lam_theta: float | None = None
@@ -219,19 +219,23 @@ def step(ne: NormalEquations, lam: float, u: int, need_w: bool = False, lam_thet
     Hxx^-1 Hxt (N,3,p): dtheta = S^-1 (X^T y - gt), dx = -U^-1 (y + X dtheta) (see `_schur`).
     """
     n, p = ne.gx.shape[0], ne.gt.size
-    s, x, y, cb, diag = _schur(ne, lam, u, lam_theta)
+    s, x, y, cb, diag, xy = _schur(ne, lam, u, lam_theta)
     s_inv = schur_inverse(s)
     dt = s_inv @ (x.T @ y - ne.gt)
-    back = np.empty((3 * n, 1 + p if need_w else 1), order="F")
-    back[:, 0] = y + x @ dt
     if need_w:
-        back[:, 1:] = x
+        # U^-1 [X, y + X dtheta] in place of [X, y]: a second (3N, p) array beside X was a 60-min flight's peak
+        # (issue 39); the triangular solve takes each column alone, so the digits are the same
+        xy[:, p] = y + x @ dt
+        back = xy
+    else:
+        back = np.empty((3 * n, 1), order="F")
+        back[:, 0] = y + x @ dt
     back, info = lapack.dtbtrs(cb, back, uplo="U", trans="N", overwrite_b=1)
     if info != 0:
         msg = "banded triangular solve failed"
         raise np.linalg.LinAlgError(msg)
-    dx = -back[:, 0]
-    w = back[:, 1:].reshape(n, 3, p) if need_w else None
+    dx = -back[:, -1]
+    w = back[:, :p].reshape(n, 3, p) if need_w else None
     return dx.reshape(n, 3), dt, s_inv, diag, w
 
 
@@ -263,7 +267,7 @@ def _triangular(cb: FloatArray, b: FloatArray, trans: str) -> FloatArray:
 
 def factorise(ne: NormalEquations, lam: float, u: int) -> Factorised:
     """The factors of `step`'s damped system, kept for steps with other gradients."""
-    s, x, _, cb, _ = _schur(ne, lam, u)
+    s, x, _, cb, _, _ = _schur(ne, lam, u)
     return Factorised(cb, x, schur_inverse(s))
 
 
