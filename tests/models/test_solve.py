@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from magcal_cli import so3
-from magcal_cli.models.factor import Factor
 from magcal_cli.models import solve as solve_module
+from magcal_cli.models.factor import Factor
 from magcal_cli.models.solve import Options, linearised, solve
 
 

@@ -198,6 +198,8 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
             continue
         col = 0
+        # the stamps of a record read before (an IMU's temperature is the IMU's own): one array, not two (issue 39)
+        t = next((s.t for s in streams if s.t.shape == t.shape and np.array_equal(s.t, t)), t)
         t.flags.writeable = False               # handed over frozen: the kinds of one record share it, uncopied
         for kind, unit in zip(p.kinds, p.units, strict=False):
             own = np.ascontiguousarray(values[:, col:col + kind.width])
