@@ -240,8 +240,10 @@ def _finish(problem: Problem, run: Run, sol: Solution, last_step: FloatArray | N
     # a full fit too: one that leaves the field strength varying by 30 % calibrated a failing sensor (issue 38)
     spread = explains(run.ep, sol.theta, run.layout, run.where,
                       undisturbed(run.ep, sol.theta, run.layout, run.bound, sol.states, run.pre))
-    ctx = FitContext(run.ep, run.pre, run.noise, run.layout, run.bound, sol.states, sol.theta, run.hold, held,
-                     held_out(run.ep.t, problem.unmeasured))
+    # the context's preintegration shares the arrays but not the component-major stacks this fit made: an estimate
+    # outlives its fit (the diagnosis runs beside it), and they are made again when it is linearised (issue 39)
+    ctx = FitContext(run.ep, replace(run.pre), run.noise, run.layout, run.bound, sol.states, sol.theta, run.hold,
+                     held, held_out(run.ep.t, problem.unmeasured))
     record = Record(run.iters, tuple(run.log), tuple(run.notes) + run.ep.notes)
     est = estimate(problem, ctx, sol, record, cov, widen, spread)
     fitted = results(run.bound, run.layout, est.theta, est.cov, run.mag_id, problem.imu_id)
