@@ -278,30 +278,40 @@ def cumulative_product(rots: npt.ArrayLike, reproject: bool = True) -> FloatArra
 
     ceil(log2 N) batched products instead of N sequential ones, with the stack axis innermost (a 3x3 matmul per
     row costs several times more); the result is re-projected onto SO(3) unless `reproject` is False (each P_k
-    is then a product of only ~log2 N factors, orthogonal to ~1e-15).
+    is then a product of only ~log2 N factors, orthogonal to ~1e-15). One component-major copy is scanned and
+    re-projected in place: a copy per stage was a two-hour log's peak (issue 39).
     """
-    out = np.array(rots, dtype=np.float64)
-    if out.shape[0] > 1:
-        cm = np.ascontiguousarray(out.transpose(1, 2, 0))
-        shift = 1
-        while shift < cm.shape[2]:
-            cm[:, :, shift:] = np.einsum("ikn,kjn->ijn", cm[:, :, :-shift], cm[:, :, shift:])
-            shift *= 2
-        out = np.ascontiguousarray(cm.transpose(2, 0, 1))
-    return _reorthogonalised(out) if reproject else out
+    rots = np.asarray(rots, dtype=np.float64)
+    if rots.shape[0] <= 1:
+        out = np.array(rots)
+        return _reorthogonalised(out) if reproject else out
+    cm = np.array(rots.transpose(1, 2, 0), order="C")          # our own copy, whatever the input's layout
+    shift = 1
+    while shift < cm.shape[2]:
+        cm[:, :, shift:] = np.einsum("ikn,kjn->ijn", cm[:, :, :-shift], cm[:, :, shift:])
+        shift *= 2
+    return _reorthogonalised_cm(cm) if reproject else np.ascontiguousarray(cm.transpose(2, 0, 1))
 
 
 def _reorthogonalised(m: FloatArray) -> FloatArray:
     """`project` of (N, 3, 3) matrices; one Bjorck-Bowie step m (3 I - m^T m) / 2 when all are orthogonal to 1e-8
     (its error is then below 1e-16, and it is ten times cheaper than the SVD), else the SVD."""
-    cm = np.ascontiguousarray(m.transpose(1, 2, 0))
+    return _reorthogonalised_cm(np.ascontiguousarray(m.transpose(1, 2, 0)))
+
+
+def _reorthogonalised_cm(cm: FloatArray) -> FloatArray:
+    """`_reorthogonalised` of a component-major stack (3, 3, N) that it may overwrite; returns (N, 3, 3)."""
     gram = np.einsum("kin,kjn->ijn", cm, cm)
     for i in range(3):
         gram[i, i] -= 1.0
     if not gram.size or float(np.max(np.abs(gram))) > 1e-8:
-        return project(m)
-    step: FloatArray = cm - 0.5 * np.einsum("ikn,kjn->ijn", cm, gram)
-    return np.ascontiguousarray(step.transpose(2, 0, 1))
+        return project(np.ascontiguousarray(cm.transpose(2, 0, 1)))
+    step = np.einsum("ikn,kjn->ijn", cm, gram)
+    del gram
+    step *= 0.5
+    cm -= step                                       # cm - 0.5 cm (m^T m - I), element by element as before
+    del step
+    return np.ascontiguousarray(cm.transpose(2, 0, 1))
 
 
 def log_small(rot: npt.ArrayLike, limit: float = 3.0) -> FloatArray:

@@ -58,9 +58,14 @@ def keyframes(g: Gyro) -> FloatArray:
     for i in range(KEY):                             # the i-th step of every run at once: KEY passes, not N
         s = np.arange(runs) * KEY + i
         block = stacks.mul(block, g.step(np.minimum(s, n - 1), s < n - 1))
-    first = np.concatenate([np.eye(3)[None], so3.cumulative_product(stacks.rm(block[:, :, :-1]))]) \
-        if runs > 1 else np.eye(3)[None]
-    return np.ascontiguousarray(first)
+    if runs == 1:
+        return np.eye(3)[None].copy()
+    rel = stacks.rm(block[:, :, :-1])
+    del block                                        # each log-sized stack goes as soon as the next is made
+    first = np.empty((runs, 3, 3))
+    first[0] = np.eye(3)
+    first[1:] = so3.cumulative_product(rel)
+    return first
 
 
 def _attitude_cm(g: Gyro, keys: FloatArray, t: FloatArray, memo: dict[str, Any] | None = None
