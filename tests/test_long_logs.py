@@ -162,3 +162,22 @@ def test_time_offset_attitudes_of_a_subset_are_the_whole_logs_digits() -> None:
     calm = j[(j % time_offset.KEY == time_offset.KEY - 1) & (j % 50 > 10)]
     assert np.array_equal(time_offset._at_samples(g, keys, calm),
                           time_offset._at_samples(g, keys, j)[:, :, np.searchsorted(j, calm)])
+
+
+def test_a_channel_resampled_again_at_the_same_times_is_the_kept_result() -> None:
+    """`resample` keeps its last results per stream: the same times give the same read-only array (the digits of a
+    fresh spline), other times a fresh one, and no more than RESAMPLED_KEEP sets stay."""
+    from magcal_cli.effects import base
+
+    rng = np.random.default_rng(2)
+    t_s = np.cumsum(rng.uniform(0.002, 0.003, 5000))
+    s = Stream(Kind.TEMPERATURE, "IMU[0]", t_s, 30.0 + np.cumsum(rng.normal(0, 0.01, 5000)), "test", "degC")
+    t = np.linspace(t_s[0], t_s[-1], 777)
+    first = base.resample(s, t)
+    np.testing.assert_array_equal(first, base.resampled(s, t))
+    assert base.resample(s, t.copy()) is first and not first.flags.writeable
+    other = [base.resample(s, t + k * 1e-3) for k in range(1, base.RESAMPLED_KEEP + 2)]
+    assert all(o is not first for o in other)
+    assert len(base._RESAMPLED[s]) == base.RESAMPLED_KEEP
+    assert base.resample(s, t) is not first                     # evicted, made again to the same digits
+    np.testing.assert_array_equal(base.resample(s, t), first)

@@ -7,6 +7,9 @@ term and its Jacobians to the magnetometer, accelerometer or gyro factor (`model
 
 from __future__ import annotations
 
+import hashlib
+import threading
+import weakref
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, ClassVar
@@ -179,7 +182,33 @@ class Effect:
 BRIDGE_PERIODS = 4.0
 
 
+#: resampled channels kept per stream (the most recently used sets of times): the diagnosis resamples a channel at
+#: the same epochs for every training fold, and a 400 Hz temperature's spline through a two-hour log's 2.9 M samples
+#: was the process peak (180 MB of work arrays) each time (issue 39)
+RESAMPLED_KEEP = 4
+_RESAMPLED: weakref.WeakKeyDictionary[Stream, dict[bytes, FloatArray]] = weakref.WeakKeyDictionary()
+_RESAMPLED_LOCK = threading.Lock()
+
+
 def resample(stream: Stream, t: FloatArray) -> FloatArray:
+    """`resampled`, read-only, computed once per stream and times (the same digits: it is deterministic)."""
+    key = hashlib.blake2b(np.ascontiguousarray(t, dtype=np.float64).tobytes(), digest_size=16).digest()
+    with _RESAMPLED_LOCK:
+        known = _RESAMPLED.setdefault(stream, {})
+        got = known.pop(key, None)
+        if got is not None:
+            known[key] = got                              # now the most recently used
+            return got
+    got = resampled(stream, t)
+    got.flags.writeable = False
+    with _RESAMPLED_LOCK:
+        known[key] = got
+        while len(known) > RESAMPLED_KEEP:
+            known.pop(next(iter(known)))
+    return got
+
+
+def resampled(stream: Stream, t: FloatArray) -> FloatArray:
     """A channel at times t: the not-a-knot cubic spline through its samples, held at its first/last value outside
     its span; samples that are not finite (dropouts) are skipped, never interpolated through as NaN.
 
