@@ -181,3 +181,22 @@ def test_a_channel_resampled_again_at_the_same_times_is_the_kept_result() -> Non
     assert len(base._RESAMPLED[s]) == base.RESAMPLED_KEEP
     assert base.resample(s, t) is not first                     # evicted, made again to the same digits
     np.testing.assert_array_equal(base.resample(s, t), first)
+
+
+@pytest.mark.parametrize("n", [3, 50, 4001])
+def test_the_noise_estimate_is_its_definition(n: int) -> None:
+    """`detect.noise_std` partitions its work arrays in place: the same digits as the definition on copies (the
+    chi-square-corrected quantile of window variances, and the MAD of second differences), with a NaN sample too."""
+    from magcal_cli import detect
+    from magcal_cli.detect import chi2_ppf
+
+    rng = np.random.default_rng(n)
+    x = np.cumsum(rng.normal(0.0, 0.1, (n, 3)), axis=0) + rng.normal(0.0, 0.01, (n, 3))
+    if n > 10:
+        x[7, 2] = np.nan
+    w, q = min(11, n), 0.1
+    _, var = detect._moving(x, w)
+    want = np.sqrt(np.quantile(var, q, axis=0) * (w - 1) / chi2_ppf(q, w - 1))
+    d2 = np.diff(x, n=2, axis=0)
+    want = np.minimum(want, 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0))
+    np.testing.assert_array_equal(detect.noise_std(x, w, q), want)

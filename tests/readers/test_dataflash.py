@@ -529,3 +529,18 @@ def test_rcou_motor_outputs_round_trip(tmp_path: Path) -> None:
     plain = tmp_path / "plain.bin"
     write_log(simulate("multirotor", 2, duration=90.0), plain)
     assert not open_recording(plain).of_kind(Kind.MOTOR_OUTPUT)
+
+
+def test_an_imu_temperature_shares_the_imus_stamps() -> None:
+    """The IMU record's temperature has the IMU's own stamps after cleaning: one frozen array, not a second copy
+    of a 400 Hz time base (issue 39); a record with other stamps keeps its own."""
+    from pathlib import Path
+
+    from magcal_cli.readers import open_recording
+    from magcal_cli.streams import Kind
+
+    rec = open_recording(Path(__file__).resolve().parents[2] / "sample_logs" / "handheld.bin")
+    acc, temp = rec.select(Kind.ACCELEROMETER, "IMU[0]"), rec.select(Kind.TEMPERATURE, "IMU[0]")
+    assert temp.t is acc.t and not temp.t.flags.writeable
+    mag = rec.select(Kind.MAGNETOMETER, "MAG[0]")
+    assert mag.t is not acc.t
