@@ -301,6 +301,7 @@ def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatAr
     u = 5 if any(f.J_next is not None for f in factors) else 2
     with one_blas_thread():
         ne = assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        del factors                     # in the equations now: not beside the elimination's arrays (issue 39)
         if trajectory_damping > 0.0:
             return step(ne, trajectory_damping, u, lam_theta=0.0)[2]
         return undamped(ne, u, need_w=False)[2]          # the covariance only: no Hxx^-1 Hxt
@@ -314,6 +315,7 @@ def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> 
     u = 5 if any(f.J_next is not None for f in factors) else 2
     with one_blas_thread():
         ne = assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        del factors
         # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
         # its null directions (what the motion cannot determine)
         return _schur(ne, 1e-9, u, 0.0)[0]
