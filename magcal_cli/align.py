@@ -10,6 +10,7 @@ from magcal_cli.errors import StreamError
 from magcal_cli.streams import FloatArray, Kind, Stream
 
 BoolArray = npt.NDArray[np.bool_]
+IntArray = npt.NDArray[np.int64]
 
 
 def interpolate(stream: Stream, t: npt.ArrayLike) -> FloatArray:
@@ -76,23 +77,27 @@ def common_window(*streams: Stream) -> tuple[float, float]:
 JUMP_PERIODS, JUMP_MIN_S = 100.0, 1.0
 
 
-def _time_faults(t: FloatArray, values: FloatArray, where: str) -> tuple[FloatArray, FloatArray, list[str]]:
+def _time_faults(t: FloatArray, where: str) -> tuple[FloatArray, IntArray | None, list[str]]:
     """Drop lone samples whose stamp lies far from both neighbours' (corrupt stamps), then, if the clock jumps
-    back (a reboot or clock reset), keep the longest part: sorting would interleave two recordings."""
+    back (a reboot or clock reset), keep the longest part: sorting would interleave two recordings. Returns the
+    kept stamps and which rows they are (None: all)."""
     if t.size < 3:
-        return t, values, []
+        return t, None, []
     d = np.diff(t)
     pos = d[d > 0]
     jump = max(JUMP_MIN_S, JUMP_PERIODS * float(np.median(pos))) if pos.size else JUMP_MIN_S
+    del pos
     notes = []
     far_prev = np.concatenate([[np.abs(t[1] - t[0]) > jump and np.abs(t[2] - t[1]) <= jump], np.abs(d) > jump])
     far_next = np.concatenate([np.abs(d) > jump, [np.abs(t[-1] - t[-2]) > jump and np.abs(t[-2] - t[-3]) <= jump]])
     bridged = np.concatenate([[True], np.abs(t[2:] - t[:-2]) <= jump, [True]])
     lone = far_prev & far_next & bridged
+    rows = None
     if lone.any():
         notes.append(f"{where}: dropped {int(lone.sum())} samples whose time stamp lies far from both neighbours' "
                      "(corrupt time stamps)")
-        t, values = t[~lone], values[~lone]
+        rows = np.flatnonzero(~lone)
+        t = t[rows]
         d = np.diff(t)
     back = np.flatnonzero(d < -jump)
     if back.size:
@@ -102,8 +107,40 @@ def _time_faults(t: FloatArray, values: FloatArray, where: str) -> tuple[FloatAr
         notes.append(f"{where}: the clock jumps back {back.size} time{'s' * (back.size > 1)} (by up to "
                      f"{float(-d[back].min()):.3g} s: a reboot or clock reset); kept the longest part, {hi - lo} of "
                      f"{t.size} samples")
-        t, values = t[lo:hi], values[lo:hi]
-    return t, values, notes
+        rows = np.arange(lo, hi) if rows is None else rows[lo:hi]
+        t = t[lo:hi]
+    return t, rows, notes
+
+
+def clean_rows(t: npt.ArrayLike, finite: BoolArray, where: str) -> tuple[FloatArray, IntArray | None, list[str]]:
+    """`clean_time` for values held elsewhere (`finite`: the rows whose stamp and values are all finite): the
+    cleaned stamps, the rows they are, in order (None: every row, as it was), and the notes. A reader whose sensors
+    share stamps across several arrays (an IMU's accelerometer and gyro) takes the same rows from each, copying
+    nothing when nothing is dropped."""
+    tt: FloatArray = np.asarray(t, dtype=np.float64)
+    notes: list[str] = []
+    rows = None
+    if not finite.all():
+        notes.append(f"{where}: dropped {int((~finite).sum())} samples with NaN or inf")
+        rows = np.flatnonzero(finite)
+        tt = tt[rows]
+    tt, kept, jumped = _time_faults(tt, where)
+    notes += jumped
+    if kept is not None:
+        rows = kept if rows is None else rows[kept]
+    if tt.size > 1 and np.any(np.diff(tt) < 0):
+        notes.append(f"{where}: {int(np.sum(np.diff(tt) < 0))} timestamps went backwards; samples were sorted by time")
+        order = np.argsort(tt, kind="stable")
+        tt = tt[order]
+        rows = order if rows is None else rows[order]
+    if tt.size > 1:
+        dup = np.concatenate([[False], np.diff(tt) == 0])
+        if dup.any():
+            notes.append(f"{where}: dropped {int(dup.sum())} samples with duplicated timestamps")
+            keep = np.flatnonzero(~dup)
+            tt = tt[keep]
+            rows = keep if rows is None else rows[keep]
+    return tt, rows, notes
 
 
 def clean_time(t: npt.ArrayLike, values: npt.ArrayLike, where: str) -> tuple[FloatArray, FloatArray, list[str]]:
@@ -114,20 +151,7 @@ def clean_time(t: npt.ArrayLike, values: npt.ArrayLike, where: str) -> tuple[Flo
     tt: FloatArray = np.asarray(t, dtype=np.float64)
     vals: FloatArray = np.asarray(values, dtype=np.float64)
     values2 = vals.reshape(tt.size, -1)
-    notes: list[str] = []
-    finite = np.isfinite(tt) & np.all(np.isfinite(values2), axis=1)
-    if not finite.all():
-        notes.append(f"{where}: dropped {int((~finite).sum())} samples with NaN or inf")
-        tt, values2 = tt[finite], values2[finite]
-    tt, values2, jumped = _time_faults(tt, values2, where)
-    notes += jumped
-    if tt.size > 1 and np.any(np.diff(tt) < 0):
-        notes.append(f"{where}: {int(np.sum(np.diff(tt) < 0))} timestamps went backwards; samples were sorted by time")
-        order = np.argsort(tt, kind="stable")
-        tt, values2 = tt[order], values2[order]
-    if tt.size > 1:
-        dup = np.concatenate([[False], np.diff(tt) == 0])
-        if dup.any():
-            notes.append(f"{where}: dropped {int(dup.sum())} samples with duplicated timestamps")
-            tt, values2 = tt[~dup], values2[~dup]
+    tt, rows, notes = clean_rows(tt, np.isfinite(tt) & np.all(np.isfinite(values2), axis=1), where)
+    if rows is not None:
+        values2 = values2[rows]
     return tt, values2.reshape((tt.size, *vals.shape[1:])), notes

@@ -200,3 +200,68 @@ def test_the_noise_estimate_is_its_definition(n: int) -> None:
     d2 = np.diff(x, n=2, axis=0)
     want = np.minimum(want, 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0))
     np.testing.assert_array_equal(detect.noise_std(x, w, q), want)
+
+
+def _messy_imu(n: int = 3000, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """IMU stamps and (N, 6) accelerometer and gyro values with every fault the cleaning handles: non-finite values,
+    a corrupt lone stamp, a clock that jumps back, stamps out of order, duplicates, a value beyond physical
+    limits, a vanished specific force and a saturated gyro axis."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.0025 + 100.0
+    v = np.column_stack([rng.normal(0, 1, (n, 3)) + [0, 0, -9.8], rng.normal(0, 0.5, (n, 3))])
+    v[10, 1], t[20] = np.nan, np.inf
+    t[400] += 5000.0                                             # a lone corrupt stamp
+    t[2500:] -= 3.0                                              # a clock reset: the longer part is kept
+    t[[600, 601]] = t[[601, 600]]                                # out of order
+    t[700] = t[699]                                              # a repeated stamp
+    v[800, 0] = 1e6                                              # beyond physical limits
+    v[900, :3] = 0.0                                             # a vanished specific force
+    v[1000:1030, 4] = v[:, 4].max() + 1.0                        # a gyro axis at its wall
+    return t, v
+
+
+def test_cleaning_by_rows_is_cleaning_the_array() -> None:
+    """`clean_rows` and `sensor_rows` name the rows `clean_time` and `sensor_checks` keep, in their order, and say
+    the same: a reader whose kinds are separate arrays takes exactly those rows from each."""
+    from magcal_cli.align import clean_rows, clean_time
+    from magcal_cli.readers.checks import sensor_checks, sensor_rows
+
+    t, v = _messy_imu()
+    kinds = (Kind.ACCELEROMETER, Kind.GYROSCOPE)
+    want_t, want_v, want_notes = clean_time(t, v, "IMU[0]")
+    want_t, want_v, checked = sensor_checks(kinds, want_t, want_v, "IMU[0]")
+    acc, gyr = np.ascontiguousarray(v[:, :3]), np.ascontiguousarray(v[:, 3:])
+    finite = np.isfinite(t) & np.all(np.isfinite(acc), axis=1) & np.all(np.isfinite(gyr), axis=1)
+    got_t, rows, notes = clean_rows(t, finite, "IMU[0]")
+    assert rows is not None and len(want_notes) >= 4
+    acc, gyr = acc[rows], gyr[rows]
+    got_t, rows, more = sensor_rows(kinds, got_t, [acc, gyr], "IMU[0]")
+    assert rows is not None and len(checked) >= 3
+    np.testing.assert_array_equal(got_t, want_t)
+    np.testing.assert_array_equal(np.column_stack([acc[rows], gyr[rows]]), want_v)
+    assert notes + more == want_notes + checked
+    clean = np.arange(50) * 0.01
+    assert clean_rows(clean, np.ones(50, bool), "x")[1] is None
+
+
+def test_a_dataflash_record_read_as_one_array_per_kind_gives_the_same_streams() -> None:
+    """`finish` of an IMU record whose accelerometer and gyro are separate arrays (the ArduPilot reader's, no
+    (N, 6) copy) gives the streams, notes and stamps of the same record as one (N, 6) array (PX4's)."""
+    from pathlib import Path
+
+    from magcal_cli.readers.dataflash.streams import Pending, finish
+
+    t, v = _messy_imu()
+    kinds, units = (Kind.ACCELEROMETER, Kind.GYROSCOPE), ("m/s^2", "rad/s")
+    recs = []
+    for values in (v.copy(), (np.ascontiguousarray(v[:, :3]), np.ascontiguousarray(v[:, 3:]))):
+        temp = Pending((Kind.TEMPERATURE,), "IMU[0]", t, np.full((t.size, 1), 30.0), "x.Temp", ("degC",))
+        recs.append(finish(Path("x.bin"), "dataflash", [Pending(kinds, "IMU[0]", t, values, "x.Acc/Gyr", units),
+                                                      temp], {}, []))
+    one, split = recs
+    assert one.notes == split.notes and len(one.notes) >= 7
+    for a, b in zip(one.streams, split.streams, strict=True):
+        assert (a.kind, a.id) == (b.kind, b.id)
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.values, b.values)
+        assert b.values.flags.c_contiguous and not b.values.flags.writeable

@@ -3,10 +3,14 @@ or stuck sensor."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import numpy.typing as npt
 
 from magcal_cli.streams import FloatArray, Kind
+
+IntArray = npt.NDArray[np.int64]
 
 #: relative spread of |m| below which the field was normalised upstream; real sensors show >= 0.1 % noise
 NORMALISED_SPREAD = 1e-4
@@ -146,28 +150,43 @@ def sensor_checks(kinds: tuple[Kind, ...], t: FloatArray, values: FloatArray,
                   where: str) -> tuple[FloatArray, FloatArray, list[str]]:
     """Drop rows where a magnetometer, accelerometer or gyro (3 columns each, in `kinds` order) reads beyond
     physical limits (corrupt values) or sits at a wall of its range (saturated: the true value is beyond it)."""
-    notes: list[str] = []
-    blocks = []
-    col = 0
+    blocks, col = [], 0
     for kind in kinds:
-        if kind in PLAUSIBLE_SI:
-            blocks.append((kind, slice(col, col + 3)))
+        blocks.append(values[:, col:col + kind.width])
         col += kind.width
-    if not blocks or not len(t):
-        return t, values, notes
+    t, rows, notes = sensor_rows(kinds, t, blocks, where)
+    return t, values if rows is None else values[rows], notes
+
+
+def sensor_rows(kinds: tuple[Kind, ...], t: FloatArray, blocks: Sequence[FloatArray], where: str
+                ) -> tuple[FloatArray, IntArray | None, list[str]]:
+    """`sensor_checks` of values held as one array per kind (`blocks`, in `kinds` order, sharing their rows): the
+    kept stamps, which rows they are (None: all) and the notes."""
+    notes: list[str] = []
+    checked = [(kind, b) for kind, b in zip(kinds, blocks, strict=True) if kind in PLAUSIBLE_SI]
+    if not checked or not len(t):
+        return t, None, notes
+    rows: IntArray | None = None
+
+    def drop(mask: npt.NDArray[np.bool_]) -> None:
+        nonlocal t, rows, checked
+        keep = np.flatnonzero(~mask)
+        t, rows = t[keep], keep if rows is None else rows[keep]
+        checked = [(kind, b[keep]) for kind, b in checked]
+
     with np.errstate(all="ignore"):
         bad = np.zeros(len(t), dtype=bool)
-        for kind, sl in blocks:
-            bad |= ~(np.abs(values[:, sl]) <= PLAUSIBLE_SI[kind]).all(axis=1)
+        for kind, b in checked:
+            bad |= ~(np.abs(b) <= PLAUSIBLE_SI[kind]).all(axis=1)
     if bad.any():
-        names = "/".join(k.value for k, _ in blocks)
+        names = "/".join(k.value for k, _ in checked)
         notes.append(f"{where}: dropped {int(bad.sum())} {names} samples beyond physical limits (corrupt values)")
-        t, values = t[~bad], values[~bad]
+        drop(bad)
     gone = np.zeros(len(t), dtype=bool)
-    for kind, sl in blocks:
+    for kind, b in checked:
         if kind is Kind.GYROSCOPE:                     # a quantised gyro at rest may read exactly zero
             continue
-        norm = np.linalg.norm(values[:, sl], axis=1)
+        norm = np.linalg.norm(b, axis=1)
         floor = VANISHED_SHARE * float(np.median(norm)) if kind is Kind.MAGNETOMETER and len(norm) else 0.0
         vanished = (norm == 0.0) | (norm < floor)
         if not vanished.all():                         # all zero: a dead sensor, which fit reports as such
@@ -175,14 +194,14 @@ def sensor_checks(kinds: tuple[Kind, ...], t: FloatArray, values: FloatArray,
     if gone.any():
         notes.append(f"{where}: dropped {int(gone.sum())} samples whose field or specific force vanishes (exactly "
                      "zero, or the field below 1 % of its median: zeroed or corrupt records)")
-        t, values = t[~gone], values[~gone]
+        drop(gone)
     if len(t) < 2 * SATURATED_MIN:
-        return t, values, notes
+        return t, rows, notes
     clipped = np.zeros(len(t), dtype=bool)
-    for kind, sl in blocks:
+    for kind, b in checked:
         hits = []
         for axis in range(3):
-            x = values[:, sl][:, axis]
+            x = b[:, axis]
             for wall in _walls(x):
                 clipped |= x == wall
                 hits.append(f"{'xyz'[axis]} = {wall:.6g} {kind.si_unit}")
@@ -191,5 +210,5 @@ def sensor_checks(kinds: tuple[Kind, ...], t: FloatArray, values: FloatArray,
                          " it saturated there, so the true value is unknown")
     if clipped.any():
         notes.append(f"{where}: dropped the {int(clipped.sum())} saturated samples")
-        t, values = t[~clipped], values[~clipped]
-    return t, values, notes
+        drop(clipped)
+    return t, rows, notes

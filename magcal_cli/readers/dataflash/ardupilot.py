@@ -75,8 +75,8 @@ def reconstruct_mags(path: Path) -> list[MagReconstruction]:
 
 def _motor_signals(throttle: list[Pending], battery: list[Pending]) -> tuple[Series | None, Series | None]:
     """(t, throttle) and (t, current) series for motor compensation, when the log has them."""
-    thr = (throttle[0].t, throttle[0].values[:, 0]) if throttle else None
-    cur = next(((p.t, p.values[:, 0]) for p in battery if p.kinds[0] is Kind.BATTERY_CURRENT), None)
+    thr = (throttle[0].t, throttle[0].blocks()[0][:, 0]) if throttle else None
+    cur = next(((p.t, p.blocks()[0][:, 0]) for p in battery if p.kinds[0] is Kind.BATTERY_CURRENT), None)
     return thr, cur
 
 
@@ -89,7 +89,8 @@ def _imu_streams(path: Path, raw: RawLog, clock: Clock, notes: list[str]) -> lis
             continue
         t = time_of(table, clock)
         src = f"{path.name}#{f.name}{instance_tag(f, inst)}"
-        values = stack_columns(table, ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ"))
+        # one array per kind, as the streams hold them: no (N, 6) array to split (issue 39)
+        values = (stack_columns(table, ("AccX", "AccY", "AccZ")), stack_columns(table, ("GyrX", "GyrY", "GyrZ")))
         out.append(Pending((Kind.ACCELEROMETER, Kind.GYROSCOPE), f"IMU[{inst}]", t, values, src + ".Acc/Gyr",
                            ("m/s^2", "rad/s")))
         temp = next((c for c in ("Temp", "T") if f.has(c)), None)
@@ -238,7 +239,7 @@ def build_ardupilot(path: Path, raw: RawLog) -> Recording:
         raw.tables.pop(name, None)
     hook("reading", BUILD_STEPS[0], 1.0)
     imu = next((p for p in pending if Kind.GYROSCOPE in p.kinds), None)
-    turned = imu is not None and rotates(imu.t, imu.values[:, 3:6])
+    turned = imu is not None and rotates(imu.t, imu.blocks()[1])
     dead: dict[str, str] = {}
     for m in reconstruct(path, raw, clock, hist, *_motor_signals(throttle, battery), rotated=turned):
         notes += m.notes

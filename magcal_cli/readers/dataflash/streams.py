@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.align import clean_time
+from magcal_cli.align import clean_rows
 from magcal_cli.progress import current
-from magcal_cli.readers.checks import dead_field, drop_held, sensor_checks
+from magcal_cli.readers.checks import dead_field, drop_held, sensor_rows
 from magcal_cli.readers.dataflash.format import IntArray, MessageFormat, RawLog, Table
 from magcal_cli.streams import FloatArray, Kind, Recording, Sampling, Stream
 
@@ -143,15 +143,26 @@ def int_factor(table: Table, column: str, integer_default: float) -> float:
 
 @dataclass(frozen=True, eq=False)
 class Pending:
-    """Samples of streams that share their times (an IMU's accelerometer and gyro), absolute time (s)."""
+    """Samples of streams that share their times (an IMU's accelerometer and gyro), absolute time (s): `values`
+    (N, sum of the kinds' widths), or one (N, width) array per kind (made so by the reader: no copy to split)."""
 
     kinds: tuple[Kind, ...]
     id: str
     t: FloatArray
-    values: FloatArray
+    values: FloatArray | tuple[FloatArray, ...]
     source: str
     units: tuple[str, ...]
     resolution: FloatArray | None = None      # Stream.resolution, for a single-kind stream
+
+    def blocks(self) -> list[FloatArray]:
+        """Each kind's (N, width) values: the reader's own arrays, or views of the one array."""
+        if isinstance(self.values, tuple):
+            return list(self.values)
+        out, col = [], 0
+        for kind in self.kinds:
+            out.append(self.values[:, col:col + kind.width])
+            col += kind.width
+        return out
 
 
 def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float],
@@ -179,32 +190,42 @@ def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float
         if not len(p.t):                # every record dropped before (unhealthy, no time): nothing to clean
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
             continue
-        why = dead.get(p.id) or dead_field(p.values, "tesla") if p.kinds == (Kind.MAGNETOMETER,) else None
+        blocks = p.blocks()
+        why = dead.get(p.id) or dead_field(blocks[0], "tesla") if p.kinds == (Kind.MAGNETOMETER,) else None
         if why:
             dead[p.id] = why
             ok = np.isfinite(p.t)
             order = np.argsort(p.t[ok], kind="stable")
-            streams.append(Stream(Kind.MAGNETOMETER, p.id, p.t[ok][order] - t0, p.values[ok][order], p.source,
+            streams.append(Stream(Kind.MAGNETOMETER, p.id, p.t[ok][order] - t0, blocks[0][ok][order], p.source,
                                   p.units[0], None, Sampling.INSTANT))
             continue
-        t, values, cleaned = clean_time(p.t - t0, p.values, where)
+        # the rows cleaning keeps, taken from each kind's array once: an IMU record's samples are never held twice
+        # (issue 39: a (N, 6) array beside its two halves was a two-hour log's peak)
+        t = p.t - t0
+        finite = np.isfinite(t)
+        for b in blocks:
+            finite &= np.all(np.isfinite(b), axis=1)
+        t, rows, cleaned = clean_rows(t, finite, where)
+        del finite
+        blocks = [b if rows is None else b[rows] for b in blocks]
         if p.kinds == (Kind.MAGNETOMETER,):
-            t, values, held = drop_held(t, values, p.id)
+            t, held_values, held = drop_held(t, blocks[0], p.id)
+            blocks = [held_values]
             cleaned += held
-        t, values, checked = sensor_checks(p.kinds, t, values, where)
+        t, rows, checked = sensor_rows(p.kinds, t, blocks, where)
+        blocks = [b if rows is None else b[rows] for b in blocks]
         cleaned += checked
         notes.extend(cleaned)
         if t.size == 0:
             notes.append(f"{p.id}: no usable {'/'.join(k.value for k in p.kinds)} samples")
             continue
-        col = 0
         # the stamps of a record read before (an IMU's temperature is the IMU's own): one array, not two (issue 39)
         t = next((s.t for s in streams if s.t.shape == t.shape and np.array_equal(s.t, t)), t)
         t.flags.writeable = False               # handed over frozen: the kinds of one record share it, uncopied
-        for kind, unit in zip(p.kinds, p.units, strict=False):
-            own = np.ascontiguousarray(values[:, col:col + kind.width])
+        for kind, unit, block in zip(p.kinds, p.units, blocks, strict=False):
+            own = np.ascontiguousarray(block)   # the reader's own array as it is; a view of a wider one copied
             own.flags.writeable = False
             # IMU/GYR/ACC and MAG hold the (filtered) value at the stamp (docs/timing.md)
             streams.append(Stream(kind, p.id, t, own, p.source, unit, p.resolution, Sampling.INSTANT))
-            col += kind.width
+        del blocks
     return Recording(path, fmt, tuple(streams), t0=t0, params=params, notes=tuple(notes), dead=dead)
