@@ -38,9 +38,20 @@ def columns(t: FloatArray, ts: FloatArray, values: FloatArray, left: float | Non
     return np.stack([np.interp(t, ts, values[:, i], left=left, right=right) for i in range(values.shape[1])], axis=1)
 
 
+#: times interpolated at once by `_slerp`: each rotation on its own (the same digits in any block), and a whole
+#: two-hour log's readings at once made seven log-sized stacks, the heading check's peak (issue 39)
+SLERP_BLOCK = 1 << 16
+
+
 def _slerp(stream: Stream, t: FloatArray) -> FloatArray:
     """Quaternions (w, x, y, z) at `t`, along the geodesic between the neighbouring samples (`so3.slerp`)."""
-    return so3.as_quat(so3.slerp(so3.from_quat(stream.values), stream.t, t))
+    rots = so3.from_quat(stream.values)
+    if t.size <= SLERP_BLOCK:
+        return so3.as_quat(so3.slerp(rots, stream.t, t))
+    out = np.empty((t.size, 4))
+    for a in range(0, t.size, SLERP_BLOCK):
+        out[a:a + SLERP_BLOCK] = so3.as_quat(so3.slerp(rots, stream.t, t[a:a + SLERP_BLOCK]))
+    return out
 
 
 def onto(stream: Stream, t: npt.ArrayLike, max_gap_s: float | None = None) -> tuple[BoolArray, FloatArray]:

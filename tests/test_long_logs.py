@@ -265,3 +265,23 @@ def test_a_dataflash_record_read_as_one_array_per_kind_gives_the_same_streams() 
         np.testing.assert_array_equal(a.t, b.t)
         np.testing.assert_array_equal(a.values, b.values)
         assert b.values.flags.c_contiguous and not b.values.flags.writeable
+
+
+def test_attitude_interpolated_a_block_of_times_at_a_time_is_the_whole() -> None:
+    """`align._slerp` interpolates SLERP_BLOCK times at a time: the same bits as all at once (each rotation is
+    computed on its own), blocks of any size."""
+    from magcal_cli import align
+
+    rng = np.random.default_rng(1)
+    ts = np.cumsum(rng.uniform(0.01, 0.03, 500))
+    q = so3.as_quat(so3.cumulative_product(so3.exp(rng.normal(0, 0.05, (500, 3)))))
+    s = Stream(Kind.ATTITUDE, "ATT", ts, q, "x", "quaternion")
+    t = np.sort(rng.uniform(ts[0], ts[-1], 1001))
+    whole = align._slerp(s, t)
+    old = align.SLERP_BLOCK
+    try:
+        align.SLERP_BLOCK = 64
+        np.testing.assert_array_equal(align._slerp(s, t), whole)
+    finally:
+        align.SLERP_BLOCK = old
+    assert np.allclose(np.linalg.norm(whole, axis=1), 1.0)
