@@ -74,9 +74,8 @@ class Marginals:
         out: FloatArray = self.z_xx[i] + w_s @ self.w[i].transpose(0, 2, 1)
         return out
 
-    def x_next(self, i: Rows) -> FloatArray:
-        """Blocks (state i, state i + 1), i < N - 1: Z_i,i+1 + W_i S^-1 W_i+1^T."""
-        nxt = np.arange(self.w.shape[0])[i] + 1
+    def x_next(self, i: Rows, nxt: Rows) -> FloatArray:
+        """Blocks (state i, state i + 1), i < N - 1, with `nxt` the states i + 1: Z_i,i+1 + W_i S^-1 W_i+1^T."""
         out: FloatArray = self.z_next[i] + (self.w[i] @ self.tt) @ self.w[nxt].transpose(0, 2, 1)
         return out
 
@@ -121,15 +120,10 @@ class Solution:
         if factor.J_next is None and factor.J_x is not None and self._band == 2 and marginals is None:
             return self._leverage_block_diagonal(factor)
         z = marginals or self.marginals()
-        h = np.zeros(factor.r.shape)
-        for a in range(0, factor.r.shape[0], LEVERAGE_ROWS):
-            rows = slice(a, a + LEVERAGE_ROWS)
-            h[rows] = self._leverage_rows(factor, z, rows)
-        return h
+        return _in_blocks(factor, lambda f: self._leverage_rows(f, z))
 
-    def _leverage_rows(self, factor: Factor, z: Marginals, rows: slice) -> FloatArray:
-        """`leverage` of a factor's row groups `rows`."""
-        f = factor.rows(rows)
+    def _leverage_rows(self, f: Factor, z: Marginals) -> FloatArray:
+        """`leverage` of some of a factor's row groups (`Factor.rows`)."""
         h = np.zeros(f.r.shape)
         p = self.theta.size
         cols = f.theta_slice(p)
@@ -147,18 +141,14 @@ class Solution:
         if f.J_next is not None:
             i1 = f.idx + 1 if at is None else slice(at + 1, at + 1 + f.idx.shape[0])
             h += np.einsum("mki,mki->mk", f.J_next @ z.xx(i1), f.J_next)
-            h += 2.0 * np.einsum("mki,mki->mk", f.J_x @ z.x_next(i), f.J_next)
+            h += 2.0 * np.einsum("mki,mki->mk", f.J_x @ z.x_next(i, i1), f.J_next)
             if jt is not None:
                 h += 2.0 * np.einsum("mkp,mkp->mk", f.J_next @ z.xt(i1)[:, :, cols], jt)
         return h
 
     def _leverage_block_diagonal(self, factor: Factor) -> FloatArray:
         """Unary factors on a block-diagonal trajectory: one 3x3 inverse per state, a block of rows at a time."""
-        h = np.zeros(factor.r.shape)
-        for a in range(0, factor.r.shape[0], LEVERAGE_ROWS):
-            rows = slice(a, a + LEVERAGE_ROWS)
-            h[rows] = self._block_diagonal_rows(factor.rows(rows))
-        return h
+        return _in_blocks(factor, self._block_diagonal_rows)
 
     def _block_diagonal_rows(self, f: Factor) -> FloatArray:
         """`_leverage_block_diagonal` of some of a factor's row groups."""
@@ -175,6 +165,15 @@ class Solution:
                 p_kt = -w @ p_tt
                 h += 2.0 * np.einsum("mki,mip,mkp->mk", f.J_x, p_kt, jt)
         return h
+
+
+def _in_blocks(factor: Factor, each: Callable[[Factor], FloatArray]) -> FloatArray:
+    """`each` of LEVERAGE_ROWS row groups of a factor at a time, (M, m) in all: each row's own digits either way."""
+    h = np.zeros(factor.r.shape)
+    for a in range(0, factor.r.shape[0], LEVERAGE_ROWS):
+        rows = slice(a, a + LEVERAGE_ROWS)
+        h[rows] = each(factor.rows(rows))
+    return h
 
 
 def _robust_weights(factors: Sequence[Factor], opts: Options) -> tuple[float, list[FloatArray]]:

@@ -110,7 +110,7 @@ def test_leverage_and_marginals_on_a_tridiagonal_trajectory(chunk: int, monkeypa
     z = sol2.marginals()
     np.testing.assert_allclose(z.tt, inv[3 * n:, 3 * n:], rtol=1e-8)
     np.testing.assert_allclose(z.xx(np.array([4]))[0], inv[12:15, 12:15], rtol=1e-8)
-    np.testing.assert_allclose(z.x_next(slice(4, 5))[0], inv[12:15, 15:18], rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(z.x_next(slice(4, 5), slice(5, 6))[0], inv[12:15, 15:18], rtol=1e-8, atol=1e-14)
     np.testing.assert_allclose(z.xt(np.array([4]))[0], inv[12:15, 3 * n:], rtol=1e-8, atol=1e-14)
 
 
