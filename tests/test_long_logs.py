@@ -130,7 +130,7 @@ def test_bound_inputs_kept_for_the_latest_start_biases_only() -> None:
     first = map_effects.bind(problem, mag, t, biases[0], ["time_offset"])[0][0].inputs
     for b in biases[1:]:
         map_effects.bind(problem, mag, t, b, ["time_offset"])
-    kept = [k for k in map_effects._memo(problem) if k[0] == "time_offset"]
+    kept = [k for k in map_effects._INPUTS.keys(problem) if k[0] == "time_offset"]
     assert len(kept) == map_effects.KEEP
     latest = map_effects.bind(problem, mag, t, biases[-1], ["time_offset"])[0][0].inputs
     assert map_effects.bind(problem, mag, t, biases[-1], ["time_offset"])[0][0].inputs is latest
@@ -178,7 +178,7 @@ def test_a_channel_resampled_again_at_the_same_times_is_the_kept_result() -> Non
     assert base.resample(s, t.copy()) is first and not first.flags.writeable
     other = [base.resample(s, t + k * 1e-3) for k in range(1, base.RESAMPLED_KEEP + 2)]
     assert all(o is not first for o in other)
-    assert len(base._RESAMPLED[s]) == base.RESAMPLED_KEEP
+    assert len(base._RESAMPLED.keys(s)) == base.RESAMPLED_KEEP
     assert base.resample(s, t) is not first                     # evicted, made again to the same digits
     np.testing.assert_array_equal(base.resample(s, t), first)
 

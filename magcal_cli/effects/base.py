@@ -10,9 +10,10 @@ from __future__ import annotations
 import hashlib
 import threading
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -181,30 +182,59 @@ class Effect:
 #: neighbouring channel samples further apart than this many median periods are a dropout: bridged by a line
 BRIDGE_PERIODS = 4.0
 
+Owner = TypeVar("Owner")
+K = TypeVar("K")
+V = TypeVar("V")
+
+
+class Recent(Generic[Owner, K, V]):
+    """Values computed from an owner (a problem, a stream), kept while the owner lives: the `keep` most recently used
+    of each group of keys (`group`; default one group). Thread-safe: the diagnosis binds from worker threads."""
+
+    def __init__(self, keep: int, group: Callable[[K], object] = lambda _: None) -> None:
+        self.keep, self.group = keep, group
+        self._by: weakref.WeakKeyDictionary[Owner, dict[K, V]] = weakref.WeakKeyDictionary()
+        self._lock = threading.Lock()
+
+    def get(self, owner: Owner, key: K) -> V | None:
+        """The value kept under `key`, now the most recently used of its group; None when not kept."""
+        with self._lock:
+            known = self._by.setdefault(owner, {})
+            got = known.pop(key, None)
+            if got is not None:
+                known[key] = got
+            return got
+
+    def put(self, owner: Owner, key: K, value: V) -> None:
+        """Keep `value` under `key`, dropping the least recently used of its group beyond `keep`."""
+        with self._lock:
+            known = self._by.setdefault(owner, {})
+            known[key] = value
+            g = self.group(key)
+            for k in [k for k in known if self.group(k) == g][:-self.keep]:
+                del known[k]
+
+    def keys(self, owner: Owner) -> list[K]:
+        """The keys kept for `owner`, least recently used first."""
+        with self._lock:
+            return list(self._by.get(owner, {}))
+
 
 #: resampled channels kept per stream (the most recently used sets of times): the diagnosis resamples a channel at
 #: the same epochs for every training fold, and a 400 Hz temperature's spline through a two-hour log's 2.9 M samples
 #: was the process peak (180 MB of work arrays) each time (issue 39)
 RESAMPLED_KEEP = 4
-_RESAMPLED: weakref.WeakKeyDictionary[Stream, dict[bytes, FloatArray]] = weakref.WeakKeyDictionary()
-_RESAMPLED_LOCK = threading.Lock()
+_RESAMPLED: Recent[Stream, bytes, FloatArray] = Recent(RESAMPLED_KEEP)
 
 
 def resample(stream: Stream, t: FloatArray) -> FloatArray:
     """`resampled`, read-only, computed once per stream and times (the same digits: it is deterministic)."""
     key = hashlib.blake2b(np.ascontiguousarray(t, dtype=np.float64).tobytes(), digest_size=16).digest()
-    with _RESAMPLED_LOCK:
-        known = _RESAMPLED.setdefault(stream, {})
-        got = known.pop(key, None)
-        if got is not None:
-            known[key] = got                              # now the most recently used
-            return got
-    got = resampled(stream, t)
-    got.flags.writeable = False
-    with _RESAMPLED_LOCK:
-        known[key] = got
-        while len(known) > RESAMPLED_KEEP:
-            known.pop(next(iter(known)))
+    got = _RESAMPLED.get(stream, key)
+    if got is None:
+        got = resampled(stream, t)
+        got.flags.writeable = False
+        _RESAMPLED.put(stream, key, got)
     return got
 
 

@@ -8,8 +8,6 @@ contiguous run and the solver keeps its compact Jacobians.
 from __future__ import annotations
 
 import hashlib
-import threading
-import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -18,7 +16,7 @@ import numpy.typing as npt
 
 from magcal_cli import effects as registry
 from magcal_cli.align import columns
-from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Target, Term
+from magcal_cli.effects.base import Effect, Inputs, Kinematics, NotTestable, Point, Recent, Target, Term
 from magcal_cli.models.factor import Factor, gaussian_factor, run_start, whiten
 from magcal_cli.models.problem import Problem
 from magcal_cli.models.result import EffectFit
@@ -82,7 +80,6 @@ def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Se
     if not ids:
         return [], []
     kin: Kinematics | None = None
-    known = _memo(problem)
     epochs = (mag.id, declination, hashlib.blake2b(t.tobytes() + bias.tobytes(), digest_size=16).digest())
     bound, untestable = [], []
     for eid in ids:
@@ -91,14 +88,14 @@ def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Se
         # the diagnosis refits the same epochs with the same start bias dozens of times (log171: 52 fits, 3.2 s
         # of time_offset's attitude integration alone); inputs are read-only, so one computation serves them all
         key = (eid, *epochs)
-        got = _recall(known, key)
+        got = _INPUTS.get(problem, key)
         if got is None:
             kin = kin or kinematics(problem, t, bias)
             try:
                 got = eff.inputs(problem.aux, mag, kin, declination)
             except NotTestable as exc:
                 got = str(exc)
-            _keep(known, key, got)
+            _INPUTS.put(problem, key, got)
         if isinstance(got, str):
             untestable.append(EffectFit(eid, sensor, "not_testable", reason=got))
         else:
@@ -113,33 +110,8 @@ def bind(problem: Problem, mag: Stream, t: FloatArray, bias: FloatArray, ids: Se
 KEEP = 2
 #: each problem's effect inputs by (effect, magnetometer, declination, epochs and start bias digest); the reason
 #: as a string where the effect was not testable. Dropped with the problem. A magnetometer's readings are the
-#: problem's own (or a thinned copy, whose epochs differ): its id and epochs name them
-_INPUTS: weakref.WeakKeyDictionary[Problem, dict[tuple[object, ...], Inputs | str]] = weakref.WeakKeyDictionary()
-_LOCK = threading.Lock()
-
-
-def _memo(problem: Problem) -> dict[tuple[object, ...], Inputs | str]:
-    """The problem's inputs cache (the diagnosis binds from worker threads)."""
-    with _LOCK:
-        return _INPUTS.setdefault(problem, {})
-
-
-def _recall(known: dict[tuple[object, ...], Inputs | str], key: tuple[object, ...]) -> Inputs | str | None:
-    """The cached inputs of `key`, now the most recently used; None when not cached."""
-    with _LOCK:
-        got = known.pop(key, None)
-        if got is not None:
-            known[key] = got
-        return got
-
-
-def _keep(known: dict[tuple[object, ...], Inputs | str], key: tuple[object, ...], got: Inputs | str) -> None:
-    """Cache `got` under `key`, dropping the least recently used entries of its effect and magnetometer beyond KEEP."""
-    with _LOCK:
-        known[key] = got
-        same = [k for k in known if k[:3] == key[:3]]
-        for k in same[:-KEEP]:
-            del known[k]
+#: problem's own (or a thinned copy, whose epochs differ): its id and epochs name them. KEEP per effect and magnetometer
+_INPUTS: Recent[Problem, tuple[object, ...], Inputs | str] = Recent(KEEP, lambda key: key[:3])
 
 
 def reported(inputs: Inputs) -> dict[str, object]:
