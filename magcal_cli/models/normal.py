@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -50,14 +50,20 @@ def one_blas_thread() -> Iterator[None]:
 
 @dataclass
 class NormalEquations:
-    """Assembled normal equations H = [[Hxx, Hxt], [Htx, Htt]], gradient g = J^T r."""
+    """Assembled normal equations H = [[Hxx, Hxt], [Htx, Htt]], gradient g = J^T r.
+
+    Hxt and gx are views of one (3N, p + 1) Fortran-order array, `xg`, the layout the banded solve takes: a step
+    may solve in it (`consume`), where a copy beside it was a 60-min flight's peak (issue 39)."""
 
     diag: FloatArray       # (N, 3, 3)
     off: FloatArray        # (N-1, 3, 3), block (k, k+1)
-    hxt: FloatArray        # (N, 3, p)
+    hxt: FloatArray        # (N, 3, p), a view of xg
     htt: FloatArray        # (p, p)
-    gx: FloatArray         # (N, 3)
+    gx: FloatArray         # (N, 3), a view of xg
     gt: FloatArray         # (p,)
+    xg: FloatArray         # (3N, p + 1): [Hxt, gx] with the state's three rows in turn, Fortran order
+    #: a step solved in xg: Hxt and gx now hold U^-T Hxt and U^-T gx
+    consumed: bool = False
 
 
 def scatter(target: FloatArray, idx: IntArray, values: FloatArray, start: int | None = -1) -> None:
@@ -110,34 +116,58 @@ def gradient(factors: Sequence[Factor], residuals: Sequence[FloatArray], n: int,
 
 def assemble(factors: Sequence[Factor], weights: Sequence[FloatArray], n: int, p: int) -> NormalEquations:
     """Accumulate J^T W J and J^T W r factor by factor (vectorised over rows; theta blocks through BLAS)."""
-    ne = NormalEquations(np.zeros((n, 3, 3)), np.zeros((max(n - 1, 0), 3, 3)), np.zeros((n, 3, p)),
-                         np.zeros((p, p)), np.zeros((n, 3)), np.zeros(p))
+    ne = _zeros(n, p)
     for f, w in zip(factors, weights, strict=True):
-        unit = bool(np.all(w == 1.0))
-        r = f.r if unit else f.r * w[:, None]
-        jt_w = None
-        f, cols = _expanded(f, p)
-        start = None if f.idx is None else run_start(f.idx)
-        _add_gradient(f, r, ne.gx, ne.gt, cols, start)
-        if f.J_theta is not None:
-            jt = f.J_theta
-            q = jt.shape[2]
-            jt_w = jt if unit else jt * w[:, None, None]
-            ne.htt[cols, cols] += jt_w.reshape(-1, q).T @ jt.reshape(-1, q)
-        if f.idx is None:
-            continue
-        hxt = ne.hxt[:, :, cols]                              # a view: scatters below write into ne.hxt
-        for jx, shift in ((f.J_x, 0), (f.J_next, 1)):
-            if jx is None:
-                continue
-            at = None if start is None else start + shift
-            idx = f.idx + shift
-            scatter(ne.diag, idx, _gram(jx, jx if unit else jx * w[:, None, None]), at)
-            if jt_w is not None:
-                scatter(hxt, idx, jx.transpose(0, 2, 1) @ jt_w, at)
-        if f.J_x is not None and f.J_next is not None:
-            scatter(ne.off, f.idx, _gram(f.J_x, f.J_next if unit else f.J_next * w[:, None, None]), start)
+        _add(ne, f, w, p)
     return ne
+
+
+def assemble_stripping(factors: list[Factor], weights: Sequence[FloatArray], n: int, p: int) -> NormalEquations:
+    """`assemble`, replacing each factor in `factors` by its residual rows as soon as it is added: one factor's
+    Jacobians at a time beside the equations, not all of them (issue 39). The same sums in the same order."""
+    ne = _zeros(n, p)
+    for i, w in enumerate(weights):
+        f = factors[i]
+        factors[i] = Factor(f.name, f.r)
+        _add(ne, f, w, p)
+        del f
+    return ne
+
+
+def _zeros(n: int, p: int) -> NormalEquations:
+    """Empty normal equations for n states and p parameters."""
+    xg = np.zeros((3 * n, p + 1), order="F")
+    hxt = xg[:, :p].T.reshape(p, n, 3).transpose(1, 2, 0)          # views: [k, i, j] is xg[3 k + i, j]
+    return NormalEquations(np.zeros((n, 3, 3)), np.zeros((max(n - 1, 0), 3, 3)), hxt, np.zeros((p, p)),
+                           xg[:, p].reshape(n, 3), np.zeros(p), xg)
+
+
+def _add(ne: NormalEquations, f: Factor, w: FloatArray, p: int) -> None:
+    """One factor's J^T W J and J^T W r into `ne`."""
+    unit = bool(np.all(w == 1.0))
+    r = f.r if unit else f.r * w[:, None]
+    jt_w = None
+    f, cols = _expanded(f, p)
+    start = None if f.idx is None else run_start(f.idx)
+    _add_gradient(f, r, ne.gx, ne.gt, cols, start)
+    if f.J_theta is not None:
+        jt = f.J_theta
+        q = jt.shape[2]
+        jt_w = jt if unit else jt * w[:, None, None]
+        ne.htt[cols, cols] += jt_w.reshape(-1, q).T @ jt.reshape(-1, q)
+    if f.idx is None:
+        return
+    hxt = ne.hxt[:, :, cols]                              # a view: scatters below write into ne.hxt
+    for jx, shift in ((f.J_x, 0), (f.J_next, 1)):
+        if jx is None:
+            continue
+        at = None if start is None else start + shift
+        idx = f.idx + shift
+        scatter(ne.diag, idx, _gram(jx, jx if unit else jx * w[:, None, None]), at)
+        if jt_w is not None:
+            scatter(hxt, idx, jx.transpose(0, 2, 1) @ jt_w, at)
+    if f.J_x is not None and f.J_next is not None:
+        scatter(ne.off, f.idx, _gram(f.J_x, f.J_next if unit else f.J_next * w[:, None, None]), start)
 
 
 def band(diag: FloatArray, off: FloatArray, u: int) -> FloatArray:
@@ -155,6 +185,10 @@ def band(diag: FloatArray, off: FloatArray, u: int) -> FloatArray:
     return ab
 
 
+#: pairs of states whose 6x6 marginal is inverted at once (`selected_inverse`)
+PAIR_BLOCK = 8192
+
+
 def selected_inverse(diag: FloatArray, off: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Diagonal (N, 3, 3) and super-diagonal (N-1, 3, 3) blocks of A^-1 for SPD block-tridiagonal A, in O(N).
 
@@ -168,18 +202,26 @@ def selected_inverse(diag: FloatArray, off: FloatArray) -> tuple[FloatArray, Flo
         return np.asarray(np.linalg.inv(diag), dtype=np.float64), np.zeros((0, 3, 3))
     fwd = _pivots(diag, off)
     bwd = _pivots(diag[::-1], off[::-1].transpose(0, 2, 1))[::-1]
-    pair = np.empty((n - 1, 6, 6))
-    pair[:, :3, :3], pair[:, :3, 3:] = fwd[:-1], off
-    pair[:, 3:, :3], pair[:, 3:, 3:] = off.transpose(0, 2, 1), bwd[1:]
-    pinv = np.linalg.inv(pair)
-    xx = np.concatenate([pinv[:, :3, :3], pinv[-1:, 3:, 3:]])
-    return 0.5 * (xx + xx.transpose(0, 2, 1)), pinv[:, :3, 3:]
+    xx, nxt = np.empty((n, 3, 3)), np.empty((n - 1, 3, 3))
+    # a block of pairs at a time: two (N, 6, 6) stacks were a 60-min flight's peak (issue 39); each 6x6 inverse is
+    # its own LAPACK call, so the digits do not depend on the block
+    for a in range(0, n - 1, PAIR_BLOCK):
+        b = min(a + PAIR_BLOCK, n - 1)
+        pair = np.empty((b - a, 6, 6))
+        pair[:, :3, :3], pair[:, :3, 3:] = fwd[a:b], off[a:b]
+        pair[:, 3:, :3], pair[:, 3:, 3:] = off[a:b].transpose(0, 2, 1), bwd[a + 1:b + 1]
+        pinv = np.linalg.inv(pair)
+        xx[a:b], nxt[a:b] = pinv[:, :3, :3], pinv[:, :3, 3:]
+    xx[-1] = pinv[-1, 3:, 3:]
+    xx += xx.transpose(0, 2, 1).copy()
+    xx *= 0.5
+    return xx, nxt
 
 
 def _pivots(diag: FloatArray, off: FloatArray) -> FloatArray:
     """Block pivots F_k = U_kk^T U_kk of the upper banded Cholesky factor U of a block-tridiagonal matrix."""
     n, u = diag.shape[0], 5
-    cb = linalg.cholesky_banded(band(diag, off, u), lower=False, check_finite=False)
+    cb = linalg.cholesky_banded(band(diag, off, u), overwrite_ab=True, lower=False, check_finite=False)
     ukk = np.zeros((n, 3, 3))
     cols = 3 * np.arange(n)
     for a in range(3):
@@ -188,12 +230,16 @@ def _pivots(diag: FloatArray, off: FloatArray) -> FloatArray:
     return ukk.transpose(0, 2, 1) @ ukk
 
 
-def _schur(ne: NormalEquations, lam: float, u: int, lam_theta: float | None = None
+def _schur(ne: NormalEquations, lam: float, u: int, lam_theta: float | None = None, consume: bool = False
            ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """The damped Schur complement S = Htt - X^T X with X = U^-T Hxt, y = U^-T gx (Hxx = U^T U, banded
     Cholesky): returns S, X, y, the banded factor, the damped Hxx blocks and [X, y] (3N, p + 1), Fortran order,
-    whose views X and y are. `lam_theta` damps Htt (default `lam`)."""
-    n, p = ne.gx.shape[0], ne.gt.size
+    whose views X and y are. `lam_theta` damps Htt (default `lam`). `consume`: solved in `ne.xg` itself, which
+    leaves `ne` good for nothing more (its Hxt and gx are gone); otherwise in a copy."""
+    if ne.consumed:
+        msg = "normal equations solved in place already: assemble them again"
+        raise ValueError(msg)
+    p = ne.gt.size
     diag = ne.diag.copy()
     d = np.einsum("nii->ni", diag)
     floor = 1e-9 * (float(np.mean(d)) if d.size else 1.0)
@@ -201,9 +247,9 @@ def _schur(ne: NormalEquations, lam: float, u: int, lam_theta: float | None = No
     scale = float(np.mean(np.diag(ne.htt))) if ne.htt.size else 1.0     # no theta: a trajectory-only problem
     lam_t = lam if lam_theta is None else lam_theta
     htt = ne.htt + lam_t * np.diag(np.diag(ne.htt) + 1e-9 * max(scale, 1e-300))
-    cb = linalg.cholesky_banded(band(diag, ne.off, u), lower=False, check_finite=False)
-    rhs = np.empty((3 * n, p + 1), order="F")          # LAPACK's layout: solved in place, no copies
-    rhs[:, :p], rhs[:, p] = ne.hxt.reshape(3 * n, p), ne.gx.reshape(3 * n)
+    cb = linalg.cholesky_banded(band(diag, ne.off, u), overwrite_ab=True, lower=False, check_finite=False)
+    rhs = ne.xg if consume else ne.xg.copy(order="F")    # LAPACK's layout: solved in place
+    ne.consumed = consume
     sol, info = lapack.dtbtrs(cb, rhs, uplo="U", trans="T", overwrite_b=1)
     if info != 0:
         msg = "banded triangular solve failed"
@@ -213,13 +259,13 @@ def _schur(ne: NormalEquations, lam: float, u: int, lam_theta: float | None = No
     return 0.5 * (s + s.T), x, y, cb, diag, sol
 
 
-def step(ne: NormalEquations, lam: float, u: int, need_w: bool = False, lam_theta: float | None = None
-         ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
+def step(ne: NormalEquations, lam: float, u: int, need_w: bool = False, lam_theta: float | None = None,
+         consume: bool = False) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
     """Solve the damped normal equations; returns dx (N,3), dtheta, S^-1, damped Hxx blocks and, if asked,
-    Hxx^-1 Hxt (N,3,p): dtheta = S^-1 (X^T y - gt), dx = -U^-1 (y + X dtheta) (see `_schur`).
+    Hxx^-1 Hxt (N,3,p): dtheta = S^-1 (X^T y - gt), dx = -U^-1 (y + X dtheta) (see `_schur`, and its `consume`).
     """
     n, p = ne.gx.shape[0], ne.gt.size
-    s, x, y, cb, diag, xy = _schur(ne, lam, u, lam_theta)
+    s, x, y, cb, diag, xy = _schur(ne, lam, u, lam_theta, consume)
     s_inv = schur_inverse(s)
     dt = s_inv @ (x.T @ y - ne.gt)
     if need_w:
@@ -267,21 +313,26 @@ def _triangular(cb: FloatArray, b: FloatArray, trans: str) -> FloatArray:
 
 def factorise(ne: NormalEquations, lam: float, u: int) -> Factorised:
     """The factors of `step`'s damped system, kept for steps with other gradients."""
-    s, x, _, cb, _, _ = _schur(ne, lam, u)
+    s, x, _, cb, _, _ = _schur(ne, lam, u, consume=True)        # X lives on in the factors: no copy of it
     return Factorised(cb, x, schur_inverse(s))
 
 
-def undamped(ne: NormalEquations, u: int, log: list[str] | None = None, need_w: bool = True
+def undamped(ne: NormalEquations, u: int, log: list[str] | None = None, need_w: bool = True,
+             remake: Callable[[], NormalEquations] | None = None
              ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray | None]:
     """`step` on the undamped information; when that is numerically singular (a rigid gyro, a flat log), with a
     trace (1e-9) of damping on the trajectory blocks only, and failing that on theta too, which leaves
-    undetermined directions huge rather than NaN (the observability check then names them)."""
+    undetermined directions huge rather than NaN (the observability check then names them). `remake`: the same
+    equations assembled again; given, each attempt solves in place (`_schur`'s consume) and a retry remakes them."""
     for lam_theta in (None, 0.0, 1e-9):
         try:
-            out = step(ne, 0.0 if lam_theta is None else 1e-9, u, need_w=need_w, lam_theta=lam_theta)
+            out = step(ne, 0.0 if lam_theta is None else 1e-9, u, need_w=need_w, lam_theta=lam_theta,
+                       consume=remake is not None)
         except (np.linalg.LinAlgError, linalg.LinAlgError):
             if lam_theta == 1e-9:
                 raise
+            if ne.consumed and remake is not None:
+                ne = remake()
             continue
         if lam_theta is not None and log is not None:
             log.append(f"the information is nearly singular at the optimum (covariance with 1e-9 damping of the "
@@ -296,15 +347,25 @@ def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatAr
     Cramer-Rao bound of theta when evaluated at the truth with the true noise levels. `trajectory_damping` (a
     trace, e.g. 1e-9) keeps a nearly rigid trajectory from cancelling theta's information in the Schur
     complement (flat logs); theta stays undamped."""
-    factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
+    at = np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64)
+    factors = linearize(*at, True)
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
+
+    def again() -> NormalEquations:
+        return _unit_assembled(linearize(*at, True), n, p)
+
     with one_blas_thread():
-        ne = assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        ne = _unit_assembled(factors, n, p)
         del factors                     # in the equations now: not beside the elimination's arrays (issue 39)
         if trajectory_damping > 0.0:
-            return step(ne, trajectory_damping, u, lam_theta=0.0)[2]
-        return undamped(ne, u, need_w=False)[2]          # the covariance only: no Hxx^-1 Hxt
+            return step(ne, trajectory_damping, u, lam_theta=0.0, consume=True)[2]
+        return undamped(ne, u, need_w=False, remake=again)[2]          # the covariance only: no Hxx^-1 Hxt
+
+
+def _unit_assembled(factors: Sequence[Factor], n: int, p: int) -> NormalEquations:
+    """`assemble` with unit weights."""
+    return assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
 
 
 def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> FloatArray:
@@ -314,11 +375,11 @@ def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> 
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
     with one_blas_thread():
-        ne = assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        ne = _unit_assembled(factors, n, p)
         del factors
         # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
         # its null directions (what the motion cannot determine)
-        return _schur(ne, 1e-9, u, 0.0)[0]
+        return _schur(ne, 1e-9, u, 0.0, consume=True)[0]
 
 
 def schur_inverse(s: FloatArray) -> FloatArray:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Generic, TypeVar
 
 import numpy as np
@@ -277,6 +278,9 @@ def iterate(evaluate: Callable[[FloatArray, FloatArray], tuple[float, S]],
                 converged = True
                 break
         else:
+            # the rejected point's factors and Jacobians go now, not when the next trial replaces them: kept through
+            # the next, more damped solve of the same system they were a 60-min flight's peak (issue 39)
+            del trial, new_states, new_theta
             lam *= 10.0
             log.append(f"iter {it}: rejected (cost {new_cost:.6g}), lambda -> {lam:.1e}")
             if size < opts.step_tol:
@@ -289,21 +293,32 @@ def iterate(evaluate: Callable[[FloatArray, FloatArray], tuple[float, S]],
 
 @dataclass
 class _System:
-    """The factors and robust weights at a point, and their normal equations once assembled (a rejected step
-    solves the same system again with more damping)."""
+    """The factors and robust weights at a point, and their normal equations while a step is being solved there."""
 
     factors: Sequence[Factor]
     weights: list[FloatArray]
+    #: the same point's factors again, to the same digits (the Jacobians went into equations since released)
+    relinearize: Callable[[], Sequence[Factor]]
     equations: normal.NormalEquations | None = None
+    #: the factors keep their residual rows only
+    stripped: bool = False
 
     def assembled(self, n: int, p: int) -> normal.NormalEquations:
-        """The normal equations, assembled on first use; the factors then keep their residual rows only (a
-        rejected step solves the same equations again): a point's Jacobians beside the next trial point's were a
-        60-min flight's peak (issue 39). `_solve` linearises again where the last point's are needed."""
+        """The normal equations, assembled on first use; the factors then keep their residual rows only: a point's
+        Jacobians beside the next trial point's were a 60-min flight's peak (issue 39). After `release` (a
+        rejected step solves the same system again, more damped) the point is linearised again."""
         if self.equations is None:
-            self.equations = normal.assemble(self.factors, self.weights, n, p)
-            self.factors = [Factor(f.name, f.r) for f in self.factors]
+            if self.stripped:
+                self.factors = self.relinearize()
+            self.factors = list(self.factors)
+            self.equations = normal.assemble_stripping(self.factors, self.weights, n, p)
+            self.stripped = True
         return self.equations
+
+    def release(self) -> None:
+        """Drop the equations while the trial point is linearised: both at once were the 60-min flight's peak
+        after the Jacobians went (issue 39); a rejected step (a few per cent) assembles them again."""
+        self.equations = None
 
 
 def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: Options) -> Solution:
@@ -321,26 +336,30 @@ def _solve(linearize: Linearize, states0: FloatArray, theta0: FloatArray, opts: 
         if jac:
             u = 5 if any(f.J_next is not None for f in factors) else 2
         cost, weights = _robust_weights(factors, opts)
-        return cost, _System(factors, weights)
+        return cost, _System(factors, weights, partial(linearize, states, theta, True))
 
     def step(system: _System, lam: float) -> tuple[FloatArray, FloatArray]:
-        dx, dt, *_ = normal.step(system.assembled(n, p), lam, u)
+        try:                # solved in place: a rejected or singular step assembles the equations again
+            dx, dt, *_ = normal.step(system.assembled(n, p), lam, u, consume=True)
+        finally:
+            system.release()
         return dx, dt
 
     out = iterate(evaluate, step, states0, theta0, opts)
-    factors, weights = out.system.factors, out.system.weights
-    log = list(out.log)
-    if opts.covariance and out.system.equations is not None:
+    system = out.system
+    if opts.covariance and system.stripped:
         # stopped on a point whose Jacobians went into its equations (a rejected last step): the same point's
         # factors again, to the same digits
-        factors = out.system.factors = linearize(out.states, out.theta, True)
+        system = _System(system.relinearize(), system.weights, system.relinearize, system.equations)
+    factors, weights = system.factors, system.weights
+    log = list(out.log)
     if not opts.covariance:
         return Solution(out.states, out.theta, out.cost, out.iterations, out.converged, np.full((p, p), np.nan),
                         tuple(log), tuple(factors), np.full((n, 3, 3), np.nan), np.full((n, 3, p), np.nan), u,
                         None, tuple(weights))
-    ne = out.system.assembled(n, p)
+    ne = system.assembled(n, p)
     try:
-        _, _, s_inv, hdiag, w = normal.undamped(ne, u, log)
+        _, _, s_inv, hdiag, w = normal.undamped(ne, u, log, remake=lambda: normal.assemble(factors, weights, n, p))
     except (np.linalg.LinAlgError, linalg.LinAlgError):
         log.append("the information is singular at the optimum: the data do not determine all unknowns")
         s_inv, hdiag, w = np.full((p, p), np.nan), ne.diag, np.full((n, 3, p), np.nan)

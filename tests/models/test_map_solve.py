@@ -66,8 +66,13 @@ def _dense_jacobian(factors: tuple[Factor, ...], n: int, p: int) -> np.ndarray:
     return np.concatenate(rows)
 
 
-def test_selected_inverse_equals_dense_inverse_blocks() -> None:
-    """Diagonal and super-diagonal 3x3 blocks of A^-1 for a random SPD block-tridiagonal A."""
+@pytest.mark.parametrize("block", [8192, 7, 1])
+def test_selected_inverse_equals_dense_inverse_blocks(block: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Diagonal and super-diagonal 3x3 blocks of A^-1 for a random SPD block-tridiagonal A, whatever the blocks of
+    pairs it is computed in."""
+    from magcal_cli.models import normal
+
+    monkeypatch.setattr(normal, "PAIR_BLOCK", block)
     rng = np.random.default_rng(0)
     n = 30
     b = rng.normal(size=(n - 1, 3, 3))

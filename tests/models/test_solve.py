@@ -184,3 +184,92 @@ def test_a_solve_that_stops_on_a_rejected_step_keeps_its_points_jacobians() -> N
         np.testing.assert_array_equal(got.J_x, want.J_x)
         np.testing.assert_array_equal(got.r, want.r)
     assert np.all(np.isfinite(sol.cov_theta))
+
+
+def test_a_rejected_step_is_solved_again_from_the_same_points_equations() -> None:
+    """The equations are solved in place and released before the trial point is linearised (issue 39): a rejected
+    step linearises its point again and takes the more damped step that equations kept aside would give."""
+    rng = np.random.default_rng(8)
+    n = 12
+    truth, _, linearize = _chain_problem(rng, n)
+    start, theta0 = truth @ so3.exp(0.1 * rng.normal(size=(n, 3))), np.zeros(2)
+    calls = []
+
+    def rejecting(states: np.ndarray, theta: np.ndarray, jac: bool) -> list[Factor]:
+        calls.append(jac)
+        out = linearize(states, theta, jac)
+        if len(calls) == 2:                        # the first trial point: rejected
+            out = [Factor(f.name, 1e6 + f.r, f.idx, f.J_x, f.J_next, f.J_theta, f.theta_cols) for f in out]
+        return out
+
+    sol = solve(rejecting, start, theta0, Options(max_iterations=2, covariance=False))
+    assert "rejected" in sol.log[1] and "cost" in sol.log[2] and "rejected" not in sol.log[2]
+    # the start, the rejected trial, the start again, the last trial (no covariance: no Jacobians asked there)
+    assert calls == [True, True, True, False]
+    # the accepted step is the first step of a solve that starts with the damping the rejection left
+    once = solve(linearize, start, theta0, Options(max_iterations=1, covariance=False, lambda0=1e-5))
+    np.testing.assert_array_equal(sol.states, once.states)
+    np.testing.assert_array_equal(sol.theta, once.theta)
+
+
+def test_equations_solved_in_place_give_the_same_step_and_cannot_be_solved_twice() -> None:
+    """Hxt and gx are views of the Fortran-order [Hxt, gx] the banded solve takes; a step solved in it equals one
+    solved in a copy, digit for digit, and the spent equations refuse a second solve."""
+    from magcal_cli.models import normal
+
+    rng = np.random.default_rng(9)
+    n, p = 14, 2
+    truth, _, linearize = _chain_problem(rng, n)
+    factors = linearize(truth @ so3.exp(0.05 * rng.normal(size=(n, 3))), np.array([0.1, -0.1]), True)
+    weights = [np.ones(f.r.shape[0]) for f in factors]
+    ne = normal.assemble(factors, weights, n, p)
+    assert np.shares_memory(ne.hxt, ne.xg) and np.shares_memory(ne.gx, ne.xg) and ne.xg.flags.f_contiguous
+    np.testing.assert_array_equal(ne.xg[:, :p].reshape(n, 3, p), ne.hxt)
+    np.testing.assert_array_equal(ne.xg[:, p].reshape(n, 3), ne.gx)
+    copied = normal.step(ne, 1e-3, 5, need_w=True)
+    assert not ne.consumed
+    in_place = normal.step(ne, 1e-3, 5, need_w=True, consume=True)
+    for a, b in zip(copied, in_place, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert ne.consumed
+    with pytest.raises(ValueError, match="assemble them again"):
+        normal.step(ne, 1e-3, 5)
+    # assembled while each factor gives up its Jacobians: the same equations
+    listed = list(factors)
+    stripped = normal.assemble_stripping(listed, weights, n, p)
+    assert all(f.J_x is None and f.J_theta is None for f in listed)
+    again = normal.assemble(factors, weights, n, p)
+    for name in ("diag", "off", "hxt", "htt", "gx", "gt"):
+        np.testing.assert_array_equal(getattr(stripped, name), getattr(again, name))
+
+
+def test_a_singular_information_solved_in_place_is_assembled_again_for_the_damped_retry() -> None:
+    """`undamped` with `remake`: when the undamped Schur complement is singular (theta not determined), the retry with a
+    trace of damping works on equations assembled again, and gives what the copy-keeping path gives."""
+    from magcal_cli.models import normal
+
+    rng = np.random.default_rng(10)
+    n, p = 10, 2
+    truth, _, linearize = _chain_problem(rng, n)
+
+    def blind(states: np.ndarray, theta: np.ndarray, jac: bool) -> list[Factor]:
+        """theta's second component enters nothing: the information is singular."""
+        out = linearize(states, theta, jac)
+        return [Factor(f.name, f.r, f.idx, f.J_x, f.J_next, None if f.J_theta is None else
+                       np.concatenate([f.J_theta[:, :, :1], np.zeros_like(f.J_theta[:, :, 1:])], axis=2))
+                for f in out]
+
+    factors = blind(truth, np.zeros(p), True)
+    weights = [np.ones(f.r.shape[0]) for f in factors]
+    made = []
+
+    def remake() -> normal.NormalEquations:
+        made.append(1)
+        return normal.assemble(factors, weights, n, p)
+
+    log: list[str] = []
+    kept = normal.undamped(normal.assemble(factors, weights, n, p), 5)
+    spent = normal.undamped(normal.assemble(factors, weights, n, p), 5, log, remake=remake)
+    assert made and "nearly singular" in log[0]
+    for a, b in zip(kept, spent, strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -273,7 +273,7 @@ def step(ne: Normal, lam: float, lam_theta: float | None = None
     scale = float(np.mean(np.diag(ne.htt)))
     lt = lam if lam_theta is None else lam_theta
     htt = ne.htt + lt * np.diag(np.diag(ne.htt) + 1e-9 * max(scale, 1e-300))
-    cb = linalg.cholesky_banded(band(diag, ne.off, 5), lower=False, check_finite=False)
+    cb = linalg.cholesky_banded(band(diag, ne.off, 5), overwrite_ab=True, lower=False, check_finite=False)
     r = ne.basis.shape[2]
     sol = _tb(cb, np.concatenate([ne.basis.reshape(3 * k, r), ne.gx.reshape(3 * k, 1)], axis=1), "T")
     y_b, y = sol[:, :r], sol[:, r]
