@@ -285,3 +285,40 @@ def test_attitude_interpolated_a_block_of_times_at_a_time_is_the_whole() -> None
     finally:
         align.SLERP_BLOCK = old
     assert np.allclose(np.linalg.norm(whole, axis=1), 1.0)
+
+
+def test_forget_drops_the_inputs_of_the_effects_not_kept() -> None:
+    """Once a screening is decided its inputs are not asked again (each training fold binds at its own start bias):
+    `forget` drops them, keeping the named effects' (issue 39: time_offset's 26 MB went through the folds)."""
+    from magcal_cli.models.map import effects as map_effects
+
+    problem = _problem(4000)
+    t = problem.gyr.t[5:-5:10]
+    mag = Stream(Kind.MAGNETOMETER, "mag", t, np.ones((t.size, 3)), "test", "T")
+    map_effects.bind(problem, mag, t, np.zeros(3), ["time_offset", "temperature_drift"])
+    assert {k[0] for k in map_effects._INPUTS.keys(problem)} == {"time_offset", "temperature_drift"}
+    map_effects.forget(problem, keep=["temperature_drift"])
+    assert {k[0] for k in map_effects._INPUTS.keys(problem)} == {"temperature_drift"}
+    map_effects.forget(problem)
+    assert map_effects._INPUTS.keys(problem) == []
+
+
+def test_component_major_stacks_kept_for_the_latest_preintegrations_only() -> None:
+    """The gyro factor's component-major stacks are kept on the CM_KEEP preintegrations most recently linearised, not
+    on every one an estimate's context holds (issue 39); one dropped is made again, to the same digits."""
+    from magcal_cli.models import gyro
+
+    rng = np.random.default_rng(2)
+    t = np.arange(400) * 0.0025
+    w = rng.normal(size=(400, 3))
+    pres = [gyro.preintegrate(t, w, t[::8], np.full(3, 0.001 * k), np.full(3, 0.01)) for k in range(gyro.CM_KEEP + 2)]
+    first = pres[0].component_major()
+    for p in pres[1:]:
+        p.component_major()
+    assert [("_cm" in p.__dict__) for p in pres] == [False] * 2 + [True] * gyro.CM_KEEP
+    pres[1].component_major()                      # asked again: kept again, the oldest of the others goes
+    assert [("_cm" in p.__dict__) for p in pres] == [False, True, False, True]
+    again = pres[0].component_major()
+    assert again is not first
+    for a, b in zip(again, first, strict=True):
+        np.testing.assert_array_equal(a, b)

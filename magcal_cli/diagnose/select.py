@@ -29,7 +29,7 @@ from magcal_cli.diagnose.score import Score, Screen, screen
 from magcal_cli.diagnose.validate import FOLD_NOISE_ROUNDS, REFIT_ERRORS, Heldout, crossvalidate
 from magcal_cli.effects.base import Target
 from magcal_cli.errors import reason
-from magcal_cli.models.map.effects import Bound
+from magcal_cli.models.map.effects import Bound, forget
 from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.map.fit import fit_map
 from magcal_cli.models.problem import Problem
@@ -271,7 +271,9 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
 
     def procedure(fold_base: MapEstimate, hold: tuple[tuple[float, float], ...]) -> tuple[str, ...]:
         # what the training data alone finds significant against the base model (the first forward step)
-        return tuple(holm(screen(problem, mag, fold_base, candidates, declination)))
+        chosen = tuple(holm(screen(problem, mag, fold_base, candidates, declination)))
+        forget(problem, keep=picked)          # the fold's screening inputs: not asked again
+        return chosen
 
     fw = forward(problem, mag, base, candidates, declination, loss, dip_prior, progress=hook)
     scr = fw.screens[0]
@@ -301,6 +303,7 @@ def select(problem: Problem, mag: Stream, base: MapEstimate, candidates: Sequenc
             ambiguous = list(fw.ambiguous)
             est, picked = backward(*fit(more.picked, more.estimate))
     made_for = est if picked and ahead else None
+    forget(problem, keep=picked)              # the whole log's screening inputs, before the folds (issue 39)
     held, done_ahead = crossvalidate(problem, mag, base, procedure, est, declination, loss, dip_prior, hook,
                                      ahead(est) if ahead else ()) if picked else (None, ())
     neff = n_eff(est) if picked else float("nan")

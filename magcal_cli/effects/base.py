@@ -214,6 +214,16 @@ class Recent(Generic[Owner, K, V]):
             for k in [k for k in known if self.group(k) == g][:-self.keep]:
                 del known[k]
 
+    def drop(self, owner: Owner, which: Callable[[K], bool]) -> None:
+        """Forget the values kept for `owner` under the keys `which` names."""
+        with self._lock:
+            try:
+                known = self._by.get(owner, {})
+            except TypeError:            # an owner no weak reference can name (a test's stand-in) holds nothing
+                return
+            for k in [k for k in known if which(k)]:
+                del known[k]
+
     def keys(self, owner: Owner) -> list[K]:
         """The keys kept for `owner`, least recently used first."""
         with self._lock:

@@ -12,6 +12,9 @@ Forster's recursions for dR, its bias Jacobian and its covariance run over the p
 
 from __future__ import annotations
 
+import threading
+import weakref
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -28,6 +31,12 @@ if TYPE_CHECKING:
     from magcal_cli.models.problem import Problem
 
 IntArray = npt.NDArray[np.int64]
+#: preintegrations that keep their component-major stacks, the most recently linearised: kept on every one, the
+#: stacks outlived their fits in each estimate's context (13 MB per 60 000 epochs, four sets at a 60-min flight's
+#: held-out folds, issue 39); one made again costs three copies, a tenth of a linearisation
+CM_KEEP = 2
+_CM_HOLDERS: deque[weakref.ref[Preintegrated]] = deque()
+_CM_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,11 +61,20 @@ class Preintegrated:
     broken: npt.NDArray[np.bool_] | None = None
 
     def component_major(self) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """delta, l_inv and d_bias as component-major stacks (3, 3, K-1) (stacks.py), made once."""
-        got = self.__dict__.get("_cm")
+        """delta, l_inv and d_bias as component-major stacks (3, 3, K-1) (stacks.py), kept while this is one of the
+        CM_KEEP preintegrations most recently asked."""
+        got: tuple[FloatArray, FloatArray, FloatArray] | None = self.__dict__.get("_cm")
         if got is None:
             got = (stacks.cm(self.delta), stacks.cm(self.l_inv), stacks.cm(self.d_bias))
             object.__setattr__(self, "_cm", got)
+        with _CM_LOCK:
+            for ref in [r for r in _CM_HOLDERS if r() is self or r() is None]:
+                _CM_HOLDERS.remove(ref)
+            _CM_HOLDERS.append(weakref.ref(self))
+            while len(_CM_HOLDERS) > CM_KEEP:
+                old = _CM_HOLDERS.popleft()()
+                if old is not None:
+                    old.__dict__.pop("_cm", None)
         return got
 
     def scaled(self, variance_factor: float) -> Preintegrated:
@@ -181,20 +199,27 @@ def gyro_factor(states: FloatArray, theta: FloatArray, pre: Preintegrated, bias_
     delta, l_inv, d_bias = pre.component_major()
     s = stacks.cm(states)
     rel = stacks.tmul(s[:, :, :-1], s[:, :, 1:])                     # R_i^T R_j
+    del s       # each (3, 3, K) stack goes once used: a dozen at once were 50 MB on 60 000 epochs (issue 39)
     exp_g, jr_g = stacks.exp_and_right_jacobian(g_db)
     err_t = stacks.tmul(rel, stacks.mul(delta, exp_g))              # err^T
+    del exp_g
     r = stacks.log_small_transposed(err_t)
     rw = np.ascontiguousarray(np.einsum("ijn,jn->ni", l_inv, r))
     if not jacobians:
         return Factor("gyro", rw)
     a = stacks.mul(l_inv, stacks.right_jacobian_inv(r))
     lead = stacks.mul(a, stacks.mul(err_t, jr_g))
+    del err_t, jr_g
     np.negative(lead, out=lead)
     jt = stacks.rm(stacks.mul(lead, d_bias))
     cols = np.arange(bias_at, bias_at + 3)
     if extra is not None:
         jt = np.concatenate([jt, stacks.rm(lead) @ extra[1]], axis=2)
         cols = np.concatenate([cols, extra[2]])
+    del lead
     j_x = stacks.mult(a, rel)
+    del rel
     np.negative(j_x, out=j_x)
-    return Factor("gyro", rw, np.arange(r.shape[1]), stacks.rm(j_x), stacks.rm(a), jt, cols.astype(np.int64))
+    j_next = stacks.rm(a)
+    del a
+    return Factor("gyro", rw, np.arange(r.shape[1]), stacks.rm(j_x), j_next, jt, cols.astype(np.int64))

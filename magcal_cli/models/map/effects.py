@@ -114,6 +114,13 @@ KEEP = 2
 _INPUTS: Recent[Problem, tuple[object, ...], Inputs | str] = Recent(KEEP, lambda key: key[:3])
 
 
+def forget(problem: Problem, keep: Sequence[str] = ()) -> None:
+    """Drop the inputs kept for `problem`'s effects other than `keep`: a screening's are not asked again once it is
+    decided (each training fold binds at its own start bias), and time_offset's hold 26 MB per 60 min of 400 Hz
+    gyro, carried through the held-out folds (issue 39)."""
+    _INPUTS.drop(problem, lambda key: key[0] not in keep)
+
+
 def reported(inputs: Inputs) -> dict[str, object]:
     """An effect's constants that its result keeps: not a term's private "_" tables, which can hold a value per IMU
     sample (time_offset's gyro) and would travel with every result a diagnosis worker sends back (issue 39)."""
