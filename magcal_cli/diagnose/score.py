@@ -183,6 +183,10 @@ def screen(problem: Problem, mag: Stream, est: MapEstimate, ids: Sequence[str],
     return Screen(tuple(out), tuple(untestable), corr, unscored)
 
 
+#: clusters whose columns `_after_step` gathers at once
+AFTER_STEP_CLUSTERS = 256
+
+
 def _after_step(info: FloatArray, scores: FloatArray, hessians: FloatArray, a: IntArray,
                 rest: IntArray) -> FloatArray:
     """Per-cluster scores after one Gauss-Newton step in columns a and rest only (E_c + H_c d, d = -S^-1 g), the
@@ -191,7 +195,12 @@ def _after_step(info: FloatArray, scores: FloatArray, hessians: FloatArray, a: I
     g = np.zeros(sub.size)
     g[rest.size:] = scores[:, a].sum(axis=0)
     d = -np.linalg.lstsq(info[np.ix_(sub, sub)], g, rcond=None)[0]
-    out: FloatArray = scores + hessians[:, :, sub] @ d
+    out = np.empty_like(scores)
+    # a block of clusters at a time: the (C, p, |sub|) copy of every cluster's columns was 18 MB of a 60-min
+    # flight's training-fold peak (issue 39); each cluster's product is its own, so the digits are the same
+    for c in range(0, scores.shape[0], AFTER_STEP_CLUSTERS):
+        block = slice(c, c + AFTER_STEP_CLUSTERS)
+        out[block] = scores[block] + hessians[block][:, :, sub] @ d
     return out
 
 

@@ -449,3 +449,26 @@ def test_the_thinned_fit_starts_from_the_fit_on_every_reading() -> None:
     for name in ("D", "o", "dip"):
         assert np.all(np.abs(warm.value(name) - cold.value(name)) < 0.25 * cold.std_of(name)), name
     assert warm.iterations < cold.iterations, (warm.iterations, cold.iterations)
+
+
+@pytest.mark.parametrize("block", [256, 7, 1])
+def test_scores_after_a_step_are_the_same_in_blocks_of_clusters(block: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`_after_step` (E_c + H_c d per cluster) gathers a block of clusters' columns at a time (issue 39): the same
+    digits as gathering every cluster's at once, and the definition: d solves the step on columns sub = [rest, a]."""
+    from magcal_cli.diagnose import score
+
+    monkeypatch.setattr(score, "AFTER_STEP_CLUSTERS", block)
+    rng = np.random.default_rng(4)
+    c, p = 40, 9
+    hessians, scores = rng.normal(size=(c, p, p)), rng.normal(size=(c, p))
+    m = rng.normal(size=(p, p))
+    info = m @ m.T + p * np.eye(p)
+    a, rest = np.array([6, 7]), np.array([0, 2, 3, 5])
+    sub = np.concatenate([rest, a])
+    g = np.zeros(sub.size)
+    g[rest.size:] = scores[:, a].sum(axis=0)
+    d = -np.linalg.solve(info[np.ix_(sub, sub)], g)
+    got = score._after_step(info, scores, hessians, a, rest)
+    whole = -np.linalg.lstsq(info[np.ix_(sub, sub)], g, rcond=None)[0]
+    np.testing.assert_array_equal(got, scores + hessians[:, :, sub] @ whole)
+    np.testing.assert_allclose(got, scores + np.einsum("cps,s->cp", hessians[:, :, sub], d), rtol=1e-12, atol=1e-12)

@@ -238,7 +238,11 @@ def offsets_in_force(hist: ParamHistory, suffix: str, t: FloatArray) -> FloatArr
 def offset_cast_evidence(logged: FloatArray, params: FloatArray) -> float:
     """The cast evidence of the logged OfsX.. counts (N, 3) against the COMPASS_OFS values in force (N, 3), counting
     each distinct (parameter, logged) pair once: the same offset is logged in every record."""
-    pairs = np.unique(np.concatenate([params, logged], axis=1), axis=0)
+    rows = np.concatenate([params, logged], axis=1)
+    # a row equal to the one before adds no pair: sorting every record's row took 0.5 s of a 60-min log's read
+    fresh = np.ones(rows.shape[0], dtype=bool)
+    fresh[1:] = np.any(rows[1:] != rows[:-1], axis=1)
+    pairs = np.unique(rows[fresh], axis=0)
     return cast_evidence(pairs[:, 3:], pairs[:, :3], float(np.log(ROUNDED_EVIDENCE)))
 
 
