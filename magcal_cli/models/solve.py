@@ -283,7 +283,7 @@ def iterate(evaluate: Callable[[FloatArray, FloatArray], tuple[float, S]],
                 break
         else:
             # the rejected point's factors and Jacobians go now, not when the next trial replaces them: kept through
-            # the next, more damped solve of the same system they were a 60-min flight's peak (issue 39)
+            # the next, more damped solve of the same system, they were a 60-min flight's peak (issue 39)
             del trial, new_states, new_theta
             lam *= 10.0
             log.append(f"iter {it}: rejected (cost {new_cost:.6g}), lambda -> {lam:.1e}")
@@ -321,7 +321,7 @@ class _System:
 
     def release(self) -> None:
         """Drop the equations while the trial point is linearised: both at once were the 60-min flight's peak
-        after the Jacobians went (issue 39); a rejected step (a few per cent) assembles them again."""
+        after the Jacobians went (issue 39); a rejected step assembles them again (`_solve`: large ones only)."""
         self.equations = None
 
 
