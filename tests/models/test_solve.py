@@ -159,22 +159,41 @@ def test_one_blas_thread_limits_blas_inside_the_block_only() -> None:
     assert {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"} == before
 
 
-def test_a_solve_that_stops_on_a_rejected_step_keeps_its_points_jacobians() -> None:
-    """The factors drop their Jacobians once assembled (issue 39); a solve whose last step was rejected stops on a
-    point whose equations are assembled, and its solution still holds that point's factors with Jacobians."""
-    rng = np.random.default_rng(3)
-    n = 12
-    truth, _, linearize = _chain_problem(rng, n)
-    start, theta0 = truth @ so3.exp(0.1 * rng.normal(size=(n, 3))), np.zeros(2)
-    calls = []
+def _rejecting_first_trial(linearize):  # noqa: ANN001, ANN202
+    """`linearize` with a cost no step can be accepted at on its second call (the first trial point), and the list
+    of the `jac` it was asked with."""
+    calls: list[bool] = []
 
     def rejecting(states: np.ndarray, theta: np.ndarray, jac: bool) -> list[Factor]:
         calls.append(jac)
         out = linearize(states, theta, jac)
-        if len(calls) == 2:                        # the first trial point: a cost that no step can be accepted at
+        if len(calls) == 2:
             out = [Factor(f.name, 1e6 + f.r, f.idx, f.J_x, f.J_next, f.J_theta, f.theta_cols) for f in out]
         return out
 
+    return rejecting, calls
+
+
+def _perturbed_chain(seed: int):  # noqa: ANN202
+    """A 12-state `_chain_problem`'s linearize and a start 0.1 rad off its truth (theta 0)."""
+    rng = np.random.default_rng(seed)
+    truth, _, linearize = _chain_problem(rng, 12)
+    return linearize, truth @ so3.exp(0.1 * rng.normal(size=(12, 3))), np.zeros(2)
+
+
+#: equations solved in place (and released before each trial point), or kept for a rejected step
+IN_PLACE = pytest.mark.parametrize(("in_place", "again"), [(0, True), (2**62, False)])
+
+
+@IN_PLACE
+def test_a_solve_that_stops_on_a_rejected_step_keeps_its_points_jacobians(in_place: int, again: bool,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The factors drop their Jacobians once assembled (issue 39); a solve whose last step was rejected stops on a
+    point whose equations are assembled (or released), and its solution still holds that point's factors with
+    Jacobians."""
+    monkeypatch.setattr(solve_module, "IN_PLACE_BYTES", in_place)
+    linearize, start, theta0 = _perturbed_chain(3)
+    rejecting, _ = _rejecting_first_trial(linearize)
     sol = solve(rejecting, start, theta0, Options(max_iterations=1))
     assert "rejected" in sol.log[-1] and sol.iterations == 1
     np.testing.assert_array_equal(sol.states, start)
@@ -184,31 +203,22 @@ def test_a_solve_that_stops_on_a_rejected_step_keeps_its_points_jacobians() -> N
         np.testing.assert_array_equal(got.J_x, want.J_x)
         np.testing.assert_array_equal(got.r, want.r)
     assert np.all(np.isfinite(sol.cov_theta))
+    kept = solve(linearize, start, theta0, Options(max_iterations=0))
+    np.testing.assert_array_equal(sol.cov_theta, kept.cov_theta)
 
 
-@pytest.mark.parametrize(("in_place", "again"), [(0, True), (2**62, False)])
+@IN_PLACE
 def test_a_rejected_step_is_solved_again_from_the_same_points_equations(in_place: int, again: bool,
                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """Large equations are solved in place and released before the trial point is linearised (issue 39): a rejected
     step linearises its point again and takes the more damped step that equations kept aside give (small ones)."""
     monkeypatch.setattr(solve_module, "IN_PLACE_BYTES", in_place)
-    rng = np.random.default_rng(8)
-    n = 12
-    truth, _, linearize = _chain_problem(rng, n)
-    start, theta0 = truth @ so3.exp(0.1 * rng.normal(size=(n, 3))), np.zeros(2)
-    calls = []
-
-    def rejecting(states: np.ndarray, theta: np.ndarray, jac: bool) -> list[Factor]:
-        calls.append(jac)
-        out = linearize(states, theta, jac)
-        if len(calls) == 2:                        # the first trial point: rejected
-            out = [Factor(f.name, 1e6 + f.r, f.idx, f.J_x, f.J_next, f.J_theta, f.theta_cols) for f in out]
-        return out
-
+    linearize, start, theta0 = _perturbed_chain(8)
+    rejecting, calls = _rejecting_first_trial(linearize)
     sol = solve(rejecting, start, theta0, Options(max_iterations=2, covariance=False))
     assert "rejected" in sol.log[1] and "cost" in sol.log[2] and "rejected" not in sol.log[2]
     # the start, the rejected trial, (in place: the start again), the last trial (no covariance: no Jacobians there)
-    assert calls == [True, True, True, False] if again else [True, True, False]
+    assert calls == ([True, True, True, False] if again else [True, True, False])
     # the accepted step is the first step of a solve that starts with the damping the rejection left
     once = solve(linearize, start, theta0, Options(max_iterations=1, covariance=False, lambda0=1e-5))
     np.testing.assert_array_equal(sol.states, once.states)
