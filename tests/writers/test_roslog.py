@@ -279,3 +279,21 @@ def test_stamps_snap_to_the_logged_ones() -> None:
     logged = 1_700_000_000_123_456_789 + np.arange(0, 10**9, 10**7, dtype=np.int64)
     assert np.array_equal(snapped(logged[::3] - 97, logged), logged[::3])
     assert np.array_equal(snapped(logged[::3] + 5000, logged), logged[::3] + 5000)
+
+
+def test_a_new_mcap_is_written_in_time_order_as_one_stable_sort_of_every_message(tmp_path: Path) -> None:
+    """The new MCAP's messages are merged from the streams as they are written (issue 39: a list of every message's
+    dict held 3.7 GB for a 60-min, 400 Hz log): log times never go back, sequences count up from 0, and messages
+    with equal stamps keep the sources' order (IMU, the compass as logged, then calibrated), as one stable sort of
+    every message did."""
+    from mcap.reader import make_reader
+
+    cal = with_cov(load(SAMPLES / "handheld.bin.truth.json"))
+    apply_to_log(cal, SAMPLES / "handheld.bin", tmp_path / "a.mcap")
+    with (tmp_path / "a.mcap").open("rb") as fh:
+        got = [(m.log_time, c.topic, m.sequence) for _, c, m in make_reader(fh).iter_messages(log_time_order=False)]
+    rank = {"/IMU0": 0, "/MAG0": 1, "/MAG0/calibrated": 2}
+    assert [s for _, _, s in got] == list(range(len(got)))
+    assert got == sorted(got, key=lambda e: (e[0], rank[e[1]]))
+    tied = {t for (t, _, _), (u, _, _) in zip(got[:-1], got[1:], strict=True) if t == u}
+    assert tied                         # the sample's IMU and compass share stamps: the ties are tested

@@ -13,7 +13,7 @@ import numpy as np
 
 from magcal_cli.atomic import atomic_path
 from magcal_cli.errors import LogReadError
-from magcal_cli.streams import Kind, Recording
+from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.writers.roslog.bags import (
     DEFAULT_FRAME,
     MAGNETIC_FIELD,
@@ -132,35 +132,48 @@ def new_mcap(rec: Recording, out: Path, series: list[Series], imu_id: str, repla
     store = get_typestore(Stores.ROS2_HUMBLE)
     frame = ros_name(imu_id).strip("/").replace("/", "_")
     t0_ns = round(rec.t0 * 1e9)
-    events: list[tuple[int, str, Any]] = []
     acc = [s for s in rec.of_kind(Kind.ACCELEROMETER) if s.id == imu_id] or rec.of_kind(Kind.ACCELEROMETER)
     gyr = [s for s in rec.of_kind(Kind.GYROSCOPE) if s.id == imu_id] or rec.of_kind(Kind.GYROSCOPE)
+    sources: list[Iterator[tuple[int, str, dict[str, Any]]]] = []
     if acc and gyr:
-        a, g = acc[0], gyr[0]
-        w = np.column_stack([np.interp(a.t, g.t, g.values[:, j]) for j in range(3)])
-        for ti, ai, wi in zip(a.t, a.values, w, strict=True):
-            ns = t0_ns + round(float(ti) * 1e9)
-            events.append((ns, ros_name(imu_id), {
-                "header": _msg(ns, frame), "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
-                "orientation_covariance": [-1.0] + [0.0] * 8, "angular_velocity": _vec(wi),
-                "angular_velocity_covariance": [0.0] * 9, "linear_acceleration": _vec(ai),
-                "linear_acceleration_covariance": [0.0] * 9}))
+        sources.append(_imu_messages(acc[0], gyr[0], t0_ns, ros_name(imu_id), frame))
     for s in series:
         if not replace:
             raw = rec.select(Kind.MAGNETOMETER, s.mag_id)
-            for ti, v in zip(raw.t, raw.values, strict=True):
-                ns = t0_ns + round(float(ti) * 1e9)
-                events.append((ns, ros_name(s.mag_id), {"header": _msg(ns, frame), "magnetic_field": _vec(v),
-                                                        "magnetic_field_covariance": [0.0] * 9}))
-        for i, ns in enumerate(s.stamps.tolist()):
-            events.append((ns, s.topic, {"header": _msg(ns, frame), "magnetic_field": _vec(s.field[i]),
-                                         "magnetic_field_covariance": s.cov[i].ravel().tolist()}))
-    events.sort(key=lambda e: e[0])
+            sources.append(_field_messages(t0_ns + np.round(raw.t * 1e9).astype(np.int64), raw.values, None,
+                                           ros_name(s.mag_id), frame))
+        sources.append(_field_messages(s.stamps, s.field, s.cov, s.topic, frame))
     with atomic_path(out) as tmp, tmp.open("wb") as fh:
         writer = Writer(fh)
         schemas = {t: writer.register_msgdef(t, store.generate_msgdef(t, ros_version=2)[0])
                    for t in (IMU, MAGNETIC_FIELD)}
-        for seq, (ns, topic, msg) in enumerate(events):
+        # each source is in time order: merged as they are written, not a list of every message's dict (a 60-min
+        # 400 Hz log's 1.44 M IMU messages held 3.7 GB, issue 39). Equal stamps keep the sources' order, as the
+        # stable sort of one list did
+        for seq, (ns, topic, msg) in enumerate(heapq.merge(*sources, key=lambda e: e[0])):
             schema = schemas[IMU if "linear_acceleration" in msg else MAGNETIC_FIELD]
             writer.write_message(topic, schema, msg, log_time=ns, publish_time=ns, sequence=seq)
         writer.finish()  # type: ignore[no-untyped-call]  # mcap-ros2-support ships no annotations for finish
+
+
+def _imu_messages(a: Stream, g: Stream, t0_ns: int, topic: str, frame: str
+                  ) -> Iterator[tuple[int, str, dict[str, Any]]]:
+    """The accelerometer's samples as sensor_msgs/Imu, with the gyro interpolated to their times, in time order."""
+    w = np.column_stack([np.interp(a.t, g.t, g.values[:, j]) for j in range(3)])
+    for ti, ai, wi in zip(a.t, a.values, w, strict=True):
+        ns = t0_ns + round(float(ti) * 1e9)
+        yield ns, topic, {
+            "header": _msg(ns, frame), "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            "orientation_covariance": [-1.0] + [0.0] * 8, "angular_velocity": _vec(wi),
+            "angular_velocity_covariance": [0.0] * 9, "linear_acceleration": _vec(ai),
+            "linear_acceleration_covariance": [0.0] * 9}
+
+
+def _field_messages(stamps: np.ndarray, field: np.ndarray, cov: np.ndarray | None, topic: str, frame: str
+                    ) -> Iterator[tuple[int, str, dict[str, Any]]]:
+    """A field series as sensor_msgs/MagneticField at `stamps` (ns), in time order (equal stamps in series order);
+    `cov` None: unknown (zeros)."""
+    for i in np.argsort(stamps, kind="stable").tolist():
+        ns = int(stamps[i])
+        yield ns, topic, {"header": _msg(ns, frame), "magnetic_field": _vec(field[i]),
+                          "magnetic_field_covariance": [0.0] * 9 if cov is None else cov[i].ravel().tolist()}
