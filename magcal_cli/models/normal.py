@@ -353,17 +353,17 @@ def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatAr
     u = 5 if any(f.J_next is not None for f in factors) else 2
 
     def again() -> NormalEquations:
-        return _unit_assembled(linearize(*at, True), n, p)
+        return assemble_unit(linearize(*at, True), n, p)
 
     with one_blas_thread():
-        ne = _unit_assembled(factors, n, p)
+        ne = assemble_unit(factors, n, p)
         del factors                     # in the equations now: not beside the elimination's arrays (issue 39)
         if trajectory_damping > 0.0:
             return step(ne, trajectory_damping, u, lam_theta=0.0, consume=True)[2]
         return undamped(ne, u, need_w=False, remake=again)[2]          # the covariance only: no Hxx^-1 Hxt
 
 
-def _unit_assembled(factors: Sequence[Factor], n: int, p: int) -> NormalEquations:
+def assemble_unit(factors: Sequence[Factor], n: int, p: int) -> NormalEquations:
     """`assemble` with unit weights."""
     return assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
 
@@ -375,7 +375,7 @@ def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> 
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
     with one_blas_thread():
-        ne = _unit_assembled(factors, n, p)
+        ne = assemble_unit(factors, n, p)
         del factors
         # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
         # its null directions (what the motion cannot determine)

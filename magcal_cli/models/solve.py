@@ -232,7 +232,7 @@ def linearised(linearize: Linearize, states: FloatArray, theta: FloatArray, lam:
     with normal.one_blas_thread():
         factors = tuple(linearize(states, theta, True))
         u = 5 if any(f.J_next is not None for f in factors) else 2
-        ne = normal.assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+        ne = normal.assemble_unit(factors, n, p)
         return Linearised(factors, normal.factorise(ne, lam, u))
 
 

@@ -150,12 +150,14 @@ def sensor_checks(kinds: tuple[Kind, ...], t: FloatArray, values: FloatArray,
                   where: str) -> tuple[FloatArray, FloatArray, list[str]]:
     """Drop rows where a magnetometer, accelerometer or gyro (3 columns each, in `kinds` order) reads beyond
     physical limits (corrupt values) or sits at a wall of its range (saturated: the true value is beyond it)."""
-    blocks, col = [], 0
-    for kind in kinds:
-        blocks.append(values[:, col:col + kind.width])
-        col += kind.width
-    t, rows, notes = sensor_rows(kinds, t, blocks, where)
+    t, rows, notes = sensor_rows(kinds, t, kind_columns(kinds, values), where)
     return t, values if rows is None else values[rows], notes
+
+
+def kind_columns(kinds: Sequence[Kind], values: FloatArray) -> list[FloatArray]:
+    """Views of each kind's columns of `values` (N, sum of the kinds' widths), in `kinds` order."""
+    edges = np.cumsum([0, *(k.width for k in kinds)])
+    return [values[:, a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
 def sensor_rows(kinds: tuple[Kind, ...], t: FloatArray, blocks: Sequence[FloatArray], where: str

@@ -10,7 +10,7 @@ import numpy as np
 from magcal_cli import so3
 from magcal_cli.align import clean_rows
 from magcal_cli.progress import current
-from magcal_cli.readers.checks import dead_field, drop_held, sensor_rows
+from magcal_cli.readers.checks import dead_field, drop_held, kind_columns, sensor_rows
 from magcal_cli.readers.dataflash.format import IntArray, MessageFormat, RawLog, Table
 from magcal_cli.streams import FloatArray, Kind, Recording, Sampling, Stream
 
@@ -156,13 +156,7 @@ class Pending:
 
     def blocks(self) -> list[FloatArray]:
         """Each kind's (N, width) values: the reader's own arrays, or views of the one array."""
-        if isinstance(self.values, tuple):
-            return list(self.values)
-        out, col = [], 0
-        for kind in self.kinds:
-            out.append(self.values[:, col:col + kind.width])
-            col += kind.width
-        return out
+        return list(self.values) if isinstance(self.values, tuple) else kind_columns(self.kinds, self.values)
 
 
 def finish(path: Path, fmt: str, pending: list[Pending], params: dict[str, float],
