@@ -50,7 +50,11 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
     fitted on every reading. `progress` defaults to the current hook (models.map calls this without one).
     """
     hook = progress or current()
-    step = int(np.ceil(base.epochs.size / DIAGNOSIS_EPOCHS))
+    # readings, not epochs: a long log's epochs average several readings each (models/epochs.py), and thinning by
+    # its epochs diagnosed an hour's flight on three times DIAGNOSIS_EPOCHS readings
+    groups = None if base.context is None else base.context.ep.groups
+    readings = base.epochs.size if groups is None else groups.t.size
+    step = int(np.ceil(readings / DIAGNOSIS_EPOCHS))
     thin = mag if step <= 1 else Stream(mag.kind, mag.id, mag.t[::step], mag.values[::step], mag.source,
                                         mag.native_unit)
     if step > 1:
@@ -87,7 +91,7 @@ def diagnose(problem: Problem, mag: Stream, base: MapEstimate, declination: floa
             if modelled else before
     est, full = replace(sel.estimate, effects=sel.verdicts), sel.estimate
     if step > 1:
-        note = f"{mag.id}: diagnosed on every {step}th of {base.epochs.size} readings; effects fitted on all"
+        note = f"{mag.id}: diagnosed on every {step}th of {readings} readings; effects fitted on all"
         if modelled and not ran:
             hook(f"{mag.id} diagnosis: fitting {', '.join(modelled)} on every reading", 0)
         with active(hook):

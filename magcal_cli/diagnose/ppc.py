@@ -169,7 +169,8 @@ def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generat
     ep, pre, noise = ctx.ep, ctx.pre, ctx.noise
     s_acc = 1.0 / ep.acc_factor if np.any(ep.acc_factor < 1.0 - 1e-12) else np.ones(ep.t.size)
     acc_pred = ep.acc - fa.r / s_acc[:, None] * noise.acc
-    mag_pred = ep.mag - fm.r * noise.mag
+    s_mag = 1.0 if ep.mag_factor is None else 1.0 / ep.mag_factor[:, None]     # a group's mean reading
+    mag_pred = ep.mag - fm.r / s_mag * noise.mag
     k = ep.t.size
     if ep.acc_at is None:
         e_acc = rng.standard_normal((k, 3)) / s_acc[:, None]
@@ -178,7 +179,7 @@ def replicate(ctx: FitContext, factors: Sequence[Factor], rng: np.random.Generat
         z = rng.standard_normal((int(j.max()) + 2 - int(j.min()), 3))
         e_acc = (1.0 - w)[:, None] * z[j - j.min()] + w[:, None] * z[j + 1 - j.min()]
     acc = acc_pred + e_acc * noise.acc
-    mag = mag_pred + rng.standard_normal((k, 3)) * noise.mag
+    mag = mag_pred + rng.standard_normal((k, 3)) / s_mag * noise.mag
     chol = np.linalg.cholesky(pre.cov)          # not inv(l_inv): a broken interval has l_inv = 0 (gyro.py)
     r = (chol @ fg.r[:, :, None])[:, :, 0]
     xi = (chol @ rng.standard_normal((k - 1, 3, 1)))[:, :, 0]

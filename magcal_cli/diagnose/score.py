@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from magcal_cli import effects as registry
+from magcal_cli.models.epochs import Epochs
 from magcal_cli.models.gyro import Preintegrated, preintegrate_log
 from magcal_cli.models.map.effects import Bound, bind, layout_for
 from magcal_cli.models.map.estimate import MapEstimate
@@ -97,7 +98,7 @@ def _extend(problem: Problem, mag: Stream, est: MapEstimate, bound: Sequence[Bou
         tested[b.effect.id], held[b.effect.id] = cols[free], cols[~free]
     pre = ctx.pre
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
-        pre = _with_scale_jacobian(problem, mag, ctx.ep.t, pre)
+        pre = _with_scale_jacobian(problem, mag, ctx.ep, pre)
     lin = ctx.linearize(layout, all_bound, pre=pre, holdout=ctx.holdout)
     sol = solve(lin, ctx.states, theta, Options(max_iterations=0))
     t = ctx.ep.t
@@ -116,14 +117,14 @@ _SCALE_JACOBIAN: weakref.WeakKeyDictionary[Problem, dict[bytes, Preintegrated]] 
 _LOCK = threading.Lock()
 
 
-def _with_scale_jacobian(problem: Problem, mag: Stream, t: FloatArray, pre: Preintegrated) -> Preintegrated:
+def _with_scale_jacobian(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated) -> Preintegrated:
     """`pre` integrated again with the gyro-scale Jacobian (models/gyro.py), once per epochs, bias and noise."""
-    key = t.tobytes() + pre.bias.tobytes() + pre.noise_std.tobytes()
+    key = ep.t.tobytes() + pre.bias.tobytes() + pre.noise_std.tobytes()
     with _LOCK:
         memo = _SCALE_JACOBIAN.setdefault(problem, {})
     hit = memo.get(key)
     if hit is None:
-        hit = preintegrate_log(problem, t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True)
+        hit = preintegrate_log(problem, ep.t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True, ep.groups)
         memo[key] = hit
     return hit
 
@@ -142,7 +143,7 @@ def screen(problem: Problem, mag: Stream, est: MapEstimate, ids: Sequence[str],
     assert ctx is not None
     bias = ctx.pre.bias + ctx.layout.get(ctx.theta, "gyroscope_bias")
     unscored = tuple(i for i in ids if not registry.get(i).params)     # no parameters: nothing to score
-    bound, untestable = bind(problem, mag, ctx.ep.t, bias, [i for i in ids if i not in unscored], declination)
+    bound, untestable = bind(problem, mag, ctx.ep.t_obs, bias, [i for i in ids if i not in unscored], declination)
     scored = list(bound)
     if not scored:
         return Screen((), tuple(untestable), {}, unscored)

@@ -6,6 +6,7 @@ magcal_cli.readers.ros.msg, magcal_cli.readers.ros.types2.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -312,7 +313,7 @@ def test_real_normalised_bags_are_flagged(realdata: Path, name: str, mag_topic: 
 
 
 def test_real_phidgets_refusal_names_the_non_uniform_field(realdata: Path, tmp_path: Path) -> None:
-    """The phidgets bag (56 s, tilt < 13 deg, 250 deg of heading) leaves its field strength varying 14 % around
+    """The phidgets bag (56 s, tilt < 13 deg, 250 deg of heading) leaves its field strength varying 14-15 % around
     any calibration: the fit stops with a one-line reason that says the field was not uniform (it blamed the motion
     before), exit 1, no traceback and no output folder."""
     from click.testing import CliRunner
@@ -322,8 +323,9 @@ def test_real_phidgets_refusal_names_the_non_uniform_field(realdata: Path, tmp_p
     out = tmp_path / "out"
     res = CliRunner().invoke(cli, ["fit", str(realdata / ROS / PHIDGETS[0]), "-o", str(out), "-q"])
     assert res.exit_code == 1
-    assert "/imu/mag: no calibration explains these readings: the calibrated field strength still varies 14 % RMS" \
-        in res.stderr
+    # 14 % on every reading; 15 % on the 125 Hz readings averaged in pairs (models/epochs.py)
+    assert re.search(r"/imu/mag: no calibration explains these readings: the calibrated field strength still varies "
+                     r"1[45] % RMS", res.stderr)
     assert "the field around the sensor was not uniform or changed during the log" in res.stderr
     assert not out.exists()
 

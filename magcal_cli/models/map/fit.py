@@ -171,7 +171,8 @@ def _rounds(problem: Problem, run: Run, cfg: FitSettings) -> tuple[Solution, Flo
         run.log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = run.theta[bg]
         if float(np.linalg.norm(db)) * float(run.pre.duration.max()) > REPREINTEGRATE_RAD:
-            run.pre = preintegrate_log(problem, run.ep.t, run.pre.bias + db, run.noise.gyr, run.where, scale_jac)
+            run.pre = preintegrate_log(problem, run.ep.t, run.pre.bias + db, run.noise.gyr, run.where, scale_jac,
+                                       run.ep.groups)
             run.theta[bg] = 0.0
             run.log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue
@@ -256,8 +257,8 @@ def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: 
     theta: the CRLB."""
     d = BASE.get(theta_si, "D").reshape(3, 3, order="F")
     scale = float(np.cbrt(abs(np.linalg.det(d))))
-    ep = epochs_for(problem, mag, scale)
-    pre = preintegrate_log(problem, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr)
+    ep = epochs_for(problem, mag, scale, average=True)
+    pre = preintegrate_log(problem, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr, groups=ep.groups)
     jac = BASE.si_factors(scale)
     theta = theta_si / jac
     BASE.put(theta, "gyroscope_bias", 0.0)

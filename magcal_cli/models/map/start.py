@@ -87,7 +87,7 @@ def prepare(problem: Problem, mag: Stream, cfg: FitSettings, cache: dict[bytes, 
         intr = map_init.from_prior(clean, d * warm.ep.scale, o * warm.ep.scale)
     else:
         intr = map_init.intrinsic_fit(clean, where)
-    ep = epochs_for(problem, mag, intr.scale)
+    ep = epochs_for(problem, mag, intr.scale, average=True)
     noise = initial_noise(problem, mag, intr.scale, intr.noise_rms)
     still_s = sum(seg.end - seg.start for seg in problem.still.segments)
     floor = noise if still_s >= MIN_STILL_S else None
@@ -104,7 +104,7 @@ def prepare(problem: Problem, mag: Stream, cfg: FitSettings, cache: dict[bytes, 
         theta = BASE.zeros()
         BASE.carry(theta, warm.layout, warm.theta)
     else:
-        clean_ep = replace(ep, mag=clean[ep.index] / intr.scale, notes=(), index=np.zeros(0, np.int64))
+        clean_ep = replace(ep, mag=ep.readings(clean) / intr.scale, notes=(), index=np.zeros(0, np.int64))
         states, theta, pre, notes = initial_state(problem, clean_ep, intr, noise, cfg, cache)
     layout, bound, untestable, theta, pre = with_effects(problem, mag, ep, pre, theta, cfg)
     if warm is not None:                  # the effect blocks that fit also had
@@ -130,7 +130,7 @@ def start_on(problem: Problem, base: FitContext, mag: Stream) -> FitContext:
     """A warm start for a fit of `mag` on other epochs than `base`'s (every k-th reading, for the diagnosis):
     base's trajectory slerped to the new epochs, its parameters, noise levels and gyro bias, preintegrated between
     the new epochs."""
-    ep = epochs_for(problem, mag, base.ep.scale)
+    ep = epochs_for(problem, mag, base.ep.scale, average=True)
     pre = preintegrated(problem, ep, base.pre.bias, base.noise, {})
     states = so3.slerp(base.states, base.ep.t, ep.t)
     return replace(base, ep=ep, pre=pre, states=states, holdout=None, excluded=None)
@@ -146,7 +146,8 @@ def preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
         ratio = noise.gyr / hit.noise_std
         if np.allclose(ratio, ratio[0], rtol=1e-12):
             return hit.scaled(float(ratio[0]) ** 2)
-    pre = preintegrate_log(problem, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}", scale_jacobian)
+    pre = preintegrate_log(problem, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}", scale_jacobian,
+                           ep.groups)
     # the entry is a copy that shares the arrays: the component-major stacks the fit makes on `pre` (13 MB at
     # 60 000 epochs) must not stay in the cache for the rest of the run (issue 39); a hit is rescaled anyway
     cache[key] = replace(pre)
@@ -198,14 +199,14 @@ def with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated, 
     """Bind the effects `cfg.effects` at the start values: the extended layout and theta, and a preintegration with
     the scale Jacobian when a gyro effect needs it."""
     bias = pre.bias + BASE.get(theta, "gyroscope_bias")
-    bound, untestable = bind(problem, mag, ep.t, bias, cfg.effects, cfg.declination)
+    bound, untestable = bind(problem, mag, ep.t_obs, bias, cfg.effects, cfg.declination)
     layout = layout_for(bound)
     full = layout.zeros()
     layout.carry(full, BASE, theta)
     for b in bound:
         full[layout.cols(*b.names())] = b.effect.start()
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
-        pre = preintegrate_log(problem, ep.t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True)
+        pre = preintegrate_log(problem, ep.t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True, ep.groups)
     return layout, tuple(bound), untestable, full, pre
 
 
@@ -213,7 +214,7 @@ def with_coverage(problem: Problem, mag: Stream, prior: partial.MagPrior, dip: f
                   cache: dict[bytes, Preintegrated]) -> partial.MagPrior:
     """The prior with what the motion shows of the field (`partial.covered`): from the gyro-integrated attitude
     levelled by the accelerometer, never from the readings about the prior."""
-    ep = epochs_for(problem, mag, 1.0)
+    ep = epochs_for(problem, mag, 1.0, average=True)
     bias = problem.still.gyr_bias if problem.still.segments else np.zeros(3)
     pre = preintegrated(problem, ep, bias, Noise(np.ones(3), np.full(3, 1e-3), np.ones(3)), cache)
     return partial.covered(prior, pre.delta, ep.acc, dip, ep.mag)
