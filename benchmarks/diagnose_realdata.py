@@ -22,9 +22,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from effects_realdata import Mocap, heading_stats  # noqa: E402
 
-from magcal_cli.calibration.run import RunResult, calibrate  # noqa: E402
+from magcal_cli.calibration.run import RunResult  # noqa: E402
 from magcal_cli.config import Config  # noqa: E402
 from magcal_cli.errors import MagcalError  # noqa: E402
+from magcal_cli.pipeline import calibrate  # noqa: E402
 from magcal_cli.streams import Kind  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

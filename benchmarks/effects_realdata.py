@@ -31,11 +31,12 @@ from typing import Any
 import numpy as np
 
 from magcal_cli import so3
-from magcal_cli.calibration.run import RunResult, calibrate
+from magcal_cli.calibration.run import RunResult
 from magcal_cli.config import Config
 from magcal_cli.errors import MagcalError
 from magcal_cli.firmware.common import Options
 from magcal_cli.firmware.export import export
+from magcal_cli.pipeline import calibrate
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.wmm import reference_field

@@ -20,8 +20,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from magcal_cli.calibration.run import RunResult, calibrate_recording
+from magcal_cli.calibration.run import RunResult
 from magcal_cli.config import Config
+from magcal_cli.pipeline import calibrate_recording
 from magcal_cli.readers import open_recording
 from magcal_cli.streams import Kind, Recording, Stream
 from magcal_cli.wmm import reference_field
