@@ -34,10 +34,12 @@ GROUP_GAP_PERIODS = 4.0
 
 @dataclass(frozen=True, eq=False)
 class Groups:
-    """The readings an epoch averages: their times t (n,) s and where each epoch's readings start, `start`
-    (K + 1,) (epoch k: readings start[k] .. start[k+1] - 1; its state is at the first)."""
+    """The readings an epoch averages: their times t (n,) s, the readings y (n, 3) in the fit's scale, and where
+    each epoch's readings start, `start` (K + 1,) (epoch k: readings start[k] .. start[k+1] - 1; its state is at
+    the first)."""
 
     t: FloatArray
+    y: FloatArray
     start: npt.NDArray[np.int64]
 
     @property
@@ -157,7 +159,7 @@ def _grouped(problem: Problem, mag: Stream, scale: float, index: npt.NDArray[np.
         new[1:] |= np.diff(t) > GROUP_GAP_PERIODS * period
         for t0, t1 in problem.unmeasured:
             new[1:] |= (t[1:] > t0) & (t[:-1] < t1)
-    groups = Groups(t, np.append(np.flatnonzero(new), t.size).astype(np.int64))
+    groups = Groups(t, mag.xyz[index] / scale, np.append(np.flatnonzero(new), t.size).astype(np.int64))
     k = groups.counts.size
     _enough(problem, mag, k)
     acc, _, j, w = _acc_at(problem, t)
@@ -172,8 +174,8 @@ def _grouped(problem: Problem, mag: Stream, scale: float, index: npt.NDArray[np.
     factor = np.sqrt(np.bincount(first, coef**2, minlength=k))
     note = (f"{mag.id}: {t.size} readings at {rate:.0f} Hz; each epoch averages {step} consecutive readings "
             f"({k} epochs, {rate / step:.0f} Hz), the gyro carrying them to the epoch, to bound time and memory")
-    return Epochs(mag.id, t[groups.start[:-1]], groups.mean(mag.xyz[index]) / scale, groups.mean(acc), factor,
-                  scale, (note,), index, None, groups)
+    return Epochs(mag.id, t[groups.start[:-1]], groups.mean(groups.y), groups.mean(acc), factor, scale, (note,),
+                  index, None, groups)
 
 
 def initial_noise(problem: Problem, mag: Stream, scale: float, fit_rms: float) -> Noise:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -98,6 +99,19 @@ class Within:
     A: FloatArray
     B: FloatArray
 
+    def mixed(self, db: FloatArray) -> FloatArray:
+        """N = A + M (K, 3, 3), M[:, :, a] = B_a db: the map from u = R_k^T v to the group's mean of R_j^T v at the
+        bias correction db."""
+        out: FloatArray = self.A + (self.B @ db).transpose(0, 2, 1)
+        return out
+
+    def by_bias(self, u: FloatArray) -> FloatArray:
+        """sum_a u_a B_a (K, 3, 3): the derivative of the group's mean of R_j^T v by db, for u = R_k^T v (K, 3)."""
+        out: FloatArray = u[:, 0, None, None] * self.B[:, 0]
+        out += u[:, 1, None, None] * self.B[:, 1]
+        out += u[:, 2, None, None] * self.B[:, 2]
+        return out
+
 
 def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray, IntArray]:
     """Cut [epochs[0], epochs[-1]] at IMU stamps and epochs: IMU sample, duration (s), interval per piece."""
@@ -107,6 +121,26 @@ def pieces(t_imu: FloatArray, epochs: FloatArray) -> tuple[IntArray, FloatArray,
     sample = np.searchsorted(t_imu, start, side="right") - 1
     interval = np.searchsorted(epochs, start, side="right") - 1
     return sample.astype(np.int64), dur, interval.astype(np.int64)
+
+
+def _slots(t_imu: FloatArray, epochs: FloatArray) -> Iterator[tuple[IntArray, IntArray, FloatArray]]:
+    """The pieces (`pieces`) one slot at a time: the intervals that have an i-th piece, its IMU sample and duration."""
+    sample, dur, interval = pieces(t_imu, epochs)
+    first = np.searchsorted(interval, np.arange(epochs.size - 1), side="left")
+    slot = np.arange(sample.size) - first[interval]
+    order = np.argsort(slot, kind="stable")
+    bounds = np.searchsorted(slot[order], np.arange(int(slot.max()) + 2))
+    for j in range(bounds.size - 1):
+        at = order[bounds[j]:bounds[j + 1]]
+        yield interval[at], sample[at], dur[at]
+
+
+def rotations(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: FloatArray) -> FloatArray:
+    """dR between consecutive epochs (K-1, 3, 3), as `preintegrate` makes it, without its Jacobians and covariance."""
+    delta = np.broadcast_to(np.eye(3), (epochs.size - 1, 3, 3)).copy()
+    for rows, smp, dur in _slots(t_imu, epochs):
+        delta[rows] = delta[rows] @ so3.exp((gyr[smp] - bias) * dur[:, None])
+    return delta
 
 
 def broken_intervals(epochs: FloatArray, windows: tuple[tuple[float, float], ...]) -> npt.NDArray[np.bool_]:
@@ -139,27 +173,19 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
         msg = (f"{where}: preintegration needs at least two increasing magnetometer epochs inside the IMU "
                "time span; check the log's time stamps")
         raise InsufficientDataError(msg)
-    sample, dur, interval = pieces(t_imu, epochs)
     k = epochs.size - 1
-    first = np.searchsorted(interval, np.arange(k), side="left")
-    slot = np.arange(sample.size) - first[interval]
-    lmax = int(slot.max()) + 1
     dt = float(np.median(np.diff(t_imu)))
-    order = np.argsort(slot, kind="stable")
-    bounds = np.searchsorted(slot[order], np.arange(lmax + 1))
     delta = np.broadcast_to(np.eye(3), (k, 3, 3)).copy()
     d_bias = np.zeros((k, 3, 3))
     cov = np.zeros((k, 3, 3))
     d_scale = np.zeros((k, 3, 3)) if scale_jacobian else None
     # one piece slot at a time (L ~ rate ratio of them), each vectorised over all intervals: holding every slot's
     # Exp and J_r at once cost 72 B x 4 per IMU sample (0.5 GB for an hour at 400 Hz, issue 39)
-    for j in range(lmax):
-        at = order[bounds[j]:bounds[j + 1]]
-        rows, smp = interval[at], sample[at]
+    for rows, smp, dur in _slots(t_imu, epochs):
         phi = np.zeros((k, 3))
         d = np.zeros(k)
-        phi[rows] = (gyr[smp] - bias) * dur[at][:, None]
-        d[rows] = dur[at]
+        phi[rows] = (gyr[smp] - bias) * dur[:, None]
+        d[rows] = dur
         step, jr = so3.exp(phi), so3.right_jacobian(phi)
         q = (noise_std**2)[None, :] * (dt * d)[:, None]                         # diag Q of each piece
         if scale is not None:
@@ -210,6 +236,23 @@ def preintegrate_log(problem: Problem, epochs: FloatArray, bias: FloatArray, noi
 
 #: groups of readings preintegrated at once
 GROUP_BLOCK = 16384
+
+
+def group_rotations(problem: Problem, groups: Groups, bias: FloatArray) -> FloatArray:
+    """Each reading's rotation dR_kj (n, 3, 3) from its group's first reading, the gyro integrated with `bias`."""
+    out = np.broadcast_to(np.eye(3), (groups.t.size, 3, 3)).copy()
+    k = groups.counts.size
+    for g0 in range(0, k, GROUP_BLOCK):
+        g1 = min(g0 + GROUP_BLOCK, k)
+        lo, hi = int(groups.start[g0]), int(groups.start[g1]) - 1          # this block's readings
+        if hi <= lo:
+            continue
+        fine = rotations(problem.gyr.t, problem.gyr.xyz, groups.t[lo:hi + 1], bias)
+        start, n_g = groups.start[g0:g1] - lo, groups.counts[g0:g1]
+        for m in range(1, int(n_g.max())):
+            at = start[n_g > m] + m
+            out[lo + at] = out[lo + at - 1] @ fine[at - 1]
+    return out
 
 
 @dataclass(frozen=True)

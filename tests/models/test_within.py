@@ -167,5 +167,27 @@ def test_a_fit_of_grouped_readings_is_the_fit_of_every_reading(seed: int, monkey
     sd = full.std
     assert np.max(np.abs(grouped.theta - full.theta) / sd) < 0.1
     np.testing.assert_allclose(grouped.std / sd, 1.0, atol=0.03)
+    assert abs(grouped.residual_rms / full.residual_rms - 1.0) < 0.02       # the readings' residual, not the means
     e = grouped.theta - theta_of(truths[0])
     assert float(e @ np.linalg.solve(grouped.cov, e)) < 43.8          # chi2(19) at 99.9 %
+
+
+def test_reading_residuals_are_each_readings_own() -> None:
+    """A group's mean residual and the readings' departures from their means give each reading's residual
+    y_j - D (R_k dR_kj)^T m_n - o, dR_kj integrated on its own."""
+    from magcal_cli.models.mag import field_nav
+    from magcal_cli.models.map.within import reading_residuals
+
+    rng = np.random.default_rng(3)
+    problem, truths, r_m = _problem()
+    ep = epochs_for(problem, problem.mags[0], truths[0].field_strength, max_epochs=400, average=True)
+    g = ep.groups
+    assert g is not None
+    states = r_m[g.start[:-1]] @ so3.exp(0.05 * rng.normal(size=(ep.t.size, 3)))
+    d = np.eye(3) + 0.05 * rng.normal(size=(3, 3))
+    o, m_n, bias = rng.normal(size=3) * 0.1, field_nav(1.1), truths[0].gyro_bias + 0.002
+    own = np.concatenate([[g.y[g.start[k] + j] - d @ (states[k] @ r).T @ m_n - o
+                           for j, r in enumerate(_group_rotations(problem, g, k, bias, np.full(3, 1e-3)))]
+                          for k in range(ep.t.size)])
+    got = reading_residuals(problem, g, g.mean(own), states, d, m_n, bias)
+    np.testing.assert_allclose(got, own, atol=1e-12)

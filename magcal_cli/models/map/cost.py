@@ -11,7 +11,7 @@ from magcal_cli.models.factor import Factor, Linearize, scale_rows
 from magcal_cli.models.gyro import Preintegrated, gyro_factor
 from magcal_cli.models.mag import MagLayout, field_nav, mag_factor
 from magcal_cli.models.map.effects import Bound, gyro_extra, prior_factor, row_weights, terms, with_terms
-from magcal_cli.models.map.within import acc_term, averaged, mag_term, mixed
+from magcal_cli.models.map.within import averaged
 from magcal_cli.models.partial import Held
 from magcal_cli.params import BASE, Layout
 from magcal_cli.streams import FloatArray
@@ -22,16 +22,16 @@ def mag_layout(layout: Layout) -> MagLayout:
     return MagLayout(layout.slice("D").start, layout.slice("o").start, layout.slice("dip").start)
 
 
-def point_at(states: FloatArray, theta: FloatArray, layout: Layout, pre: Preintegrated, mean: bool = True) -> Point:
+def point_at(states: FloatArray, theta: FloatArray, layout: Layout, pre: Preintegrated) -> Point:
     """The model at an iterate, as the effect terms see it (effects/base.py `Point`): for epochs that average
-    readings (`pre.within`), the groups' means (map/within.py) unless not `mean`."""
+    readings (`pre.within`), the groups' means (map/within.py)."""
     d, _, dip = mag_layout(layout).unpack(theta)
     at = Point(states, np.einsum("mji,j->mi", states, field_nav(dip)),
                np.einsum("mji,j->mi", states, np.array([-np.sin(dip), 0.0, np.cos(dip)])),
                G * states[:, 2, :], d, pre)
-    if not mean or pre.within is None:
+    if pre.within is None:
         return at
-    return averaged(at, mixed(pre.within, theta[layout.slice("gyroscope_bias")]))
+    return averaged(at, pre.within.mixed(theta[layout.slice("gyroscope_bias")]))
 
 
 def held_out(t: FloatArray, windows: tuple[tuple[float, float], ...]) -> FloatArray | None:
@@ -69,21 +69,16 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
         interpolated = True
     if ep.mag_factor is not None:           # a group's mean reading: its noise std shrinks with the count
         w_mag = 1.0 / ep.mag_factor if w_mag is None else w_mag / ep.mag_factor
-    within, bg_cols = pre.within, layout.cols("gyroscope_bias")
+    within = pre.within                     # epochs that average readings: the factors predict the groups' means
 
     def linearize(states: FloatArray, theta: FloatArray, jac: bool) -> list[Factor]:
-        fa = accel_factor(states, ep.acc, l_acc, theta, ba, idx, jacobians=jac, compact=True)
-        fm = mag_factor(states, ep.mag, l_mag, theta, ml, idx, jac, compact=True)
+        fa = accel_factor(states, ep.acc, l_acc, theta, ba, idx, jacobians=jac, compact=True, within=within)
+        fm = mag_factor(states, ep.mag, l_mag, theta, ml, idx, jac, compact=True, within=within, bias_at=bg)
         extra = None
-        if bound or within is not None:
-            first = point_at(states, theta, layout, pre, mean=False)
-            at = first if within is None else averaged(first, mixed(within, theta[bg_cols]))
-            on_acc, on_mag = terms(bound, layout, theta, at, Target.ACCEL), terms(bound, layout, theta, at, Target.MAG)
-            if within is not None:          # what the readings averaged into each epoch predict (map/within.py)
-                on_acc.append((acc_term(within, first, theta[bg_cols]), bg_cols))
-                on_mag.append((mag_term(within, first, theta[bg_cols]), bg_cols))
-            fa = with_terms(fa, l_acc, on_acc, layout)
-            fm = with_terms(fm, l_mag, on_mag, layout)
+        if bound:
+            at = point_at(states, theta, layout, pre)
+            fa = with_terms(fa, l_acc, terms(bound, layout, theta, at, Target.ACCEL), layout)
+            fm = with_terms(fm, l_mag, terms(bound, layout, theta, at, Target.MAG), layout)
             extra = gyro_extra(bound, layout, theta, at)
         if interpolated:
             fa = scale_rows(fa, s_acc)
