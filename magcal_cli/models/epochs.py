@@ -3,7 +3,8 @@ with the accelerometer interpolated onto them, and the start noise levels.
 
 More readings than MAX_EPOCHS (or faster than MAX_EPOCH_RATE_HZ) are kept in groups for the joint MAP: a state at
 each group's first reading, the group's mean reading as its observation, and the gyro preintegrated to every
-reading of the group to say what that mean predicts (models/map/within.py). The EKF baselines take every k-th reading.
+reading of the group to say what that mean predicts (gyro.Within, mag.mag_factor, accel.accel_factor). The EKF
+baselines take every k-th reading.
 """
 
 from __future__ import annotations
@@ -169,9 +170,9 @@ def _grouped(problem: Problem, mag: Stream, scale: float, index: npt.NDArray[np.
     key = np.concatenate([group * (problem.acc.t.size + 1) + j, group * (problem.acc.t.size + 1) + j + 1])
     _, at = np.unique(key, return_inverse=True)
     coef = np.bincount(at.reshape(-1), np.concatenate([1.0 - w, w]) / np.tile(groups.counts[group], 2))
-    first = np.zeros(at.max() + 1, dtype=np.int64)
-    first[at.reshape(-1)] = np.tile(group, 2)
-    factor = np.sqrt(np.bincount(first, coef**2, minlength=k))
+    owner = np.zeros(at.max() + 1, dtype=np.int64)                 # the group of each (group, sample) pair
+    owner[at.reshape(-1)] = np.tile(group, 2)
+    factor = np.sqrt(np.bincount(owner, coef**2, minlength=k))
     note = (f"{mag.id}: {t.size} readings at {rate:.0f} Hz; each epoch averages {step} consecutive readings "
             f"({k} epochs, {rate / step:.0f} Hz), the gyro carrying them to the epoch, to bound time and memory")
     return Epochs(mag.id, t[groups.start[:-1]], groups.mean(groups.y), groups.mean(acc), factor, scale, (note,),

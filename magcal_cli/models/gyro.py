@@ -62,7 +62,7 @@ class Preintegrated:
     #: (K-1,) intervals that overlap a window the gyro could not measure (saturation, impact): no gyro factor
     broken: npt.NDArray[np.bool_] | None = None
     #: epochs that average readings (epochs.Groups): each group's mean rotation to its readings and its bias
-    #: Jacobian (models/map/within.py); None: one reading per epoch
+    #: Jacobian, which mag.mag_factor and accel.accel_factor predict the means with; None: one reading per epoch
     within: Within | None = None
 
     def component_major(self) -> tuple[FloatArray, FloatArray, FloatArray]:

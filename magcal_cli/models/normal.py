@@ -348,34 +348,40 @@ def marginal_covariance(linearize: Linearize, states: FloatArray, theta: FloatAr
     trace, e.g. 1e-9) keeps a nearly rigid trajectory from cancelling theta's information in the Schur
     complement (flat logs); theta stays undamped."""
     at = np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64)
-    factors = linearize(*at, True)
+    factors = list(linearize(*at, True))
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
 
     def again() -> NormalEquations:
-        return assemble_unit(linearize(*at, True), n, p)
+        return assemble_unit(list(linearize(*at, True)), n, p, strip=True)
 
     with one_blas_thread():
-        ne = assemble_unit(factors, n, p)
-        del factors                     # in the equations now: not beside the elimination's arrays (issue 39)
+        # each factor's Jacobians go as they are added: all of them beside the equations were a 60-min flight's
+        # peak (issue 39)
+        ne = assemble_unit(factors, n, p, strip=True)
+        del factors
         if trajectory_damping > 0.0:
             return step(ne, trajectory_damping, u, lam_theta=0.0, consume=True)[2]
         return undamped(ne, u, need_w=False, remake=again)[2]          # the covariance only: no Hxx^-1 Hxt
 
 
-def assemble_unit(factors: Sequence[Factor], n: int, p: int) -> NormalEquations:
-    """`assemble` with unit weights."""
-    return assemble(factors, [np.ones(f.r.shape[0]) for f in factors], n, p)
+def assemble_unit(factors: Sequence[Factor], n: int, p: int, strip: bool = False) -> NormalEquations:
+    """`assemble` with unit weights; `strip`: `assemble_stripping`, on a list of factors nothing else needs."""
+    weights = [np.ones(f.r.shape[0]) for f in factors]
+    if strip:
+        assert isinstance(factors, list)
+        return assemble_stripping(factors, weights, n, p)
+    return assemble(factors, weights, n, p)
 
 
 def information(linearize: Linearize, states: FloatArray, theta: FloatArray) -> FloatArray:
     """The Schur complement S of the Gauss-Newton information at a given point: what the data know about theta
     with the trajectory eliminated (singular where the motion determines nothing; models/partial.py)."""
-    factors = linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True)
+    factors = list(linearize(np.asarray(states, dtype=np.float64), np.asarray(theta, dtype=np.float64), True))
     n, p = states.shape[0], theta.size
     u = 5 if any(f.J_next is not None for f in factors) else 2
     with one_blas_thread():
-        ne = assemble_unit(factors, n, p)
+        ne = assemble_unit(factors, n, p, strip=True)
         del factors
         # a trace of damping on the trajectory only: a numerically singular trajectory still gives S, and S keeps
         # its null directions (what the motion cannot determine)

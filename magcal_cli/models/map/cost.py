@@ -81,9 +81,9 @@ def make_linearize(ep: Epochs, pre: Preintegrated, noise: Noise, layout: Layout 
             fm = with_terms(fm, l_mag, terms(bound, layout, theta, at, Target.MAG), layout)
             extra = gyro_extra(bound, layout, theta, at)
         if interpolated:
-            fa = scale_rows(fa, s_acc)
+            fa = scale_rows(fa, s_acc, in_place=True)          # fa and fm are this call's own
         if w_mag is not None:
-            fm = scale_rows(fm, w_mag)
+            fm = scale_rows(fm, w_mag, in_place=True)
         out = [fa, fm, gyro_factor(states, theta, pre, bg, jac, extra)]   # gyro noise is in pre.l_inv
         prior = prior_factor(bound, layout, theta, jac)
         out = out if prior is None else [*out, prior]
