@@ -344,14 +344,6 @@ _HAT_BASIS = np.array([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0
                       dtype=np.float64)
 
 
-def left(m: FloatArray, x: FloatArray) -> FloatArray:
-    """m x_k for one (3, 3) matrix m and a stack x (N, 3, 3), as one (3, 3) x (3, 3N) product (a broadcast matmul
-    would loop over N tiny products)."""
-    n = x.shape[0]
-    out: FloatArray = (m @ x.transpose(1, 0, 2).reshape(3, 3 * n)).reshape(3, n, 3).transpose(1, 0, 2)
-    return out
-
-
 def times_hat(m: FloatArray, v: FloatArray) -> FloatArray:
     """m [v]x for one (3, 3) matrix m and (N, 3) vectors v, as one (N, 3) x (3, 9) product (the entries of m [v]x
     are linear in v): a stacked matmul would loop over N tiny products."""

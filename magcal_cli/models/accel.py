@@ -35,7 +35,7 @@ def accel_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: Float
     r = (y + mean - theta[bias_at:bias_at + 3]) @ l_inv.T
     if not jacobians:
         return Factor("accel", r)
-    jx = so3.times_hat(l_inv, g_b) if n is None else so3.left(l_inv, n @ so3.hat(g_b))
+    jx = so3.times_hat(l_inv, g_b) if n is None else l_inv @ (n @ so3.hat(g_b))
     if compact and within is None:
         jt = np.broadcast_to(-l_inv, (y.shape[0], 3, 3))
         return Factor("accel", r, idx, jx, None, jt, np.arange(bias_at, bias_at + 3))
@@ -43,7 +43,7 @@ def accel_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: Float
     jt = np.zeros((y.shape[0], 3, 6 if compact else theta.size))
     jt[:, :, at:at + 3] = -l_inv
     if within is not None:
-        jt[:, :, at + 3:at + 6] = so3.left(l_inv, within.by_bias(g_b))
+        jt[:, :, at + 3:at + 6] = l_inv @ within.by_bias(g_b)
     return Factor("accel", r, idx, jx, None, jt, np.arange(bias_at, bias_at + 6) if compact else None)
 
 

@@ -102,14 +102,13 @@ class Within:
     def mixed(self, db: FloatArray) -> FloatArray:
         """N = A + M (K, 3, 3), M[:, :, a] = B_a db: the map from u = R_k^T v to the group's mean of R_j^T v at the
         bias correction db."""
-        out: FloatArray = self.A + (self.B @ db).transpose(0, 2, 1)
+        k = self.B.shape[0]               # one (9K, 3) x (3,) product: [k, a, i] = (B_a db)_i, then N[k, i, a]
+        out: FloatArray = self.A + (self.B.reshape(-1, 3) @ db).reshape(k, 3, 3).transpose(0, 2, 1)
         return out
 
     def by_bias(self, u: FloatArray) -> FloatArray:
         """sum_a u_a B_a (K, 3, 3): the derivative of the group's mean of R_j^T v by db, for u = R_k^T v (K, 3)."""
-        out: FloatArray = u[:, 0, None, None] * self.B[:, 0]
-        out += u[:, 1, None, None] * self.B[:, 1]
-        out += u[:, 2, None, None] * self.B[:, 2]
+        out: FloatArray = np.einsum("ka,kaij->kij", u, self.B)
         return out
 
 

@@ -82,7 +82,7 @@ def mag_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: FloatAr
     if n is None or within is None:
         jx = so3.times_hat(lead_d, mb)
     else:
-        jx = so3.left(lead_d, n @ so3.hat(u))
+        jx = lead_d @ (n @ so3.hat(u))
         at_b = 0 if compact else bias_at
-        jt[:, :, at_b:at_b + 3] = so3.left(lead_d, within.by_bias(u))
+        jt[:, :, at_b:at_b + 3] = lead_d @ within.by_bias(u)
     return Factor(name, r, idx, jx, None, jt, cols.astype(np.int64) if compact else None)
