@@ -223,9 +223,12 @@ def preintegrate_log(problem: Problem, epochs: FloatArray, bias: FloatArray, noi
                             problem.unmeasured, problem.gyr_scale)
     k = groups.counts.size
     parts = []
-    # a block of groups at a time: every reading's interval at once is three times the epochs' (issue 39)
-    for g0 in range(0, k, GROUP_BLOCK):
-        g1 = min(g0 + GROUP_BLOCK, k)
+    # a block of groups at a time: every reading's interval at once is three times the epochs' (issue 39). A last
+    # block of one lone reading has no interval to integrate: it joins the block before
+    ends = list(range(GROUP_BLOCK, k, GROUP_BLOCK)) + [k]
+    if len(ends) > 1 and groups.start[ends[-2]] == groups.t.size - 1:
+        del ends[-2]
+    for g0, g1 in zip([0, *ends[:-1]], ends, strict=True):
         lo, hi = int(groups.start[g0]), int(groups.start[g1]) if g1 < k else groups.t.size - 1
         fine = preintegrate(problem.gyr.t, problem.gyr.xyz, groups.t[lo:hi + 1], bias, noise_std, where,
                             scale_jacobian, problem.unmeasured, problem.gyr_scale)

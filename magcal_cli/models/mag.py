@@ -79,7 +79,7 @@ def mag_factor(rot: FloatArray, y: FloatArray, l_inv: FloatArray, theta: FloatAr
         dm = np.einsum("mij,mj->mi", n, dm)
     jt[:, :, at_dip] = -dm @ (l_inv @ d).T
     lead_d = -(l_inv @ d)
-    if n is None or within is None:
+    if within is None or n is None:
         jx = so3.times_hat(lead_d, mb)
     else:
         jx = lead_d @ (n @ so3.hat(u))

@@ -80,6 +80,25 @@ def test_grouped_preintegration_a_block_at_a_time_is_the_whole(monkeypatch: pyte
     np.testing.assert_array_equal(blocks.within.B, whole.within.B)
 
 
+def test_a_last_block_of_one_lone_reading_joins_the_block_before(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Groups in blocks of K - 1 leave the last group, a single reading, alone: it has no interval to integrate, and
+    the preintegration is that of one block."""
+    problem, truths, _ = _problem()
+    mag = problem.mags[0]
+    from dataclasses import replace
+    cut = replace(mag, t=mag.t[:1198], values=mag.xyz[:1198])       # 1198 = 3 x 399 + 1: the last group is alone
+    ep = epochs_for(problem, cut, 1.0, max_epochs=400, average=True)
+    assert ep.groups is not None and ep.groups.counts[-1] == 1
+    sd = noise_of(truths[0])[1]
+    whole = preintegrate_log(problem, ep.t, truths[0].gyro_bias, sd, groups=ep.groups)
+    from magcal_cli.models import gyro
+    monkeypatch.setattr(gyro, "GROUP_BLOCK", ep.t.size - 1)
+    blocks = preintegrate_log(problem, ep.t, truths[0].gyro_bias, sd, groups=ep.groups)
+    assert whole.within is not None and blocks.within is not None
+    np.testing.assert_array_equal(blocks.delta, whole.delta)
+    np.testing.assert_array_equal(blocks.within.A, whole.within.A)
+
+
 def test_groups_end_at_dropouts_and_windows_the_gyro_did_not_measure() -> None:
     """A reading after a gap of more than GROUP_GAP_PERIODS periods, or after a window the gyro could not measure,
     starts a group; the means are the readings' means."""

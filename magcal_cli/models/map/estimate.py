@@ -12,8 +12,8 @@ from magcal_cli.findings import Finding, Severity
 from magcal_cli.models.epochs import Epochs, Noise
 from magcal_cli.models.factor import Linearize
 from magcal_cli.models.gyro import Preintegrated
-from magcal_cli.models.mag import MagLayout, field_nav
-from magcal_cli.models.map.cost import make_linearize
+from magcal_cli.models.mag import field_nav
+from magcal_cli.models.map.cost import mag_layout, make_linearize
 from magcal_cli.models.map.effects import Bound
 from magcal_cli.models.map.within import reading_residuals
 from magcal_cli.models.observability import check_observability, check_useful
@@ -136,7 +136,7 @@ def estimate(problem: Problem, ctx: FitContext, sol: Solution, record: Record, c
     fm = sol.factors[1]
     resid = fm.r * noise.mag * s
     if ep.groups is not None and ep.mag_factor is not None:   # the readings', not their means (map/within.py)
-        d, _, dip_fit = MagLayout(layout.slice("D").start, layout.slice("o").start, dip_at.start).unpack(sol.theta)
+        d, _, dip_fit = mag_layout(layout).unpack(sol.theta)
         mean = fm.r * ep.mag_factor[:, None] * noise.mag          # the rows were scaled by 1 / mag_factor
         resid = reading_residuals(problem, ep.groups, mean, sol.states, d, field_nav(dip_fit),
                                   pre.bias + sol.theta[bg]) * s
