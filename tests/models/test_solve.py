@@ -3,6 +3,8 @@ factorisation, steps for other residuals) against the solver's own first step an
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -254,6 +256,24 @@ def test_equations_solved_in_place_give_the_same_step_and_cannot_be_solved_twice
     again = normal.assemble(factors, weights, n, p)
     for name in ("diag", "off", "hxt", "htt", "gx", "gt"):
         np.testing.assert_array_equal(getattr(stripped, name), getattr(again, name))
+
+
+def test_rows_added_a_block_at_a_time_give_the_same_equations(monkeypatch: pytest.MonkeyPatch) -> None:
+    """J_x^T J_theta made and added 3 rows at a time (`normal.ADD_BLOCK`) equals all rows at once, digit for digit,
+    with states in a run and scattered."""
+    from magcal_cli.models import normal
+
+    rng = np.random.default_rng(11)
+    n, p = 14, 2
+    truth, _, linearize = _chain_problem(rng, n)
+    factors = linearize(truth @ so3.exp(0.05 * rng.normal(size=(n, 3))), np.array([0.1, -0.1]), True)
+    factors = [*factors, *(replace(f, idx=f.idx[::-1].copy()) for f in factors if f.idx is not None)]
+    weights = [rng.uniform(0.5, 2.0, f.r.shape[0]) for f in factors]
+    whole = normal.assemble(factors, weights, n, p)
+    monkeypatch.setattr(normal, "ADD_BLOCK", 3)
+    blocks = normal.assemble(factors, weights, n, p)
+    for name in ("diag", "off", "hxt", "htt", "gx", "gt"):
+        np.testing.assert_array_equal(getattr(blocks, name), getattr(whole, name))
 
 
 def test_a_singular_information_solved_in_place_is_assembled_again_for_the_damped_retry() -> None:
