@@ -221,18 +221,11 @@ def preintegrate_log(problem: Problem, epochs: FloatArray, bias: FloatArray, noi
     if groups is None:
         return preintegrate(problem.gyr.t, problem.gyr.xyz, epochs, bias, noise_std, where, scale_jacobian,
                             problem.unmeasured, problem.gyr_scale)
-    k = groups.counts.size
     parts = []
-    # a block of groups at a time: every reading's interval at once is three times the epochs' (issue 39). A last
-    # block of one lone reading has no interval to integrate: it joins the block before
-    ends = list(range(GROUP_BLOCK, k, GROUP_BLOCK)) + [k]
-    if len(ends) > 1 and groups.start[ends[-2]] == groups.t.size - 1:
-        del ends[-2]
-    for g0, g1 in zip([0, *ends[:-1]], ends, strict=True):
-        lo, hi = int(groups.start[g0]), int(groups.start[g1]) if g1 < k else groups.t.size - 1
+    for g0, g1, lo, hi in _group_blocks(groups):
         fine = preintegrate(problem.gyr.t, problem.gyr.xyz, groups.t[lo:hi + 1], bias, noise_std, where,
                             scale_jacobian, problem.unmeasured, problem.gyr_scale)
-        parts.append(_compose(fine, groups.start[g0:g1 + 1] - lo, g1 < k))
+        parts.append(_compose(fine, groups.start[g0:g1 + 1] - lo, g1 < groups.counts.size))
     return _joined(parts, epochs, bias, noise_std, where)
 
 
@@ -240,15 +233,22 @@ def preintegrate_log(problem: Problem, epochs: FloatArray, bias: FloatArray, noi
 GROUP_BLOCK = 16384
 
 
+def _group_blocks(groups: Groups) -> Iterator[tuple[int, int, int, int]]:
+    """Blocks of GROUP_BLOCK groups (g0, g1) with the readings lo .. hi they integrate over: their own and the next
+    block's first, up to the last reading. Every reading's interval at once is three times the epochs' (issue 39);
+    a last block of one lone reading has no interval to integrate, so it joins the block before."""
+    k, n = groups.counts.size, groups.t.size
+    ends = list(range(GROUP_BLOCK, k, GROUP_BLOCK)) + [k]
+    if len(ends) > 1 and groups.start[ends[-2]] == n - 1:
+        del ends[-2]
+    for g0, g1 in zip([0, *ends[:-1]], ends, strict=True):
+        yield g0, g1, int(groups.start[g0]), int(groups.start[g1]) if g1 < k else n - 1
+
+
 def group_rotations(problem: Problem, groups: Groups, bias: FloatArray) -> FloatArray:
     """Each reading's rotation dR_kj (n, 3, 3) from its group's first reading, the gyro integrated with `bias`."""
     out = np.broadcast_to(np.eye(3), (groups.t.size, 3, 3)).copy()
-    k = groups.counts.size
-    for g0 in range(0, k, GROUP_BLOCK):
-        g1 = min(g0 + GROUP_BLOCK, k)
-        lo, hi = int(groups.start[g0]), int(groups.start[g1]) - 1          # this block's readings
-        if hi <= lo:
-            continue
+    for g0, g1, lo, hi in _group_blocks(groups):
         fine = rotations(problem.gyr.t, problem.gyr.xyz, groups.t[lo:hi + 1], bias)
         start, n_g = groups.start[g0:g1] - lo, groups.counts[g0:g1]
         for m in range(1, int(n_g.max())):
