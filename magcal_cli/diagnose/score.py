@@ -22,7 +22,7 @@ import numpy.typing as npt
 
 from magcal_cli import effects as registry
 from magcal_cli.models.epochs import Epochs
-from magcal_cli.models.gyro import Preintegrated, preintegrate_log
+from magcal_cli.models.gyro import Preintegrated, preintegrate_epochs
 from magcal_cli.models.map.effects import Bound, bind, layout_for
 from magcal_cli.models.map.estimate import MapEstimate
 from magcal_cli.models.problem import Problem
@@ -124,7 +124,7 @@ def _with_scale_jacobian(problem: Problem, mag: Stream, ep: Epochs, pre: Preinte
         memo = _SCALE_JACOBIAN.setdefault(problem, {})
     hit = memo.get(key)
     if hit is None:
-        hit = preintegrate_log(problem, ep.t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True, ep.groups)
+        hit = preintegrate_epochs(problem, ep, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True)
         memo[key] = hit
     return hit
 

@@ -29,7 +29,7 @@ from magcal_cli.models.factor import Factor
 from magcal_cli.streams import FloatArray
 
 if TYPE_CHECKING:
-    from magcal_cli.models.epochs import Groups
+    from magcal_cli.models.epochs import Epochs, Groups
     from magcal_cli.models.problem import Problem
 
 IntArray = npt.NDArray[np.int64]
@@ -227,6 +227,14 @@ def preintegrate_log(problem: Problem, epochs: FloatArray, bias: FloatArray, noi
                             scale_jacobian, problem.unmeasured, problem.gyr_scale)
         parts.append(_compose(fine, groups.start[g0:g1 + 1] - lo, g1 < groups.counts.size))
     return _joined(parts, epochs, bias, noise_std, where)
+
+
+def preintegrate_epochs(problem: Problem, ep: Epochs, bias: FloatArray, noise_std: FloatArray, where: str = "gyro",
+                        scale_jacobian: bool = False) -> Preintegrated:
+    """`preintegrate_log` between an Epochs' states, with its groups when its epochs average readings: the times
+    and the groups always from the same Epochs (a preintegration without them predicts a group's mean as one
+    reading)."""
+    return preintegrate_log(problem, ep.t, bias, noise_std, where, scale_jacobian, ep.groups)
 
 
 #: groups of readings preintegrated at once

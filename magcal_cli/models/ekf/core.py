@@ -28,7 +28,7 @@ from magcal_cli.findings import Finding
 from magcal_cli.models.accel import G
 from magcal_cli.models.ekf.effects import Terms, fitted, layout_of, not_carried
 from magcal_cli.models.epochs import BIAS_SCALE, GYRO_START_DIVISOR, Noise, epochs_for, initial_noise
-from magcal_cli.models.gyro import Preintegrated, preintegrate, preintegrate_log
+from magcal_cli.models.gyro import Preintegrated, preintegrate, preintegrate_epochs
 from magcal_cli.models.map import init as map_init
 from magcal_cli.models.map.effects import Bound, bind
 from magcal_cli.models.observability import check_observability
@@ -133,7 +133,7 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
     gyr = problem.gyr
     still = bool(problem.still.segments)
     bias = problem.still.gyr_bias if still else np.zeros(3)
-    pre = preintegrate_log(problem, ep.t, bias, noise.gyr, where)
+    pre = preintegrate_epochs(problem, ep, bias, noise.gyr, where)
     h = (ep.mag - intr.o0) @ np.linalg.inv(intr.D0).T
     window = max(1, int(round(map_init.ALIGNMENT_WINDOW_S / float(np.median(pre.duration)))))
     r_d, db = map_init.wu_luo(h, so3.log(pre.delta), pre.duration, window)
@@ -142,7 +142,7 @@ def prepare(problem: Problem, mag: Stream, dip_prior: float | None = None) -> Pr
         if still:                                      # not still after all: their gyro level is an upper bound
             noise = Noise(noise.acc, noise.gyr / GYRO_START_DIVISOR, noise.mag)
         bias = bias + db
-        pre = preintegrate_log(problem, ep.t, bias, noise.gyr, where)
+        pre = preintegrate_epochs(problem, ep, bias, noise.gyr, where)
         why = "no still segment" if not still else (f"the still segments' gyro bias is {np.linalg.norm(db):.4f} "
                                                     "rad/s away from the field kinematics'")
         notes.append(f"{mag.id}: {why}; gyro bias started from the Wu & Luo alignment and the gyro noise from "

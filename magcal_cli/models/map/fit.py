@@ -18,7 +18,7 @@ import numpy as np
 from magcal_cli.errors import InsufficientDataError
 from magcal_cli.models import partial
 from magcal_cli.models.epochs import Noise, epochs_for
-from magcal_cli.models.gyro import Preintegrated, preintegrate_log
+from magcal_cli.models.gyro import Preintegrated, preintegrate_epochs
 from magcal_cli.models.map.cost import held_out, make_linearize
 from magcal_cli.models.map.effects import results
 from magcal_cli.models.map.estimate import FitContext, MapEstimate, Record, estimate
@@ -171,8 +171,7 @@ def _rounds(problem: Problem, run: Run, cfg: FitSettings) -> tuple[Solution, Flo
         run.log.extend(f"round {rnd}: {line}" for line in sol.log)
         db = run.theta[bg]
         if float(np.linalg.norm(db)) * float(run.pre.duration.max()) > REPREINTEGRATE_RAD:
-            run.pre = preintegrate_log(problem, run.ep.t, run.pre.bias + db, run.noise.gyr, run.where, scale_jac,
-                                       run.ep.groups)
+            run.pre = preintegrate_epochs(problem, run.ep, run.pre.bias + db, run.noise.gyr, run.where, scale_jac)
             run.theta[bg] = 0.0
             run.log.append(f"round {rnd}: re-preintegrated with the updated gyro bias")
             continue
@@ -258,7 +257,7 @@ def information_at(problem: Problem, mag: Stream, states: FloatArray, theta_si: 
     d = BASE.get(theta_si, "D").reshape(3, 3, order="F")
     scale = float(np.cbrt(abs(np.linalg.det(d))))
     ep = epochs_for(problem, mag, scale, average=True)
-    pre = preintegrate_log(problem, ep.t, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr, groups=ep.groups)
+    pre = preintegrate_epochs(problem, ep, BASE.get(theta_si, "gyroscope_bias"), noise_si.gyr)
     jac = BASE.si_factors(scale)
     theta = theta_si / jac
     BASE.put(theta, "gyroscope_bias", 0.0)

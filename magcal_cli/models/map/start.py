@@ -14,7 +14,7 @@ from magcal_cli.models import partial
 from magcal_cli.models.accel import G
 from magcal_cli.models.epochs import Epochs, Noise, epochs_for, initial_noise
 from magcal_cli.models.factor import Linearize
-from magcal_cli.models.gyro import Preintegrated, preintegrate_log
+from magcal_cli.models.gyro import Preintegrated, preintegrate_epochs
 from magcal_cli.models.map import init as map_init
 from magcal_cli.models.map.cost import held_out, mag_layout, make_linearize
 from magcal_cli.models.map.effects import Bound, bind, layout_for
@@ -146,8 +146,7 @@ def preintegrated(problem: Problem, ep: Epochs, bias: FloatArray, noise: Noise,
         ratio = noise.gyr / hit.noise_std
         if np.allclose(ratio, ratio[0], rtol=1e-12):
             return hit.scaled(float(ratio[0]) ** 2)
-    pre = preintegrate_log(problem, ep.t, bias, noise.gyr, f"{problem.where}: {ep.mag_id}", scale_jacobian,
-                           ep.groups)
+    pre = preintegrate_epochs(problem, ep, bias, noise.gyr, f"{problem.where}: {ep.mag_id}", scale_jacobian)
     # the entry is a copy that shares the arrays: the component-major stacks the fit makes on `pre` (13 MB at
     # 60 000 epochs) must not stay in the cache for the rest of the run (issue 39); a hit is rescaled anyway
     cache[key] = replace(pre)
@@ -206,7 +205,7 @@ def with_effects(problem: Problem, mag: Stream, ep: Epochs, pre: Preintegrated, 
     for b in bound:
         full[layout.cols(*b.names())] = b.effect.start()
     if any(b.effect.target.value == "gyro" for b in bound) and pre.d_scale is None:
-        pre = preintegrate_log(problem, ep.t, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True, ep.groups)
+        pre = preintegrate_epochs(problem, ep, pre.bias, pre.noise_std, f"{problem.where}: {mag.id}", True)
     return layout, tuple(bound), untestable, full, pre
 
 
