@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 from types import MappingProxyType
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -15,6 +16,8 @@ import numpy.typing as npt
 from magcal_cli.errors import SelectionError, StreamError
 
 FloatArray = npt.NDArray[np.float64]
+#: samples as a stream holds them: float32 where that is exact, else float64 (`Stream.stored`)
+Samples = npt.NDArray[np.float32] | FloatArray
 
 
 class Kind(Enum):
@@ -77,6 +80,58 @@ def _frozen(a: npt.ArrayLike) -> FloatArray:
     return np.array(a, dtype=np.float64)
 
 
+#: samples below which a stream is not worth compacting (`_compact`)
+COMPACT_MIN = 4096
+
+
+def _compact(a: npt.ArrayLike) -> Samples:
+    """`a` read-only, held in float32 where that is exact (a float32 log's samples, the logged width: half the memory
+    of an hour's IMU, issue 39), else as `_frozen` holds it. Read back as float64 it has the same digits."""
+    if isinstance(a, np.ndarray) and a.dtype == np.float32:
+        out32 = a if not a.flags.writeable else a.copy()
+        out32.flags.writeable = False
+        return out32
+    held = _READ.get(id(a))
+    if held is not None and held[0]() is a:          # a stream's own samples read back (`dataclasses.replace`)
+        return held[1]
+    a64 = _frozen(a)
+    if a64.size < COMPACT_MIN:
+        return a64
+    head = a64.reshape(-1)[:256]
+    if not np.array_equal(head.astype(np.float32), head):        # most float64 data fail here, at no cost
+        return a64
+    a32 = a64.astype(np.float32)
+    if not np.array_equal(a32, a64):                            # NaN too: kept in float64, as it came
+        return a64
+    a32.flags.writeable = False
+    return a32
+
+
+#: the float64 copies `Stream.values` handed out that are still alive (id -> (the copy, the samples held)): a stream
+#: made from another's values (`dataclasses.replace`) holds the same compact array, not a second one
+_READ: dict[int, tuple[weakref.ref[FloatArray], Samples]] = {}
+
+
+class _Samples:
+    """`Stream.values`: stored as `_compact` holds it, read as float64 (a fresh read-only copy of compact samples)."""
+
+    def __get__(self, obj: Stream | None, owner: type | None = None) -> FloatArray:
+        if obj is None:
+            msg = "values is an attribute of each stream"
+            raise AttributeError(msg)
+        stored: Samples = obj.__dict__["_values"]
+        if stored.dtype == np.float64:
+            return cast(FloatArray, stored)
+        out = stored.astype(np.float64)
+        out.flags.writeable = False
+        key = id(out)
+        _READ[key] = (weakref.ref(out, lambda _: _READ.pop(key, None)), stored)
+        return out
+
+    def __set__(self, obj: Stream, value: npt.ArrayLike) -> None:
+        obj.__dict__["_values"] = value
+
+
 @dataclass(frozen=True, eq=False)
 class Stream:
     """Samples of one sensor channel: SI units, sensor frame, non-decreasing time in seconds.
@@ -100,7 +155,7 @@ class Stream:
     window_s: float | None = None
 
     def __post_init__(self) -> None:
-        t, values = _frozen(self.t), _frozen(self.values)
+        t, values = _frozen(self.t), _compact(self.__dict__["_values"])
         if values.ndim == 1 and self.kind.width == 1:
             values = values[:, None]
         if t.ndim != 1 or values.shape != (t.size, self.kind.width):
@@ -138,7 +193,17 @@ class Stream:
         """The samples with start <= t <= end (either bound may be None)."""
         lo = 0 if start is None else int(np.searchsorted(self.t, start, side="left"))
         hi = self.t.size if end is None else int(np.searchsorted(self.t, end, side="right"))
-        return replace(self, t=self.t[lo:hi], values=self.values[lo:hi])
+        return replace(self, t=self.t[lo:hi], values=cast(FloatArray, self.stored[lo:hi]))   # as held: no copy
+
+    @property
+    def stored(self) -> Samples:
+        """The samples as held: float32 where that is exact (`_compact`), else float64; `values` reads them as float64."""
+        out: Samples = self.__dict__["_values"]
+        return out
+
+
+#: installed after the dataclass is made, which would take a class attribute for the field's default
+Stream.values = _Samples()  # type: ignore[assignment]
 
 
 class Cut(NamedTuple):
