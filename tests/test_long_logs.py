@@ -322,3 +322,48 @@ def test_component_major_stacks_kept_for_the_latest_preintegrations_only() -> No
     assert again is not first
     for a, b in zip(again, first, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_stream_holds_float32_samples_compact_and_reads_them_as_float64() -> None:
+    """A float32 log's samples (float64 here, every one exact in float32) are held in float32 and read back as the
+    same float64 digits; `replace` and `between` keep the one compact array; samples float32 cannot hold exactly
+    (or NaN) stay float64, as given."""
+    import pickle
+    from dataclasses import replace
+
+    rng = np.random.default_rng(3)
+    n = 5000
+    t = np.cumsum(rng.uniform(0.002, 0.003, n))
+    logged = rng.normal(0.0, 2.0, (n, 3)).astype(np.float32).astype(np.float64)
+    s = Stream(Kind.GYROSCOPE, "g", t, logged, "test", "rad/s")
+    assert s.stored.dtype == np.float32 and s.stored.nbytes == logged.nbytes // 2
+    assert s.values.dtype == np.float64 and not s.values.flags.writeable
+    np.testing.assert_array_equal(s.xyz, logged)
+    assert replace(s, t=t + 1.0).stored is s.stored
+    cut = s.between(t[10], t[20])
+    assert np.shares_memory(cut.stored, s.stored) and len(cut) == 11
+    np.testing.assert_array_equal(cut.values, logged[10:21])
+    back = pickle.loads(pickle.dumps(s))
+    assert back.stored.dtype == np.float32 and np.array_equal(back.values, logged)
+    wide = logged + 1e-9
+    assert Stream(Kind.GYROSCOPE, "g", t, wide, "test", "rad/s").stored.dtype == np.float64
+    late = logged.copy()
+    late[-1, 2] += 1e-9                                        # exact but for the last sample: float64
+    assert Stream(Kind.GYROSCOPE, "g", t, late, "test", "rad/s").stored.dtype == np.float64
+    gap = logged.copy()
+    gap[7] = np.nan
+    assert Stream(Kind.GYROSCOPE, "g", t, gap, "test", "rad/s").stored.dtype == np.float64
+
+
+def test_a_rescaled_preintegration_has_the_digits_of_the_scaled_arrays() -> None:
+    """`Preintegrated.scaled` keeps the unscaled arrays and applies the factors when read: the digits of scaling
+    them at once, factor after factor, with the rotations shared."""
+    from magcal_cli.models.gyro import preintegrate
+
+    t, w = _gyro(400, seed=4)
+    pre = preintegrate(t, w, t[::7], np.zeros(3), np.full(3, 0.01))
+    twice = pre.scaled(1.7).scaled(0.35)
+    np.testing.assert_array_equal(twice.cov, pre.cov * 1.7 * 0.35)
+    np.testing.assert_array_equal(twice.l_inv, pre.l_inv / np.sqrt(1.7) / np.sqrt(0.35))
+    np.testing.assert_array_equal(twice.noise_std, pre.noise_std * np.sqrt(1.7) * np.sqrt(0.35))
+    assert twice.delta is pre.delta and twice.cov_base is pre.cov_base

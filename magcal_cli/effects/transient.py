@@ -12,7 +12,6 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.ndimage import median_filter
 
 from magcal_cli.align import columns
 from magcal_cli.detect import padded_runs
@@ -46,6 +45,8 @@ def windows(t: FloatArray, flagged: np.ndarray) -> list[list[float]]:
 
 def detect(t: FloatArray, y: FloatArray) -> list[list[float]]:
     """Disturbed windows of readings y (K, 3) at times t (s)."""
+    from scipy.ndimage import median_filter  # on use: not loaded by every fit that never looks for windows
+
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     size = max(3, int(round(SMOOTH_S / dt)) | 1)
     keep = np.ones(t.size, bool)
