@@ -7,7 +7,7 @@ quietest windows are still); each window is then tested against chi-square bound
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -93,10 +93,17 @@ def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
     """Mean and variance (ddof=1) over windows of n samples; entry k covers x[k:k+n] (the mean of x - median(x))."""
     count = max(x.shape[0] - n + 1, 0)
     mean, var = np.empty((count, x.shape[1])), np.empty((count, x.shape[1]))
-    for k0, k1, s1, s2 in _window_sums(x, n):
-        mean[k0:k1 + 1] = s1 / n
-        var[k0:k1 + 1] = np.maximum(s2 - s1 * mean[k0:k1 + 1], 0.0) / (n - 1)
+    for k0, k1, m, v in _window_stats(x, n):
+        mean[k0:k1 + 1], var[k0:k1 + 1] = m, v
     return mean, var
+
+
+def _window_stats(x: FloatArray, n: int) -> Iterator[tuple[int, int, FloatArray, FloatArray]]:
+    """`_moving`'s means and variances of the windows k0..k1, a block at a time (its digits; the detector judges each
+    block and keeps booleans, not two log-sized arrays per sensor, issue 39)."""
+    for k0, k1, s1, s2 in _window_sums(x, n):
+        mean = s1 / n
+        yield k0, k1, mean, np.maximum(s2 - s1 * mean, 0.0) / (n - 1)
 
 
 def _moving_var(x: FloatArray, n: int) -> FloatArray:
@@ -213,28 +220,39 @@ def detect_still(acc: Stream, gyr: Stream, cfg: StillConfig, mags: tuple[Stream,
     if len(acc) < 2 * n:
         msg = f"{acc.source}: only {len(acc)} IMU samples; a still-segment search needs at least {2 * n}"
         raise StreamError(msg)
-    a, w = acc.xyz, gyr.xyz
-    a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), np.maximum(_resolution_floor(a), 1e-12))
-    w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), np.maximum(_resolution_floor(w), 1e-12))
+    # each window statistic is judged a block at a time, and one sensor's samples are read (as float64, from the
+    # stream's float32) at a time: log-sized statistics beside both sensors were a long log's peak (issue 39)
     var_bound = chi2_ppf(1.0 - cfg.false_alarm, n - 1) / (n - 1)
-    # each window statistic is dropped once judged: four of them the size of the log at once were the peak of a
-    # long log's fit (issue 39)
-    a_mean, a_var = _moving(a, n)
-    quiet = np.all(a_var <= var_bound * a_sd**2, axis=1)
-    del a_var
-    a_mean += np.median(a, axis=0)
-    at_rest = np.abs(np.linalg.norm(a_mean, axis=1) / G - 1.0) <= cfg.gravity_tolerance
-    del a_mean
-    w_mean, w_var = _moving(w, n)
-    quiet &= np.all(w_var <= var_bound * w_sd**2, axis=1)
-    del w_var
-    w_mean += np.median(w, axis=0)
-    candidates = quiet & at_rest
-    bias = np.median(w_mean[candidates], axis=0) if candidates.any() else np.zeros(3)
+    count = len(acc) - n + 1
+    candidates, at_rest = np.empty(count, dtype=bool), np.empty(count, dtype=bool)
+    a = acc.xyz
+    a_sd = np.maximum(noise_std(a, n, cfg.noise_quantile), np.maximum(_resolution_floor(a), 1e-12))
+    limit, centre = var_bound * a_sd**2, np.median(a, axis=0)
+    for k0, k1, mean, var in _window_stats(a, n):
+        candidates[k0:k1 + 1] = np.all(var <= limit, axis=1)
+        mean += centre
+        at_rest[k0:k1 + 1] = np.abs(np.linalg.norm(mean, axis=1) / G - 1.0) <= cfg.gravity_tolerance
+    del a
+    candidates &= at_rest
+    del at_rest
+    w = gyr.xyz
+    w_sd = np.maximum(noise_std(w, n, cfg.noise_quantile), np.maximum(_resolution_floor(w), 1e-12))
+    limit, centre = var_bound * w_sd**2, np.median(w, axis=0)
+    rows, means = [], []                               # the candidate windows' mean rates
+    for k0, k1, mean, var in _window_stats(w, n):
+        candidates[k0:k1 + 1] &= np.all(var <= limit, axis=1)
+        take = candidates[k0:k1 + 1]
+        rows.append(k0 + np.flatnonzero(take))
+        means.append(mean[take] + centre)
+    at, w_mean = np.concatenate(rows), np.concatenate(means)
+    bias = np.median(w_mean, axis=0) if at.size else np.zeros(3)
     # a still window's mean rate differs from the bias by noise/sqrt(n) plus the allowed bias drift
     allow = np.deg2rad(cfg.rate_allowance_dps)
     rate_bound = np.mean(w_sd**2) / n * chi2_ppf(1.0 - cfg.false_alarm, 3) + 3.0 * allow**2
-    still_win = candidates & (np.sum((w_mean - bias) ** 2, axis=1) <= rate_bound)
+    still_win = np.zeros(count, dtype=bool)
+    still_win[at] = np.sum((w_mean - bias) ** 2, axis=1) <= rate_bound
+    del rows, means, w_mean
+    a = acc.xyz
     # window k covers samples k..k+n-1: a sample is still when some still window contains it
     mask = np.convolve(still_win.astype(np.int64), np.ones(n, dtype=np.int64))[: len(acc)] > 0
     trim = int(round(cfg.edge_trim_s * rate))
@@ -361,11 +379,17 @@ class BlockScale:
 
     values: FloatArray
     size: int
+    #: the sample that index 0 stands for (`from_sample`)
+    start: int = 0
 
     def __getitem__(self, k: npt.NDArray[np.int64]) -> FloatArray:
         """The values of samples k (M,): (M, 3)."""
-        out: FloatArray = self.values[np.asarray(k) // self.size]
+        out: FloatArray = self.values[(np.asarray(k) + self.start) // self.size]
         return out
+
+    def from_sample(self, i0: int) -> BlockScale:
+        """The same scale indexed from sample i0 (a slice of the samples starting there)."""
+        return replace(self, start=self.start + i0)
 
 
 def gyro_noise_scale(gyr: Stream, still: StillResult, block_s: float = NOISE_BLOCK_S) -> BlockScale | None:

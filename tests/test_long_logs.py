@@ -367,3 +367,22 @@ def test_a_rescaled_preintegration_has_the_digits_of_the_scaled_arrays() -> None
     np.testing.assert_array_equal(twice.l_inv, pre.l_inv / np.sqrt(1.7) / np.sqrt(0.35))
     np.testing.assert_array_equal(twice.noise_std, pre.noise_std * np.sqrt(1.7) * np.sqrt(0.35))
     assert twice.delta is pre.delta and twice.cov_base is pre.cov_base
+
+
+def test_a_preintegration_over_the_samples_a_block_spans_is_the_whole_logs() -> None:
+    """A block of epochs preintegrated over its own span of the gyro (`gyro._span`: the samples, the noise scale
+    from their first, the whole log's period) gives the digits of the same epochs over the whole log."""
+    from magcal_cli.detect import BlockScale
+    from magcal_cli.models.gyro import preintegrate
+
+    t, w = _gyro(3000, seed=5)
+    scale = BlockScale(np.random.default_rng(6).uniform(1.0, 3.0, (40, 3)), 100)
+    epochs = np.linspace(t[1200] + 1e-4, t[1900] - 1e-4, 50)
+    whole = preintegrate(t, w, epochs, np.full(3, 0.01), np.full(3, 0.02), scale=scale)
+    i0 = int(np.searchsorted(t, epochs[0], side="right")) - 1
+    i1 = int(np.searchsorted(t, epochs[-1], side="left")) + 1
+    part = preintegrate(t[i0:i1], w[i0:i1], epochs, np.full(3, 0.01), np.full(3, 0.02), scale=scale.from_sample(i0),
+                        dt=float(np.median(np.diff(t))))
+    for name in ("delta", "d_bias", "cov", "l_inv"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(whole, name))
+    assert scale.from_sample(i0)[np.arange(3)].tolist() == scale[i0 + np.arange(3)].tolist()

@@ -171,7 +171,8 @@ def broken_intervals(epochs: FloatArray, windows: tuple[tuple[float, float], ...
 
 def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: FloatArray,
                  noise_std: FloatArray, where: str = "gyro", scale_jacobian: bool = False,
-                 breaks: tuple[tuple[float, float], ...] = (), scale: BlockScale | None = None) -> Preintegrated:
+                 breaks: tuple[tuple[float, float], ...] = (), scale: BlockScale | None = None,
+                 dt: float | None = None) -> Preintegrated:
     """Preintegrate gyro samples gyr (N, 3) rad/s at t_imu (N,) between consecutive epochs (K,) s.
 
     noise_std (3,) is the per-sample white-noise std (rad/s) at the nominal IMU period dt; a piece of
@@ -185,14 +186,15 @@ def preintegrate(t_imu: FloatArray, gyr: FloatArray, epochs: FloatArray, bias: F
     rotation vector: the scale acts as a per-sample bias diag(w_j) s; effects/gyro_scale.py).
     `breaks`: time windows the gyro did not measure (Problem.unmeasured); an interval overlapping one carries no
     gyro factor (L^-1 = 0) and an orientation-unknown covariance (pi^2 rad^2) for the filters. `scale` (per sample, 3)
-    multiplies each sample's noise std (a flight's vibration, Problem.gyr_scale; None: 1).
+    multiplies each sample's noise std (a flight's vibration, Problem.gyr_scale; None: 1). `dt`: the nominal IMU
+    period (None: the median spacing of `t_imu`; a slice of a log's samples passes the whole log's).
     """
     if epochs.size < 2 or epochs[0] < t_imu[0] or np.any(np.diff(epochs) <= 0.0):
         msg = (f"{where}: preintegration needs at least two increasing magnetometer epochs inside the IMU "
                "time span; check the log's time stamps")
         raise InsufficientDataError(msg)
     k = epochs.size - 1
-    dt = float(np.median(np.diff(t_imu)))
+    dt = float(np.median(np.diff(t_imu))) if dt is None else dt
     delta = np.broadcast_to(np.eye(3), (k, 3, 3)).copy()
     d_bias = np.zeros((k, 3, 3))
     cov = np.zeros((k, 3, 3))
@@ -241,11 +243,24 @@ def preintegrate_log(problem: Problem, epochs: FloatArray, bias: FloatArray, noi
         return preintegrate(problem.gyr.t, problem.gyr.xyz, epochs, bias, noise_std, where, scale_jacobian,
                             problem.unmeasured, problem.gyr_scale)
     parts = []
+    dt = float(np.median(np.diff(problem.gyr.t)))
     for g0, g1, lo, hi in _group_blocks(groups):
-        fine = preintegrate(problem.gyr.t, problem.gyr.xyz, groups.t[lo:hi + 1], bias, noise_std, where,
-                            scale_jacobian, problem.unmeasured, problem.gyr_scale)
+        i0, t_imu, gyr = _span(problem, groups.t[lo], groups.t[hi])
+        scale = None if problem.gyr_scale is None else problem.gyr_scale.from_sample(i0)
+        fine = preintegrate(t_imu, gyr, groups.t[lo:hi + 1], bias, noise_std, where, scale_jacobian,
+                            problem.unmeasured, scale, dt)
         parts.append(_compose(fine, groups.start[g0:g1 + 1] - lo, g1 < groups.counts.size))
     return _joined(parts, epochs, bias, noise_std, where)
+
+
+def _span(problem: Problem, t0: float, t1: float) -> tuple[int, FloatArray, FloatArray]:
+    """The gyro samples a block of readings from t0 to t1 integrates over: the first one's index, their stamps and
+    rates (float64). A block's own, not the log's: each block's pieces were cut from every IMU stamp, and its rates
+    read from the whole log (issue 39). The same samples, so the same digits."""
+    t = problem.gyr.t
+    i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
+    i1 = int(np.searchsorted(t, t1, side="left")) + 1
+    return i0, t[i0:i1], problem.gyr.stored[i0:i1].astype(np.float64)
 
 
 def preintegrate_epochs(problem: Problem, ep: Epochs, bias: FloatArray, noise_std: FloatArray, where: str = "gyro",
@@ -276,7 +291,8 @@ def group_rotations(problem: Problem, groups: Groups, bias: FloatArray) -> Float
     """Each reading's rotation dR_kj (n, 3, 3) from its group's first reading, the gyro integrated with `bias`."""
     out = np.broadcast_to(np.eye(3), (groups.t.size, 3, 3)).copy()
     for g0, g1, lo, hi in _group_blocks(groups):
-        fine = rotations(problem.gyr.t, problem.gyr.xyz, groups.t[lo:hi + 1], bias)
+        _, t_imu, gyr = _span(problem, groups.t[lo], groups.t[hi])
+        fine = rotations(t_imu, gyr, groups.t[lo:hi + 1], bias)
         start, n_g = groups.start[g0:g1] - lo, groups.counts[g0:g1]
         for m in range(1, int(n_g.max())):
             at = start[n_g > m] + m
