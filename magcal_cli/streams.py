@@ -98,9 +98,10 @@ def _compact(a: npt.ArrayLike) -> Samples:
     if a64.size < COMPACT_MIN:
         return a64
     head = a64.reshape(-1)[:256]
-    if not np.array_equal(head.astype(np.float32), head):        # most float64 data fail here, at no cost
-        return a64
-    a32 = a64.astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):           # beyond float32's range: inf, not equal, kept
+        if not np.array_equal(head.astype(np.float32), head):    # most float64 data fail here, at no cost
+            return a64
+        a32 = a64.astype(np.float32)
     if not np.array_equal(a32, a64):                            # NaN too: kept in float64, as it came
         return a64
     a32.flags.writeable = False

@@ -329,6 +329,7 @@ def test_a_stream_holds_float32_samples_compact_and_reads_them_as_float64() -> N
     same float64 digits; `replace` and `between` keep the one compact array; samples float32 cannot hold exactly
     (or NaN) stay float64, as given."""
     import pickle
+    import warnings
     from dataclasses import replace
 
     rng = np.random.default_rng(3)
@@ -353,6 +354,11 @@ def test_a_stream_holds_float32_samples_compact_and_reads_them_as_float64() -> N
     gap = logged.copy()
     gap[7] = np.nan
     assert Stream(Kind.GYROSCOPE, "g", t, gap, "test", "rad/s").stored.dtype == np.float64
+    huge = logged.copy()
+    huge[-1, 0] = 1e300                                        # a corrupt value beyond float32: no warning, float64
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert Stream(Kind.GYROSCOPE, "g", t, huge, "test", "rad/s").stored.dtype == np.float64
 
 
 def test_a_rescaled_preintegration_has_the_digits_of_the_scaled_arrays() -> None:
