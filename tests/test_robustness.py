@@ -613,3 +613,26 @@ def test_negative_real_logs(runner: CliRunner, tmp_path: Path, realdata: Path, n
     path = realdata / "ardupilot" / name
     assert one_error(fit(runner, path, tmp_path / "o", *args)) == message.format(path=path)
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("how", ["exec", "set_name"])
+def test_a_ctrl_c_python_remembers_or_wraps_still_exits_130(tmp_path: Path, how: str) -> None:
+    """Ctrl-C landing while a module imports on first use: inside exec() of a string (a dataclass being made), which
+    makes CPython kill itself with SIGINT at exit (-2), or inside a class's __set_name__, which wraps it in a
+    RuntimeError (an internal error, 123). Both are the interrupt: exit 130, one line, nothing written."""
+    raise_it = ("exec('raise KeyboardInterrupt')" if how == "exec" else
+                "type('T', (), {'f': type('D', (), {'__set_name__': lambda *a: exec('raise KeyboardInterrupt')})()})")
+    script = (f"import sys\nfrom magcal_cli import pipeline\n"
+              f"def interrupted(*a, **k):\n    {raise_it}\n"
+              f"pipeline.calibrate = interrupted\n"
+              f"from magcal_cli.cli.main import main\nsys.argv = ['magcal', 'fit', sys.argv[1], '-o', sys.argv[2]]\n"
+              f"main()\n")
+    (tmp_path / "interrupted_run.py").write_text(script)
+    out = tmp_path / "out"
+    # run as `python -m`, as `magcal` runs: with -c, CPython exits from its SystemExit handler before it looks
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, "-m", "interrupted_run", str(ROOT / "sample_logs" / "handheld.bin"),
+                           str(out)], capture_output=True, text=True, timeout=120, check=False, env=env, cwd=tmp_path)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines() == ["Error: interrupted; outputs not yet renamed into place were discarded."]
+    assert not out.exists() or not any(out.iterdir())

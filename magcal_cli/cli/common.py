@@ -17,6 +17,9 @@ from magcal_cli.writers import fitrun
 
 F = TypeVar("F", bound=Callable[..., Any])
 CONTEXT = {"help_option_names": ["-h", "--help"], "max_content_width": 100}
+#: the exit code of a run stopped by Ctrl-C (spec/cli.md), and what it says
+INTERRUPTED = 130
+INTERRUPTED_MESSAGE = "Error: interrupted; outputs not yet renamed into place were discarded."
 EXIT_CODES = ("Exit codes: 0 success; 1 the input could not be used (unreadable, truncated or unsupported log, "
               "missing stream, too little motion, no convergence); 2 usage error (a bad option, a stream id the "
               "log does not have, an output that exists or is a file where a folder belongs); 3 a quality gate "
@@ -189,8 +192,8 @@ def handle_errors(func: F) -> F:
             click.echo(f"Error: {exc}", err=True)
             ctx.exit(3)
         except KeyboardInterrupt:
-            click.echo("Error: interrupted; outputs not yet renamed into place were discarded.", err=True)
-            ctx.exit(130)
+            click.echo(INTERRUPTED_MESSAGE, err=True)
+            ctx.exit(INTERRUPTED)
         except (click.ClickException, click.exceptions.Exit, BrokenPipeError):
             raise                       # click's main: a closed stdout (| head) exits 1 quietly (and main())
         except OSError as exc:
@@ -206,13 +209,29 @@ def handle_errors(func: F) -> F:
 
 
 def internal_error(ctx: click.Context, exc: BaseException) -> None:
-    """A bug: one line (the traceback with -v), exit 123."""
+    """A bug: one line (the traceback with -v), exit 123; a Ctrl-C that Python wrapped in another error (one
+    landing in a class's `__set_name__` while a module imports on first use) is the interrupt it was, exit 130."""
+    if _caused_by_interrupt(exc):
+        click.echo(INTERRUPTED_MESSAGE, err=True)
+        ctx.exit(INTERRUPTED)
     if ctx.obj.get("verbose"):
         traceback.print_exception(exc, file=sys.stderr)
     click.echo(f"Error: internal error ({type(exc).__name__}: {exc}). This is a bug in magcal; please "
                "report it with the command and log" + ("" if ctx.obj.get("verbose") else
                                                          "; run with -v for the traceback") + ".", err=True)
     ctx.exit(123)
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in `exc`'s chain of causes and contexts."""
+    seen: set[int] = set()
+    at: BaseException | None = exc
+    while at is not None and id(at) not in seen:
+        if isinstance(at, KeyboardInterrupt):
+            return True
+        seen.add(id(at))
+        at = at.__cause__ or at.__context__
+    return False
 
 
 def verbosity(func: F) -> F:
