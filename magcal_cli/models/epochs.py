@@ -1,7 +1,8 @@
 """What every trajectory-based estimator (joint MAP, the EKF baselines) prepares alike: one magnetometer's epochs
 with the accelerometer interpolated onto them, and the start noise levels.
 
-More readings than MAX_EPOCHS (or faster than MAX_EPOCH_RATE_HZ) are kept in groups for the joint MAP: a state at
+More readings than MAX_EPOCHS (or faster than MAX_EPOCH_RATE_HZ) are kept in groups for the joint MAP (of at most
+GROUP_MAX readings while the epochs stay below GROUPED_EPOCHS_FACTOR x MAX_EPOCHS): a state at
 each group's first reading, the group's mean reading as its observation, and the gyro preintegrated to every
 reading of the group to say what that mean predicts (gyro.Within, mag.mag_factor, accel.accel_factor). The EKF
 baselines take every k-th reading.
@@ -23,6 +24,12 @@ from magcal_cli.streams import FloatArray, Stream
 #: at most this many epochs per magnetometer, at most this epoch rate (else k readings per epoch, or every k-th)
 MAX_EPOCHS = 60_000
 MAX_EPOCH_RATE_HZ = 100.0
+#: readings averaged per epoch are at most GROUP_MAX until the epochs reach GROUPED_EPOCHS_FACTOR x MAX_EPOCHS:
+#: longer groups of a flight's readings, whose residuals are correlated over tens of ms, moved the 120-min fit 0.34
+#: std from a fit on every reading (groups of 3: 0.10), and 120 000 states fit the 1 GB a two-hour flight is given
+#: (issue 39)
+GROUP_MAX = 3
+GROUPED_EPOCHS_FACTOR = 2
 MIN_EPOCHS = 50
 #: without still segments the gyro noise starts at the quietest-window level divided by this
 GYRO_START_DIVISOR = 10.0
@@ -104,7 +111,8 @@ class Noise:
 def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int | None = None,
                average: bool = False) -> Epochs:
     """The magnetometer readings inside the IMU span, the accelerometer linearly interpolated onto them; beyond
-    `max_epochs` or MAX_EPOCH_RATE_HZ, k readings averaged per epoch (`average`, the joint MAP) or every k-th."""
+    `max_epochs` or MAX_EPOCH_RATE_HZ, k readings averaged per epoch (`average`, the joint MAP) or every k-th
+    (`readings_per_epoch`)."""
     max_epochs = MAX_EPOCHS if max_epochs is None else max_epochs
     t_imu = problem.acc.t
     index = np.flatnonzero((mag.t >= t_imu[0]) & (mag.t <= t_imu[-1]))
@@ -114,7 +122,7 @@ def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int | No
         index = index[np.concatenate([[True], np.diff(mag.t[index]) > 0.01 * dt])]
     t = mag.t[index]
     rate = 1.0 / float(np.median(np.diff(t))) if t.size > 1 else 0.0
-    step = max(int(np.ceil(t.size / max_epochs)), int(np.ceil(rate / MAX_EPOCH_RATE_HZ))) if t.size else 1
+    step = readings_per_epoch(t.size, rate, max_epochs, average)
     if step > 1 and average:
         return _grouped(problem, mag, scale, index, step, rate)
     if step > 1:
@@ -126,6 +134,18 @@ def epochs_for(problem: Problem, mag: Stream, scale: float, max_epochs: int | No
     _enough(problem, mag, t.size)
     acc, factor, j, w = _acc_at(problem, t)
     return Epochs(mag.id, t, mag.xyz[index] / scale, acc, factor, scale, tuple(notes), index, (j, w))
+
+
+def readings_per_epoch(n: int, rate: float, max_epochs: int = MAX_EPOCHS, average: bool = False) -> int:
+    """k: every k-th of n readings at `rate` Hz taken, or k averaged per epoch (`average`), so that there are at most
+    `max_epochs` epochs and at most MAX_EPOCH_RATE_HZ; averaged groups stay at GROUP_MAX readings up to
+    GROUPED_EPOCHS_FACTOR x `max_epochs` epochs."""
+    if not n:
+        return 1
+    per = int(np.ceil(n / max_epochs))
+    if average and per > GROUP_MAX:
+        per = max(GROUP_MAX, int(np.ceil(n / (GROUPED_EPOCHS_FACTOR * max_epochs))))
+    return max(per, int(np.ceil(rate / MAX_EPOCH_RATE_HZ)))
 
 
 def _enough(problem: Problem, mag: Stream, k: int) -> None:

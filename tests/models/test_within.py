@@ -210,3 +210,16 @@ def test_reading_residuals_are_each_readings_own() -> None:
                           for k in range(ep.t.size)])
     got = reading_residuals(problem, g, g.mean(own), states, d, m_n, bias)
     np.testing.assert_allclose(got, own, atol=1e-12)
+
+
+@pytest.mark.parametrize(("n", "rate", "average", "k"), [
+    (60_000, 50.0, True, 1), (60_001, 50.0, True, 2), (180_000, 50.0, True, 3),     # an hour at 50 Hz: threes
+    (360_000, 50.0, True, 3), (360_001, 50.0, True, 4), (540_000, 50.0, True, 5),   # up to 120 000 epochs, then more
+    (360_000, 50.0, False, 6), (40_000, 286.0, True, 3), (40_000, 286.0, False, 3), (0, 0.0, True, 1)])
+def test_readings_per_epoch_groups_of_three_up_to_twice_the_epochs(n: int, rate: float, average: bool,
+                                                                   k: int) -> None:
+    """Averaged groups stay at 3 readings until 120 000 epochs (longer ones moved a 2-hour fit 0.34 std from full
+    resolution), beyond which they grow; every k-th reading (the EKFs) keeps 60 000 epochs; 100 Hz at most."""
+    from magcal_cli.models.epochs import readings_per_epoch
+
+    assert readings_per_epoch(n, rate, average=average) == k
