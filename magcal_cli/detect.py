@@ -60,7 +60,7 @@ class StillResult:
     mask: npt.NDArray[np.bool_]
 
 
-#: samples per block of `_moving`'s running sums: the whole log's sums and their temporaries were ten arrays the size
+#: samples per block of `_window_sums`'s running sums: the whole log's sums and their temporaries were ten arrays the size
 #: of the IMU at once (0.7 GB for two hours at 400 Hz, issue 39)
 MOVING_BLOCK = 1 << 16
 
@@ -89,28 +89,20 @@ def _window_sums(x: FloatArray, n: int) -> Iterator[tuple[int, int, FloatArray, 
         tail1, tail2 = c1[-(n + 1):], c2[-(n + 1):]
 
 
-def _moving(x: FloatArray, n: int) -> tuple[FloatArray, FloatArray]:
-    """Mean and variance (ddof=1) over windows of n samples; entry k covers x[k:k+n] (the mean of x - median(x))."""
-    count = max(x.shape[0] - n + 1, 0)
-    mean, var = np.empty((count, x.shape[1])), np.empty((count, x.shape[1]))
-    for k0, k1, m, v in _window_stats(x, n):
-        mean[k0:k1 + 1], var[k0:k1 + 1] = m, v
-    return mean, var
-
-
 def _window_stats(x: FloatArray, n: int) -> Iterator[tuple[int, int, FloatArray, FloatArray]]:
-    """`_moving`'s means and variances of the windows k0..k1, a block at a time (its digits; the detector judges each
-    block and keeps booleans, not two log-sized arrays per sensor, issue 39)."""
+    """Mean and variance (ddof=1) over the windows k0..k1 of n samples, a block at a time: window k covers x[k:k+n]
+    (the mean of x - median(x)). The detector judges each block and keeps booleans, not log-sized statistics
+    (issue 39)."""
     for k0, k1, s1, s2 in _window_sums(x, n):
         mean = s1 / n
         yield k0, k1, mean, np.maximum(s2 - s1 * mean, 0.0) / (n - 1)
 
 
 def _moving_var(x: FloatArray, n: int) -> FloatArray:
-    """`_moving`'s variances alone, to the same digits, without holding the means (a log-sized array)."""
+    """Every window's variance (`_window_stats`), without holding the means (a log-sized array)."""
     var = np.empty((max(x.shape[0] - n + 1, 0), x.shape[1]))
-    for k0, k1, s1, s2 in _window_sums(x, n):
-        var[k0:k1 + 1] = np.maximum(s2 - s1 * (s1 / n), 0.0) / (n - 1)
+    for k0, k1, _, v in _window_stats(x, n):
+        var[k0:k1 + 1] = v
     return var
 
 

@@ -112,7 +112,10 @@ def test_still_windows_a_block_at_a_time_are_the_whole_log_sums(total: int, n: i
     c1 = np.concatenate([np.zeros((1, 3)), np.cumsum(y, axis=0)])
     c2 = np.concatenate([np.zeros((1, 3)), np.cumsum(y * y, axis=0)])
     s1, s2 = c1[n:] - c1[:-n], c2[n:] - c2[:-n]
-    mean, var = detect._moving(x, n)
+    count = max(total - n + 1, 0)
+    mean, var = np.full((count, 3), np.nan), np.full((count, 3), np.nan)
+    for k0, k1, m, v in detect._window_stats(x, n):
+        mean[k0:k1 + 1], var[k0:k1 + 1] = m, v
     assert np.array_equal(mean, s1 / n)
     assert np.array_equal(var, np.maximum(s2 - s1 * (s1 / n), 0.0) / (n - 1))
 
@@ -195,7 +198,7 @@ def test_the_noise_estimate_is_its_definition(n: int) -> None:
     if n > 10:
         x[7, 2] = np.nan
     w, q = min(11, n), 0.1
-    _, var = detect._moving(x, w)
+    var = detect._moving_var(x, w)
     want = np.sqrt(np.quantile(var, q, axis=0) * (w - 1) / chi2_ppf(q, w - 1))
     d2 = np.diff(x, n=2, axis=0)
     want = np.minimum(want, 1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0))

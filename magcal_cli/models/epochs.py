@@ -55,6 +55,11 @@ class Groups:
         """Readings per epoch (K,)."""
         return np.diff(self.start)
 
+    @property
+    def epoch_of(self) -> npt.NDArray[np.int64]:
+        """The epoch each reading belongs to (n,)."""
+        return np.repeat(np.arange(self.counts.size), self.counts)
+
     def mean(self, x: FloatArray) -> FloatArray:
         """Each epoch's mean of rows x (n, ...) of its readings."""
         out: FloatArray = np.add.reduceat(x, self.start[:-1], axis=0)
@@ -186,7 +191,7 @@ def _grouped(problem: Problem, mag: Stream, scale: float, index: npt.NDArray[np.
     acc, _, j, w = _acc_at(problem, t)
     # the mean is sum_i c_i a_i over the IMU samples the group's readings interpolate (readings faster than the IMU
     # share samples): its noise std is sqrt(sum_i c_i^2) of one sample's
-    group = np.repeat(np.arange(k), groups.counts)
+    group = groups.epoch_of
     key = np.concatenate([group * (problem.acc.t.size + 1) + j, group * (problem.acc.t.size + 1) + j + 1])
     _, at = np.unique(key, return_inverse=True)
     coef = np.bincount(at.reshape(-1), np.concatenate([1.0 - w, w]) / np.tile(groups.counts[group], 2))

@@ -37,7 +37,7 @@ def reading_residuals(problem: Problem, groups: Groups, mean_residual: FloatArra
     """Each reading's residual (n, 3), from its group's mean residual (K, 3) and how the reading and its
     prediction D dR_kj^T u_k depart from their group's means (the gyro integrated with the fitted `bias`): what
     the report calls the model residual, which the mean residual understates by sqrt(k) for white noise."""
-    k_of = np.repeat(np.arange(groups.counts.size), groups.counts)
+    k_of = groups.epoch_of
     v = np.einsum("nji,nj->ni", group_rotations(problem, groups, bias), (states.transpose(0, 2, 1) @ m_n)[k_of])
     out: FloatArray = groups.y - groups.mean(groups.y)[k_of] - (v - groups.mean(v)[k_of]) @ d.T
     out += mean_residual[k_of]
