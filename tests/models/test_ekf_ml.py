@@ -23,7 +23,7 @@ def short() -> ekf.Prepared:
     return truncated(ekf.prepare(select_problem(sim.recording, Config()), sim.recording.streams[2]), 400)
 
 
-def _numeric_gradient(batch: ekf.Batch, theta: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+def _numeric_gradient(batch: ekf.Batch, theta: np.ndarray, eps: float = 1e-5) -> np.ndarray:
     """Central differences of the negative log-likelihood, one value pass per parameter and side."""
     out = np.zeros_like(theta)
     for c in range(theta.shape[1]):
