@@ -395,3 +395,50 @@ def test_a_preintegration_over_the_samples_a_block_spans_is_the_whole_logs() -> 
     for name in ("delta", "d_bias", "cov", "l_inv"):
         np.testing.assert_array_equal(getattr(part, name), getattr(whole, name))
     assert scale.from_sample(i0)[np.arange(3)].tolist() == scale[i0 + np.arange(3)].tolist()
+
+
+def test_an_imu_logged_in_float32_is_read_in_float32_with_the_same_values() -> None:
+    """`logged_columns` keeps float32 columns without a multiplier in float32 (the stream's width: no float64 copy
+    beside it), with `stack_columns`'s values; scaled or integer columns stay float64."""
+    from magcal_cli.readers.dataflash.format import MessageFormat, Table
+    from magcal_cli.readers.dataflash.streams import logged_columns, stack_columns
+
+    rng = np.random.default_rng(3)
+    cols = {c: rng.normal(0, 9, 50).astype(np.float32) for c in ("AccX", "AccY", "AccZ")}
+    cols["C"] = rng.integers(-900, 900, 50).astype(np.int16)
+    table = Table(MessageFormat(1, "IMU", 3 + 12 + 2, "fffc", ("AccX", "AccY", "AccZ", "C")), np.arange(50), cols)
+    got = logged_columns(table, ("AccX", "AccY", "AccZ"))
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got.astype(np.float64), stack_columns(table, ("AccX", "AccY", "AccZ")))
+    scaled = logged_columns(table, ("AccX", "C"))                # 'c' is centi-units: a multiplier, so float64
+    assert scaled.dtype == np.float64
+    np.testing.assert_array_equal(scaled, stack_columns(table, ("AccX", "C")))
+
+
+def test_cleaning_float32_samples_keeps_the_rows_float64_keeps() -> None:
+    """`sensor_rows` on an IMU held in float32 drops the rows, with the notes, it drops from the same values in float64:
+    beyond the limits, a vanished specific force, a saturated axis (its walls found in float64 arithmetic)."""
+    from magcal_cli.readers.checks import sensor_rows
+
+    t, v = _messy_imu()
+    ok = np.isfinite(t) & np.all(np.isfinite(v), axis=1)
+    t, v = t[ok], v[ok].astype(np.float32).astype(np.float64)
+    v[1000:1030, 4] = np.float32(v[:, 4].max())
+    kinds = (Kind.ACCELEROMETER, Kind.GYROSCOPE)
+    want = sensor_rows(kinds, t, [v[:, :3].copy(), v[:, 3:].copy()], "IMU[0]")
+    got = sensor_rows(kinds, t, [v[:, :3].astype(np.float32), v[:, 3:].astype(np.float32)], "IMU[0]")
+    assert want[1] is not None and len(want[2]) >= 3
+    assert got[2] == want[2]
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_the_walls_of_a_float32_axis_are_those_of_its_float64_values() -> None:
+    """`_walls` judges a float32 axis in float64 arithmetic: readings at float32(0.96), just below the band's edge
+    0.96 in float64 but on it in float32, would count inside the band and hide the pile-up at the wall."""
+    from magcal_cli.readers.checks import _walls
+
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-0.9, 0.9, 4000)
+    x[:30], x[30], x[31:39], x[39:42] = 1.0, -1.0, np.linspace(0.961, 0.99, 8), np.float32(0.96)
+    x = x.astype(np.float32)
+    assert _walls(x) == _walls(x.astype(np.float64)) == [1.0]

@@ -136,6 +136,7 @@ def _walls(x: FloatArray) -> list[float]:
     least = max(SATURATED_MIN, SATURATED_SHARE * x.size)
     if not span > 0 or max(np.count_nonzero(x == hi), np.count_nonzero(x == lo)) < least:
         return []                       # no pile-up at either end: skip the sort below (0.3 s a 100 MB bag)
+    x = np.asarray(x, dtype=np.float64)     # a float32 IMU's samples (readers keep their width): float64 arithmetic
     distinct = np.unique(x)
     band = max(0.02 * span, 5.0 * float(np.min(np.diff(distinct))))
     out = []
@@ -188,9 +189,11 @@ def sensor_rows(kinds: tuple[Kind, ...], t: FloatArray, blocks: Sequence[FloatAr
     for kind, b in checked:
         if kind is Kind.GYROSCOPE:                     # a quantised gyro at rest may read exactly zero
             continue
-        norm = np.linalg.norm(b, axis=1)
-        floor = VANISHED_SHARE * float(np.median(norm)) if kind is Kind.MAGNETOMETER and len(norm) else 0.0
-        vanished = (norm == 0.0) | (norm < floor)
+        if kind is Kind.MAGNETOMETER:
+            norm = np.linalg.norm(b, axis=1)
+            vanished = (norm == 0.0) | (norm < (VANISHED_SHARE * float(np.median(norm)) if len(norm) else 0.0))
+        else:                                          # exact in any width (a float32 IMU's squares may underflow)
+            vanished = ~np.any(b, axis=1)
         if not vanished.all():                         # all zero: a dead sensor, which fit reports as such
             gone |= vanished
     if gone.any():

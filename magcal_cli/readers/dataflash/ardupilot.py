@@ -29,6 +29,7 @@ from magcal_cli.readers.dataflash.streams import (
     instance_tag,
     instances,
     int_factor,
+    logged_columns,
     stack_columns,
     time_of,
 )
@@ -90,7 +91,7 @@ def _imu_streams(path: Path, raw: RawLog, clock: Clock, notes: list[str]) -> lis
         t = time_of(table, clock)
         src = f"{path.name}#{f.name}{instance_tag(f, inst)}"
         # one array per kind, as the streams hold them: no (N, 6) array to split (issue 39)
-        values = (stack_columns(table, ("AccX", "AccY", "AccZ")), stack_columns(table, ("GyrX", "GyrY", "GyrZ")))
+        values = (logged_columns(table, ("AccX", "AccY", "AccZ")), logged_columns(table, ("GyrX", "GyrY", "GyrZ")))
         out.append(Pending((Kind.ACCELEROMETER, Kind.GYROSCOPE), f"IMU[{inst}]", t, values, src + ".Acc/Gyr",
                            ("m/s^2", "rad/s")))
         temp = next((c for c in ("Temp", "T") if f.has(c)), None)

@@ -121,6 +121,12 @@ class Table:
         factor = 1.0 if self.prescaled else FORMAT_CHARS[self.fmt.char(column)][1]
         return values * factor if factor != 1.0 else values
 
+    def logged32(self, column: str) -> np.ndarray | None:
+        """The column as logged when that is float32 with no multiplier (an IMU's `f` fields), else None."""
+        values = self.columns[column]
+        plain = self.prescaled or FORMAT_CHARS[self.fmt.char(column)][1] == 1.0
+        return values if plain and isinstance(values, np.ndarray) and values.dtype == np.float32 else None
+
     def text(self, column: str) -> list[str]:
         """A string column decoded as UTF-8 (Latin-1 for invalid bytes), NUL-terminated."""
         out: list[str] = []
