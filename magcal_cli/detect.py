@@ -362,6 +362,8 @@ NOISE_BLOCK_S = 2.0
 FOURTH = np.array([1.0, -4.0, 6.0, -4.0, 1.0])
 #: with at least this much still data (s) its noise levels are the sensors' white noise (the estimators' floors)
 MIN_STILL_S = 2.0
+#: blocks of `gyro_noise_scale` judged at once
+NOISE_CHUNK = 256
 
 
 @dataclass(frozen=True, eq=False)
@@ -384,6 +386,13 @@ class BlockScale:
         return replace(self, start=self.start + i0)
 
 
+def _fourth(x: npt.ArrayLike) -> FloatArray:
+    """Normalised 4th differences of (M, 3) samples ('same' length, zero-padded at both ends) in float64."""
+    x64 = np.asarray(x, dtype=np.float64)
+    out: FloatArray = np.stack([np.convolve(x64[:, i], FOURTH, mode="same") for i in range(3)], axis=1)
+    return out / np.linalg.norm(FOURTH)
+
+
 def gyro_noise_scale(gyr: Stream, still: StillResult, block_s: float = NOISE_BLOCK_S) -> BlockScale | None:
     """Each gyro sample's white-noise std relative to the still level (3 axes), never below 1; None without MIN_STILL_S
     of still data (no rest level to compare with: the estimators then fit one level to the whole log).
@@ -393,14 +402,25 @@ def gyro_noise_scale(gyr: Stream, still: StillResult, block_s: float = NOISE_BLO
     measured from the gyro itself: the robust spread of its 4th differences, which cancel the smooth motion, over
     blocks of `block_s`, held over each block.
     """
-    x, level = gyr.xyz, still.gyr_noise
-    n = x.shape[0]
+    level, held, n = still.gyr_noise, gyr.stored, gyr.t.size
     if sum(s.end - s.start for s in still.segments) < MIN_STILL_S or n < 2 * FOURTH.size or not np.all(level > 0):
         return None
-    d = np.stack([np.convolve(x[:, i], FOURTH, mode="same") for i in range(3)], axis=1) / np.linalg.norm(FOURTH)
-    d[:2], d[-2:] = d[2], d[-3]                      # 'same' pads with zeros at both ends
     size = max(int(round(block_s * gyr.rate_hz)), 20)
     blocks = -(-n // size)
-    padded = np.concatenate([d, np.repeat(d[-1:], blocks * size - n, axis=0)]).reshape(blocks, size, 3)
-    spread = 1.4826 * np.median(np.abs(padded - np.median(padded, axis=1, keepdims=True)), axis=1)
+    # 'same' pads with zeros at the log's ends: its first two and last two differences are the nearest full ones
+    first, last = _fourth(held[:FOURTH.size])[2], _fourth(held[n - FOURTH.size:])[2]
+    spread = np.empty((blocks, 3))
+    half = FOURTH.size // 2
+    # NOISE_CHUNK blocks at a time, each with the two samples either side its differences need: the whole log's
+    # differences and their deviations were four hour-sized (N, 3) arrays, a 60-min flight's peak (issue 39). Every
+    # difference and every block's median are the same operations on the same samples: the same digits
+    for b0 in range(0, blocks, NOISE_CHUNK):
+        b1 = min(b0 + NOISE_CHUNK, blocks)
+        a, z = b0 * size, min(b1 * size, n)
+        lo = max(a - half, 0)
+        d = _fourth(held[lo:min(z + half, n)])[a - lo:a - lo + z - a]
+        d[:max(2 - a, 0)] = first
+        d[max(n - 2 - a, 0):] = last
+        padded = np.concatenate([d, np.repeat(last[None], (b1 - b0) * size - (z - a), axis=0)]).reshape(-1, size, 3)
+        spread[b0:b1] = 1.4826 * np.median(np.abs(padded - np.median(padded, axis=1, keepdims=True)), axis=1)
     return BlockScale(np.maximum(spread / level, 1.0), size)

@@ -397,6 +397,40 @@ def test_a_preintegration_over_the_samples_a_block_spans_is_the_whole_logs() -> 
     assert scale.from_sample(i0)[np.arange(3)].tolist() == scale[i0 + np.arange(3)].tolist()
 
 
+def _noise_scale_whole(x: np.ndarray, level: np.ndarray, size: int) -> np.ndarray:
+    """`detect.gyro_noise_scale`'s arithmetic on the whole log at once (its definition before issue 39's blocks)."""
+    from magcal_cli.detect import FOURTH
+
+    n = x.shape[0]
+    d = np.stack([np.convolve(x[:, i], FOURTH, mode="same") for i in range(3)], axis=1) / np.linalg.norm(FOURTH)
+    d[:2], d[-2:] = d[2], d[-3]
+    blocks = -(-n // size)
+    padded = np.concatenate([d, np.repeat(d[-1:], blocks * size - n, axis=0)]).reshape(blocks, size, 3)
+    spread = 1.4826 * np.median(np.abs(padded - np.median(padded, axis=1, keepdims=True)), axis=1)
+    return np.maximum(spread / level, 1.0)
+
+
+@pytest.mark.parametrize("n", [20 * 6, 20 * 6 + 1, 20 * 6 + 2, 20 * 6 + 3, 20 * 5 + 19, 37])
+@pytest.mark.parametrize("chunk", [1, 2, 256])
+def test_the_gyro_noise_scale_a_chunk_of_blocks_at_a_time_is_the_whole_logs(n: int, chunk: int,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """`gyro_noise_scale` judges NOISE_CHUNK blocks at a time from the float32 samples a stream holds: the digits of
+    the whole log's differences at once, whatever the chunk, with a last block or chunk of one to three samples."""
+    from magcal_cli import detect
+
+    monkeypatch.setattr(detect, "NOISE_CHUNK", chunk)
+    rng = np.random.default_rng(n)
+    t = np.arange(n) * 0.05
+    w = (np.cumsum(rng.normal(0, 0.02, (n, 3)), axis=0) + rng.normal(0, 0.01, (n, 3))).astype(np.float32)
+    gyr = Stream(Kind.GYROSCOPE, "g", t, w, "test", "rad/s")
+    level = np.array([0.004, 0.005, 0.006])
+    still = detect.StillResult((detect.Segment(0, n, 0.0, 3.0, np.zeros(3), np.zeros(3)),), level, level,
+                               np.zeros(3), np.ones(n, bool))
+    got = detect.gyro_noise_scale(gyr, still, block_s=1.0)                  # 20 samples per block
+    assert got is not None and got.size == 20
+    np.testing.assert_array_equal(got.values, _noise_scale_whole(w.astype(np.float64), level, 20))
+
+
 def test_an_imu_logged_in_float32_is_read_in_float32_with_the_same_values() -> None:
     """`logged_columns` keeps float32 columns without a multiplier in float32 (the stream's width: no float64 copy
     beside it), with `stack_columns`'s values; scaled or integer columns stay float64."""
