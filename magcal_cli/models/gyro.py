@@ -102,6 +102,11 @@ class Preintegrated:
                     old.__dict__.pop("_cm", None)
         return got
 
+    def drop_component_major(self) -> None:
+        """Let the component-major stacks go until a linearisation asks for them again."""
+        with _CM_LOCK:
+            self.__dict__.pop("_cm", None)
+
     def scaled(self, variance_factor: float) -> Preintegrated:
         """The same preintegration with its noise covariance multiplied by `variance_factor`."""
         return replace(self, noise_std=self.noise_std * np.sqrt(variance_factor),
