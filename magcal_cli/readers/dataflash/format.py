@@ -118,14 +118,18 @@ class Table:
                 values = np.asarray(self.columns[column], dtype=np.float64)
         except (ValueError, TypeError):        # text where a number belongs (a damaged FMT): NaN, dropped later
             values = np.array([_number(v) for v in self.columns[column]], dtype=np.float64)
-        factor = 1.0 if self.prescaled else FORMAT_CHARS[self.fmt.char(column)][1]
+        factor = self._factor(column)
         return values * factor if factor != 1.0 else values
 
     def logged32(self, column: str) -> np.ndarray | None:
         """The column as logged when that is float32 with no multiplier (an IMU's `f` fields), else None."""
         values = self.columns[column]
-        plain = self.prescaled or FORMAT_CHARS[self.fmt.char(column)][1] == 1.0
+        plain = self._factor(column) == 1.0
         return values if plain and isinstance(values, np.ndarray) and values.dtype == np.float32 else None
+
+    def _factor(self, column: str) -> float:
+        """The format character's built-in multiplier of a column (1 where the values come scaled)."""
+        return 1.0 if self.prescaled else FORMAT_CHARS[self.fmt.char(column)][1]
 
     def text(self, column: str) -> list[str]:
         """A string column decoded as UTF-8 (Latin-1 for invalid bytes), NUL-terminated."""

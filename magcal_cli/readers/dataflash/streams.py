@@ -125,11 +125,12 @@ def logged_columns(table: Table, names: tuple[str, ...]) -> FloatArray:
     """`stack_columns`, kept in float32 when every column was logged so (an IMU's `f` fields): the width a Stream
     holds them in, so an hour's IMU is never held in float64 beside its compact copy (issue 39: 69 MB of a 60-min
     flight's reading). Typed as what `Stream.values` reads back: the same values in float64."""
-    if not all(table.logged32(c) is not None for c in names):
+    logged = [table.logged32(c) for c in names]
+    if any(col is None for col in logged):
         return stack_columns(table, names)
     out = np.empty((len(table), len(names)), dtype=np.float32)
-    for i, c in enumerate(names):
-        out[:, i] = table.logged32(c)
+    for i, col in enumerate(logged):
+        out[:, i] = col
     return cast(FloatArray, out)
 
 
